@@ -1,0 +1,231 @@
+"""Configuration: one nested pydantic model, every constant of the method named and documented.
+
+Units are SI (metres, kilograms, seconds, radians) unless a field name says otherwise.
+Defaults come from ``../shared/DESIGN.md`` section 4 and the reference code's constants
+(``notes/reference-impl.md``); fields marked *calibrate* are engine specific and are measured
+for MuJoCo by the calibration script (docs/calibration.md, issue 3).
+
+YAML round trip: :func:`load_config` / :func:`dump_config`; ``ssp dump-config`` prints the defaults.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from ssp.errors import ConfigError
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, frozen=False)
+
+
+class PhysicsConfig(_Section):
+    """MuJoCo world settings (notes/engines.md section 8: stiff contacts are mandatory)."""
+
+    timestep: float = Field(0.005, gt=0, le=0.05, description="Simulation step dt, s.")
+    gravity: float = Field(9.81, gt=0, description="Gravity magnitude along -z, m/s^2.")
+    integrator: Literal["implicitfast", "implicit", "euler", "rk4"] = Field(
+        "implicitfast", description="MuJoCo integrator."
+    )
+    cone: Literal["elliptic", "pyramidal"] = Field(
+        "elliptic", description="Friction cone; elliptic makes efc_force[0] the normal force."
+    )
+    solref_timeconst_steps: float = Field(
+        2.0, gt=0, description="Contact solref time constant, in multiples of timestep (2 dt)."
+    )
+    solref_dampratio: float = Field(1.0, gt=0, description="Contact solref damping ratio.")
+    solimp: tuple[float, float, float, float, float] = Field(
+        (0.99, 0.999, 0.001, 0.5, 2.0),
+        description="Contact solimp (dmin, dmax, width m, midpoint, power): stiff contacts.",
+    )
+    torsional_friction: float = Field(0.005, ge=0, description="Torsional friction coefficient.")
+    rolling_friction: float = Field(0.0001, ge=0, description="Rolling friction coefficient.")
+    table_friction: float = Field(1.0, ge=0, description="Sliding friction of the table plane.")
+    solver_iterations: int = Field(100, ge=1, description="Constraint solver iterations.")
+    solver_tolerance: float = Field(1e-8, gt=0, description="Constraint solver tolerance.")
+    noslip_iterations: int = Field(0, ge=0, description="Noslip solver iterations (0 = off).")
+
+    @property
+    def solref(self) -> tuple[float, float]:
+        """MuJoCo (timeconst s, dampratio) for contacts."""
+        return (self.solref_timeconst_steps * self.timestep, self.solref_dampratio)
+
+
+class DecompositionConfig(_Section):
+    """Convex decomposition (CoACD out of process, cached; notes/engines.md section 3)."""
+
+    threshold: float = Field(0.05, gt=0, le=1, description="CoACD concavity threshold.")
+    max_convex_hull: int = Field(-1, description="CoACD hull cap (-1: no cap).")
+    preprocess_mode: Literal["auto", "on", "off"] = Field(
+        "off", description="CoACD manifold preprocessing; 'off' for watertight meshes."
+    )
+    resolution: int = Field(2000, ge=20, description="CoACD sampling resolution.")
+    seed: int = Field(0, description="CoACD random seed (determinism).")
+    timeout_s: float = Field(900.0, gt=0, description="Wall-clock cap per CoACD run, s.")
+    memory_limit_gb: float = Field(8.0, gt=0, description="Address-space cap per CoACD run, GiB.")
+    fallback_threshold: float = Field(
+        0.1, gt=0, le=1, description="Coarser CoACD threshold tried when the first run fails."
+    )
+    fallback_max_convex_hull: int = Field(16, description="Hull cap of the coarser retry.")
+    iou_samples: int = Field(
+        100_000, ge=1000, description="Monte Carlo points for the hull-vs-mesh volume IoU."
+    )
+
+
+class LibraryConfig(_Section):
+    """Object models: units checks, defaults for missing properties, samples."""
+
+    min_extent: float = Field(0.005, gt=0, description="Smallest plausible model extent, m.")
+    max_extent: float = Field(5.0, gt=0, description="Largest plausible model extent, m.")
+    default_density: float = Field(
+        700.0, gt=0, description="Density when a model gives neither mass nor density, kg/m^3."
+    )
+    default_friction: float = Field(1.0, ge=0, description="Sliding friction when not given.")
+    surface_spacing: float = Field(
+        0.003, gt=0, description="Target spacing of surface samples, m (reference: 3 mm voxels)."
+    )
+    max_surface_points: int = Field(20_000, ge=10, description="Cap on surface samples.")
+    interior_spacing: float = Field(
+        0.004, gt=0, description="Grid spacing of interior samples (overlap volume), m."
+    )
+    max_interior_points: int = Field(4000, ge=10, description="Cap on interior samples.")
+    sample_seed: int = Field(0, description="Seed of surface sampling (determinism).")
+    cache_dir: Path | None = Field(
+        None, description="Hull cache folder; default $SSP_CACHE_DIR or ~/.cache/ssp."
+    )
+    decomposition: DecompositionConfig = Field(default_factory=DecompositionConfig)
+
+    @model_validator(mode="after")
+    def _extents_ordered(self) -> LibraryConfig:
+        if self.min_extent >= self.max_extent:
+            raise ValueError("min_extent must be smaller than max_extent")
+        return self
+
+
+class ForcesConfig(_Section):
+    """Data-guiding forces (paper Eq. for f_pi and F, tau; DESIGN section 4)."""
+
+    max_distance: float = Field(
+        0.02, gt=0, description="d_t: correspondence cut-off of the point-pair kernel, m."
+    )
+    gravity_fraction: float = Field(
+        0.5, ge=0, description="f: peak data force F_max = f m g (proportional to mass)."
+    )
+
+
+class StabilityConfig(_Section):
+    """Stability term P_B = L(-s_B (a_t beta_t - a_B)) L(-s_B (a_R beta_R - a_B)) (Eq. 7)."""
+
+    steepness: float = Field(40.0, gt=0, description="sigma_B (calibrate).")
+    midpoint: float = Field(0.1, ge=0, description="alpha_B (calibrate).")
+    translation_weight: float = Field(1.0, ge=0, description="alpha_t.")
+    rotation_weight: float = Field(1.0, ge=0, description="alpha_R.")
+
+
+class CollisionConfig(_Section):
+    """Collision term P_C = L(-s_c (e_C - a_c)), e_C = d/eps_d * v_c/v_t (Eq. 8)."""
+
+    steepness: float = Field(2000.0, gt=0, description="sigma_c (calibrate).")
+    midpoint: float = Field(0.002, ge=0, description="alpha_c (calibrate).")
+
+
+class SupportConfig(_Section):
+    """Support term P_S = L(s_s sum_i F_S,i + a_s) (Eq. 9)."""
+
+    steepness: float = Field(0.5, ge=0, description="sigma_s.")
+    offset: float = Field(0.5, description="alpha_s.")
+
+
+class DataConfig(_Section):
+    """Data fitness P_D = L(s_d (c / C_max - a_d)) (Eq. 10)."""
+
+    steepness: float = Field(10.0, gt=0, description="sigma_d.")
+    midpoint: float = Field(0.36, description="alpha_d.")
+    c_max: float = Field(0.5, gt=0, le=1, description="C_max: fit fraction counted as full.")
+    inlier_radius: float = Field(
+        0.0037, gt=0, description="r_c: a surface sample is explained within this distance, m."
+    )
+
+
+class TransitionConfig(_Section):
+    """Transition term P_T = exp(-|dt|^2/2 s_t^2) exp(-dtheta^2/2 s_r^2) (Eq. 4)."""
+
+    sigma_translation: float = Field(0.01, gt=0, description="sigma_t, m.")
+    sigma_rotation: float = Field(math.radians(18.0), gt=0, description="sigma_r, rad (18 deg).")
+
+
+class TemporalConfig(_Section):
+    """Transition modes (paper section V-C)."""
+
+    static_translation: float = Field(0.0075, gt=0, description="Static below this motion, m.")
+    static_rotation: float = Field(
+        math.radians(5.0), gt=0, description="Static below this rotation, rad (5 deg)."
+    )
+
+
+class SearchConfig(_Section):
+    """Per-hypothesis simulation windows (Alg. 1, 3)."""
+
+    settle_with_forces: float = Field(0.45, ge=0, description="Window with data forces, s.")
+    settle_without_forces: float = Field(0.3, ge=0, description="Window without forces, s.")
+    hypotheses_per_object: int = Field(5, ge=1, description="k: hypotheses kept per object.")
+
+
+class SSPConfig(_Section):
+    """Every setting of ssp. Construct with defaults, from a dict, or from YAML."""
+
+    physics: PhysicsConfig = Field(default_factory=PhysicsConfig)
+    library: LibraryConfig = Field(default_factory=LibraryConfig)
+    forces: ForcesConfig = Field(default_factory=ForcesConfig)
+    stability: StabilityConfig = Field(default_factory=StabilityConfig)
+    collision: CollisionConfig = Field(default_factory=CollisionConfig)
+    support: SupportConfig = Field(default_factory=SupportConfig)
+    data: DataConfig = Field(default_factory=DataConfig)
+    transition: TransitionConfig = Field(default_factory=TransitionConfig)
+    temporal: TemporalConfig = Field(default_factory=TemporalConfig)
+    search: SearchConfig = Field(default_factory=SearchConfig)
+    seed: int = Field(0, description="Seed for everything random in ssp.")
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any] | None) -> SSPConfig:
+        """Validate a (possibly partial) nested dict; missing fields keep their defaults."""
+        try:
+            return cls.model_validate(data or {})
+        except ValidationError as exc:
+            raise ConfigError(f"invalid configuration:\n{exc}") from exc
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain nested dict (JSON/YAML types only)."""
+        return self.model_dump(mode="json")
+
+
+def load_config(path: str | Path) -> SSPConfig:
+    """Read a YAML file (partial files allowed) into an :class:`SSPConfig`."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ConfigError(f"cannot read config file {path}: {exc}") from exc
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path} is not valid YAML: {exc}") from exc
+    if data is not None and not isinstance(data, dict):
+        raise ConfigError(f"{path}: the top level must be a mapping of sections")
+    return SSPConfig.from_dict(data)
+
+
+def dump_config(config: SSPConfig, path: str | Path | None = None) -> str:
+    """YAML text of ``config`` (written to ``path`` when given), with a units header."""
+    text = (
+        "# ssp configuration. Units: metres, kilograms, seconds, radians.\n"
+        + yaml.safe_dump(config.to_dict(), sort_keys=False)
+    )
+    if path is not None:
+        Path(path).write_text(text)
+    return text

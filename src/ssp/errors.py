@@ -1,0 +1,46 @@
+"""Typed exceptions of ssp. Library code raises these; only the CLI turns them into messages."""
+
+from __future__ import annotations
+
+
+class SSPError(Exception):
+    """Base class of every error ssp raises on purpose."""
+
+
+class ConfigError(SSPError):
+    """A configuration file or value is invalid."""
+
+
+class ModelError(SSPError):
+    """An object model (mesh or its properties) cannot be used."""
+
+
+class ModelFileError(ModelError):
+    """A model file is missing or cannot be read."""
+
+
+class UnitsError(ModelError):
+    """A model's size shows it is not in metres (most often: it is in millimetres)."""
+
+
+class GeometryError(ModelError):
+    """A mesh is degenerate, not watertight after repair, or otherwise unusable."""
+
+
+class DecompositionError(ModelError):
+    """Convex decomposition failed (after every fallback)."""
+
+
+class UnknownObjectError(SSPError, KeyError):
+    """An object id or class name that the library or world does not know."""
+
+    def __str__(self) -> str:  # KeyError quotes its message; keep it readable
+        return str(self.args[0]) if self.args else "unknown object"
+
+
+class InvalidPoseError(SSPError, ValueError):
+    """A pose that is not a finite rigid transform (4x4, orthonormal rotation)."""
+
+
+class PhysicsError(SSPError):
+    """The physics engine failed (unstable simulation, bad state)."""

@@ -1,0 +1,92 @@
+"""Rigid transforms: 4x4 float64 poses named ``T_a_b`` (frame b expressed in frame a).
+
+Quaternions are ``(x, y, z, w)`` everywhere a quaternion is a plain array (files, ROS, TUM);
+MuJoCo's ``(w, x, y, z)`` order stays inside :mod:`ssp.physics`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ssp.errors import InvalidPoseError
+
+#: Largest deviation from orthonormality accepted (and silently re-orthonormalised).
+ORTHONORMAL_TOL = 1e-5
+
+
+def make_pose(R: np.ndarray | None = None, t: np.ndarray | None = None) -> np.ndarray:
+    """4x4 pose from a 3x3 rotation ``R`` and a translation ``t`` (3,) in metres."""
+    T = np.eye(4)
+    if R is not None:
+        T[:3, :3] = R
+    if t is not None:
+        T[:3, 3] = t
+    return T
+
+
+def invert(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid transform, (4, 4) or (n, 4, 4)."""
+    T = np.asarray(T, dtype=float)
+    R = T[..., :3, :3]
+    t = T[..., :3, 3]
+    out = np.zeros_like(T)
+    Rt = np.swapaxes(R, -1, -2)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, t)
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply pose ``T`` (4, 4) to ``points`` (n, 3)."""
+    return points @ T[:3, :3].T + T[:3, 3]
+
+
+def pose_from_xyz_quat(xyz: np.ndarray, quat_xyzw: np.ndarray) -> np.ndarray:
+    """Pose from a translation (m) and a quaternion ``(x, y, z, w)``."""
+    q = np.asarray(quat_xyzw, dtype=float)
+    if q.shape != (4,) or not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-9:
+        raise InvalidPoseError(f"quaternion must be 4 finite numbers, not all zero; got {q}")
+    return make_pose(Rotation.from_quat(q).as_matrix(), np.asarray(xyz, dtype=float))
+
+
+def quat_xyzw(T: np.ndarray) -> np.ndarray:
+    """Quaternion ``(x, y, z, w)`` of a pose's rotation, with w >= 0."""
+    q = Rotation.from_matrix(T[:3, :3]).as_quat()
+    return q if q[3] >= 0 else -q
+
+
+def rotation_angle(R: np.ndarray) -> float | np.ndarray:
+    """Angle (rad, in [0, pi]) of a rotation matrix (3, 3) or stack (n, 3, 3)."""
+    c = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
+    return np.arccos(np.clip(c, -1.0, 1.0))
+
+
+def validate_pose(T: np.ndarray, what: str = "pose") -> np.ndarray:
+    """Return ``T`` as a clean float64 rigid transform or raise :class:`InvalidPoseError`.
+
+    Rotations within :data:`ORTHONORMAL_TOL` of orthonormal are re-orthonormalised (SVD), so
+    poses read from text files with few digits are accepted; anything else is rejected.
+    """
+    try:
+        T = np.array(T, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise InvalidPoseError(f"{what}: not a numeric 4x4 array ({exc})") from exc
+    if T.shape != (4, 4):
+        raise InvalidPoseError(f"{what}: expected shape (4, 4), got {T.shape}")
+    if not np.all(np.isfinite(T)):
+        raise InvalidPoseError(f"{what}: contains NaN or infinite values")
+    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9):
+        raise InvalidPoseError(f"{what}: last row must be [0, 0, 0, 1], got {T[3]}")
+    R = T[:3, :3]
+    err = np.abs(R @ R.T - np.eye(3)).max()
+    if err > ORTHONORMAL_TOL or np.linalg.det(R) <= 0:
+        raise InvalidPoseError(
+            f"{what}: rotation is not orthonormal with det +1 (error {err:.2e}, "
+            f"det {np.linalg.det(R):.3f})"
+        )
+    if err > 1e-12:
+        U, _, Vt = np.linalg.svd(R)
+        T[:3, :3] = U @ Vt
+    return T
