@@ -124,7 +124,9 @@ class ObjectModel:
             "density_kg_m3": round(self.density, 1),
             "friction": self.friction,
             "center_of_mass_mm": [round(float(x) * 1000, 3) for x in self.center_of_mass],
-            "principal_inertia_kg_m2": [float(f"{x:.4g}") for x in np.linalg.eigvalsh(self.inertia)],
+            "principal_inertia_kg_m2": [
+                float(f"{x:.4g}") for x in np.linalg.eigvalsh(self.inertia)
+            ],
             "diameter_mm": round(self.diameter * 1000, 2),
             "surface_points": int(len(self.surface_points)),
             "interior_points": int(len(self.interior_points)),

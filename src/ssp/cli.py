@@ -1,0 +1,308 @@
+"""The ``ssp`` command line. The only module that prints; heavy imports happen inside commands."""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Callable
+from functools import wraps
+from pathlib import Path
+from typing import Any, TypeVar
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from ssp import __version__
+
+app = typer.Typer(
+    name="ssp",
+    help=(
+        "Sequential Scene Parsing: physically and temporally consistent object poses.\n\n"
+        "Examples:\n\n"
+        "  ssp models list                      # the built-in object models\n\n"
+        "  ssp models prepare path/to/meshes    # validate + convex-decompose a model folder\n\n"
+        "  ssp bench physics --out bench-out    # physics engine timings\n\n"
+        "  ssp dump-config > ssp.yaml           # every setting, with defaults"
+    ),
+    no_args_is_help=True,
+    rich_markup_mode="rich",
+    pretty_exceptions_enable=False,
+)
+models_app = typer.Typer(help="List, inspect and pre-compute object models.", no_args_is_help=True)
+bench_app = typer.Typer(help="Benchmarks; results are written to files.", no_args_is_help=True)
+app.add_typer(models_app, name="models")
+app.add_typer(bench_app, name="bench")
+
+console = Console()
+err_console = Console(stderr=True)
+_state = {"debug": False}
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+def _friendly(fn: F) -> F:
+    """Turn ssp's typed errors into a one-line message and exit code 1 (traceback with --debug)."""
+
+    @wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        from ssp.errors import SSPError
+
+        try:
+            return fn(*args, **kwargs)
+        except SSPError as exc:
+            if _state["debug"]:
+                raise
+            err_console.print(f"[bold red]error:[/] {exc}")
+            raise typer.Exit(1) from None
+
+    return wrapper  # type: ignore[return-value]
+
+
+def _version_callback(value: bool) -> None:
+    if value:
+        import mujoco
+
+        console.print(f"ssp {__version__} (mujoco {mujoco.__version__})")
+        raise typer.Exit()
+
+
+@app.callback()
+def main(
+    version: bool = typer.Option(
+        False, "--version", callback=_version_callback, is_eager=True, help="Show the version."
+    ),
+    verbose: int = typer.Option(0, "--verbose", "-v", count=True, help="More log output."),
+    debug: bool = typer.Option(False, "--debug", help="Show tracebacks on errors."),
+) -> None:
+    """Sequential Scene Parsing."""
+    _state["debug"] = debug
+    level = logging.WARNING if verbose == 0 else logging.INFO if verbose == 1 else logging.DEBUG
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+
+
+ConfigOption = typer.Option(None, "--config", "-c", help="YAML config file (partial is fine).")
+
+
+def _config(path: Path | None):
+    from ssp.config import SSPConfig, load_config
+
+    return load_config(path) if path else SSPConfig()
+
+
+@app.command("dump-config")
+@_friendly
+def dump_config_cmd(
+    config: Path | None = ConfigOption,
+    out: Path | None = typer.Option(None, "--out", "-o", help="Write to this file."),
+) -> None:
+    """Print the effective configuration as YAML (defaults, or --config merged over them)."""
+    from ssp.config import dump_config
+
+    text = dump_config(_config(config), out)
+    if out is None:
+        print(text, end="")
+    else:
+        console.print(f"wrote {out}")
+
+
+def _library(models: Path | None, config: Path | None):
+    """The built-in library, or the model folder ``models``, with a progress bar."""
+    from rich.progress import Progress
+
+    from ssp.library import ObjectLibrary
+
+    cfg = _config(config).library
+    if models is None:
+        return ObjectLibrary.builtin(cfg)
+    with Progress(console=err_console, transient=True) as progress:
+        task = progress.add_task(f"loading {models}", total=None)
+        lib = ObjectLibrary.from_folder(
+            models, cfg, progress=lambda name: progress.update(task, description=f"model {name}")
+        )
+    return lib
+
+
+ModelsArg = typer.Option(None, "--models", "-m", help="Model folder (default: built-in models).")
+
+
+@models_app.command("list")
+@_friendly
+def models_list(models: Path | None = ModelsArg, config: Path | None = ConfigOption) -> None:
+    """One line per model: size, mass, convex parts, symmetries."""
+    lib = _library(models, config)
+    table = Table(title=f"models ({'built-in' if models is None else models})")
+    for col in ("name", "extents mm", "mass kg", "parts", "decomposition", "hull IoU", "sym"):
+        table.add_column(col, justify="left" if col in ("name", "decomposition") else "right")
+    for name in lib.names:
+        s = lib[name].summary()
+        sym = f"{s['discrete_symmetries']}" + ("+cont" if s["continuous_symmetries"] else "")
+        table.add_row(
+            name,
+            " x ".join(f"{x:.1f}" for x in s["extents_mm"]),
+            f"{s['mass_kg']:.3f}",
+            str(s["convex_parts"]),
+            s["decomposition"],
+            f"{s['hull_iou']:.3f}",
+            sym,
+        )
+    console.print(table)
+
+
+@models_app.command("show")
+@_friendly
+def models_show(
+    name: str = typer.Argument(..., help="Model name."),
+    models: Path | None = ModelsArg,
+    config: Path | None = ConfigOption,
+    as_json: bool = typer.Option(False, "--json", help="Machine-readable output."),
+) -> None:
+    """Everything about one model: mass properties, samples, decomposition, symmetries."""
+    model = _library(models, config)[name]
+    summary = model.summary()
+    summary["max_angular_acceleration_rad_s2"] = round(
+        model.max_angular_acceleration(_config(config).physics.gravity), 2
+    )
+    summary["decomposition_seconds"] = round(model.decomposition.seconds, 3)
+    summary["decomposition_cached"] = model.decomposition.cached
+    if model.decomposition.note:
+        summary["decomposition_note"] = model.decomposition.note
+    if as_json:
+        print(json.dumps(summary, indent=2))
+        return
+    table = Table(title=f"model {name}", show_header=False)
+    for k, v in summary.items():
+        table.add_row(k, str(v))
+    console.print(table)
+
+
+@models_app.command("prepare")
+@_friendly
+def models_prepare(
+    folder: Path = typer.Argument(..., help="Folder of meshes (+ optional models.yaml)."),
+    config: Path | None = ConfigOption,
+    cache: Path | None = typer.Option(None, "--cache", help="Hull cache folder."),
+) -> None:
+    """Validate every model of a folder and pre-compute its convex decomposition (cached).
+
+    Exits with code 1 when any model failed; the others are still prepared.
+    """
+    from rich.progress import Progress
+
+    from ssp.library import prepare_folder
+
+    cfg = _config(config).library
+    if cache is not None:
+        cfg = cfg.model_copy(update={"cache_dir": cache})
+    with Progress(console=err_console, transient=True) as progress:
+        task = progress.add_task(f"preparing {folder}", total=None)
+        rows = prepare_folder(
+            folder, cfg, progress=lambda n: progress.update(task, description=f"model {n}")
+        )
+    table = Table(title=f"prepared {folder}")
+    for col in ("name", "parts", "method", "hull IoU", "seconds", "cached", "error"):
+        table.add_column(col)
+    failed = 0
+    for r in rows:
+        err = r.get("error") or ""
+        failed += bool(err)
+        table.add_row(
+            r["name"],
+            str(r.get("n_parts", "")),
+            str(r.get("method", "")),
+            f"{r['iou']:.3f}" if r.get("iou") is not None else "",
+            f"{r['seconds']:.2f}" if r.get("seconds") is not None else "",
+            str(r.get("cached", "")),
+            f"[red]{err}[/]" if err else "",
+        )
+    console.print(table)
+    if failed:
+        err_console.print(f"[bold red]{failed} of {len(rows)} models failed[/]")
+        raise typer.Exit(1)
+
+
+@models_app.command("export-builtin")
+@_friendly
+def models_export_builtin(
+    folder: Path = typer.Argument(..., help="Folder to write the built-in models to."),
+) -> None:
+    """Write the built-in models as meshes + convex parts + models.yaml (a template folder)."""
+    from ssp.library.builtin import export_builtin
+
+    paths = export_builtin(folder)
+    console.print(f"wrote {len(paths)} files to {folder}")
+
+
+@bench_app.command("physics")
+@_friendly
+def bench_physics(
+    out: Path = typer.Option(Path("bench-out/physics"), "--out", "-o", help="Output folder."),
+    config: Path | None = ConfigOption,
+    repeats: int = typer.Option(5, help="Timing repetitions (median reported)."),
+) -> None:
+    """Microseconds per step and per state save/restore, for 10 and 20 objects."""
+    from ssp.eval.bench_physics import run_physics_bench
+
+    results = run_physics_bench(_config(config), out, repeats=repeats)
+    table = Table(title=f"physics bench ({out / 'results.json'})")
+    for col in ("scene", "objects", "step qs us", "step dyn us", "save us", "restore us"):
+        table.add_column(col, justify="right")
+    for r in results["scenes"]:
+        table.add_row(
+            r["scene"],
+            str(r["objects"]),
+            f"{r['step_quasi_static_us']:.0f}",
+            f"{r['step_dynamic_us']:.0f}",
+            f"{r['save_us']:.1f}",
+            f"{r['restore_us']:.1f}",
+        )
+    console.print(table)
+
+
+@app.command()
+@_friendly
+def demo(
+    out: Path = typer.Option(Path("ssp-demo"), "--out", "-o", help="Output folder."),
+    config: Path | None = ConfigOption,
+) -> None:
+    """Run the built-in demo: the physics world on the built-in models.
+
+    The full sequential scene parsing demo (synthetic sequence, estimator vs ssp) arrives with
+    the scene parser and benchmark; until then this shows the foundation it stands on.
+    """
+    from ssp.eval.demo import run_foundation_demo
+
+    with console.status("running the foundation demo (about 10 s)"):
+        r = run_foundation_demo(out, _config(config))
+    t, tl, rx = r["tower"], r["tools"], r["relaxation"]
+    table = Table(title="ssp foundation demo")
+    table.add_column("experiment")
+    table.add_column("result")
+    table.add_row(
+        "10-cube tower, 2 s dynamic",
+        f"max drift {t['max_drift_mm']:.4f} mm, max penetration {t['max_penetration_mm']:.3f} mm,"
+        f" {t['us_per_step']:.0f} us/step",
+    )
+    table.add_row(
+        f"{tl['objects']} built-in tools dropped 2 cm",
+        f"max penetration {tl['max_penetration_mm']:.3f} mm, residual acceleration "
+        f"{tl['max_residual_acceleration_m_s2']:.3f} m/s^2, {tl['us_per_step']:.0f} us/step",
+    )
+    table.add_row(
+        "block hypothesis 6 mm above a cube, tilted 4 deg",
+        f"quasi-static relaxation ({rx['steps']} steps): height change "
+        f"{rx['block_height_change_mm']:.2f} mm, tilt {rx['block_tilt_after_deg']:.2f} deg, "
+        f"acceleration from rest {rx['accel_from_rest_before_m_s2']:.2f} -> "
+        f"{rx['accel_from_rest_after_m_s2']:.3f} m/s^2",
+    )
+    console.print(table)
+    for f in r["files"]:
+        console.print(f"wrote [bold]{f}[/]")
+    console.print(
+        "[yellow]not yet available:[/] scene parsing of a synthetic sequence "
+        "(needs the scene parser and the benchmark, issues 3-4)."
+    )
+
+
+if __name__ == "__main__":  # pragma: no cover
+    app()
