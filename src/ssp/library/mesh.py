@@ -1,0 +1,310 @@
+"""Loading and validating object meshes: metres, watertight, positive volume.
+
+:func:`load_mesh` reads any format trimesh reads (scenes are concatenated into one mesh);
+:func:`validate_mesh` applies a unit scale, checks the size against the plausible range of
+:class:`~ssp.config.LibraryConfig` (the usual mistake is a mesh in millimetres), repairs what can
+be repaired (duplicate vertices, degenerate and duplicate faces, small holes, inconsistent
+winding, inside-out bodies) and raises a typed error naming the model for the rest.
+:func:`load_convex_parts` reads a file of convex parts (one per OBJ object/group).
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from ssp.config import LibraryConfig
+from ssp.errors import GeometryError, ModelFileError, UnitsError
+
+log = logging.getLogger(__name__)
+
+#: Unit names accepted in models.yaml and their scale to metres.
+UNIT_SCALES: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001}
+
+_OPEN_SURFACE_WHY = (
+    "volume, centre of mass, inertia and interior samples are undefined for an open surface"
+)
+
+
+def load_mesh(path: str | Path) -> trimesh.Trimesh:
+    """Read a mesh file (OBJ, PLY, STL, GLB, ...); multi-geometry files are concatenated.
+
+    Raises:
+        ModelFileError: the file is missing, unreadable, not a mesh, or has no triangles.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise ModelFileError(f"mesh file not found: {path}")
+    if not path.is_file():
+        raise ModelFileError(f"mesh path is not a file: {path}")
+    try:
+        loaded = trimesh.load(path, force="mesh")
+    except Exception as exc:  # trimesh raises many types for bad files
+        raise ModelFileError(f"cannot read mesh file {path}: {type(exc).__name__}: {exc}") from exc
+    if not isinstance(loaded, trimesh.Trimesh):
+        raise ModelFileError(
+            f"{path} does not contain a triangle mesh (got {type(loaded).__name__})"
+        )
+    if len(loaded.faces) == 0 or len(loaded.vertices) == 0:
+        raise ModelFileError(f"{path} contains no triangles (empty or unreadable mesh file)")
+    return loaded
+
+
+def _units_hint(extent: float, scale: float, config: LibraryConfig) -> str:
+    """Most likely units mistake for a largest extent (m, after ``scale``) out of range."""
+
+    def plausible(x: float) -> bool:
+        return config.min_extent <= x <= config.max_extent
+
+    raw = extent / scale  # extent in the file's own units
+    if extent > config.max_extent:
+        for unit in ("mm", "cm"):
+            if plausible(raw * UNIT_SCALES[unit]):
+                name = {"mm": "millimetres", "cm": "centimetres"}[unit]
+                return (
+                    f"the mesh looks like it is in {name}; declare `units: {unit}` "
+                    f"(scale {UNIT_SCALES[unit]:g}) in models.yaml"
+                )
+        return (
+            "check the mesh units (`units:` in models.yaml) or raise library.max_extent "
+            f"({config.max_extent:g} m)"
+        )
+    if scale != 1.0 and plausible(raw):
+        return (
+            f"the mesh already looks like it is in metres, but a scale of {scale:g} was "
+            "applied; remove the `units:` entry (or set `units: m`) in models.yaml"
+        )
+    return (
+        "check the mesh units (`units:` in models.yaml) or lower library.min_extent "
+        f"({config.min_extent:g} m)"
+    )
+
+
+def _signed_volumes(mesh: trimesh.Trimesh, groups: list[np.ndarray]) -> np.ndarray:
+    """Signed volume (m^3) enclosed by each face group (divergence theorem)."""
+    tri = mesh.triangles
+    per_face = np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])) / 6.0
+    return np.array([per_face[g].sum() for g in groups])
+
+
+def _fix_orientation(mesh: trimesh.Trimesh) -> None:
+    """Make every body's normals consistent and outward, in place.
+
+    Bodies (connected face groups) with negative enclosed volume are inverted, except those
+    lying inside another body (cavities, whose inward normals are correct).
+    """
+    if not mesh.is_winding_consistent:
+        trimesh.repair.fix_winding(mesh)
+    groups = trimesh.graph.connected_components(
+        mesh.face_adjacency, nodes=np.arange(len(mesh.faces)), min_len=1
+    )
+    groups = [np.asarray(g, dtype=np.int64) for g in groups]
+    if len(groups) <= 1:
+        with np.errstate(all="ignore"):
+            if mesh.volume < 0:
+                mesh.invert()
+        return
+    vols = _signed_volumes(mesh, groups)
+    if np.all(vols >= 0):
+        return
+    faces = mesh.faces.copy()
+    changed = False
+    for i, g in enumerate(groups):
+        if vols[i] >= 0:
+            continue
+        probe = mesh.vertices[faces[g[0], 0]][None]
+        inside_other = False
+        for j, h in enumerate(groups):
+            if j == i or vols[j] <= 0:
+                continue
+            body = trimesh.Trimesh(mesh.vertices, faces[h], process=False)
+            if body.contains(probe)[0]:
+                inside_other = True
+                break
+        if not inside_other:
+            faces[g] = faces[g][:, ::-1]
+            changed = True
+    if changed:
+        mesh.faces = faces
+
+
+def _open_edges_description(mesh: trimesh.Trimesh) -> str:
+    """Why a mesh is not watertight: counts of boundary and non-manifold edges."""
+    counts = np.bincount(mesh.edges_unique_inverse, minlength=len(mesh.edges_unique))
+    boundary = int((counts == 1).sum())
+    nonmanifold = int((counts > 2).sum())
+    parts = []
+    if boundary:
+        parts.append(f"{boundary} boundary edges (holes)")
+    if nonmanifold:
+        parts.append(f"{nonmanifold} edges shared by more than two faces")
+    if not parts:
+        parts.append("edges with inconsistent orientation")
+    return ", ".join(parts)
+
+
+def validate_mesh(
+    mesh: trimesh.Trimesh, name: str, config: LibraryConfig, scale: float = 1.0
+) -> trimesh.Trimesh:
+    """Return a cleaned, repaired copy of ``mesh`` scaled by ``scale`` (to metres).
+
+    The copy has no visuals, merged vertices, no degenerate or duplicate faces, outward normals
+    and positive volume. ``name`` is used in error messages.
+
+    Raises:
+        GeometryError: NaN/inf vertices, fewer than 4 faces, flat or degenerate geometry, zero
+            volume, or an open surface that could not be repaired.
+        UnitsError: the largest extent after ``scale`` is outside
+            ``[config.min_extent, config.max_extent]``.
+    """
+    if not isinstance(mesh, trimesh.Trimesh):
+        raise GeometryError(f"model {name!r}: expected a trimesh.Trimesh, got {type(mesh)}")
+    if not (np.isfinite(scale) and scale > 0):
+        raise GeometryError(f"model {name!r}: scale must be positive and finite, got {scale}")
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    faces = np.asarray(mesh.faces, dtype=np.int64)
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
+        raise GeometryError(f"model {name!r}: mesh arrays have the wrong shape")
+    if not np.all(np.isfinite(vertices)):
+        bad = int((~np.isfinite(vertices)).any(axis=1).sum())
+        raise GeometryError(f"model {name!r}: {bad} vertices have NaN or infinite coordinates")
+    if len(faces) < 4:
+        raise GeometryError(
+            f"model {name!r}: only {len(faces)} faces; a closed surface needs at least 4"
+        )
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise GeometryError(f"model {name!r}: faces reference vertices that do not exist")
+
+    m = trimesh.Trimesh(vertices * scale, faces, process=False)
+    m.remove_unreferenced_vertices()
+    extents = np.asarray(m.extents, dtype=float)
+    largest = float(extents.max())
+    if largest <= 0 or float(extents.min()) <= 1e-6 * largest:
+        raise GeometryError(
+            f"model {name!r}: the mesh is flat or degenerate (extents {np.round(extents, 6)} m); "
+            "a solid object needs thickness in all three directions"
+        )
+    if largest > config.max_extent or largest < config.min_extent:
+        limit = "above" if largest > config.max_extent else "below"
+        bound = config.max_extent if largest > config.max_extent else config.min_extent
+        raise UnitsError(
+            f"model {name!r}: largest extent {largest:.4g} m is {limit} the plausible "
+            f"{bound:g} m: {_units_hint(largest, scale, config)}"
+        )
+
+    # cleaning that never opens a closed surface
+    m.merge_vertices(merge_tex=True, merge_norm=True)
+    f = m.faces
+    repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
+    if repeated.any():
+        m.update_faces(~repeated)
+    m.update_faces(m.unique_faces())
+    m.remove_unreferenced_vertices()
+    repaired = []
+    if not m.is_watertight:
+        n_before = len(m.faces)
+        m.update_faces(m.nondegenerate_faces())
+        m.remove_unreferenced_vertices()
+        if len(m.faces) < n_before:
+            repaired.append(f"removed {n_before - len(m.faces)} zero-area faces")
+        if not m.is_watertight:
+            n_before = len(m.faces)
+            trimesh.repair.fill_holes(m)
+            if len(m.faces) > n_before:
+                repaired.append(f"filled holes with {len(m.faces) - n_before} faces")
+    if len(m.faces) < 4:
+        raise GeometryError(f"model {name!r}: fewer than 4 faces are left after cleaning")
+    if not m.is_watertight:
+        raise GeometryError(
+            f"model {name!r}: the mesh is not watertight after repair "
+            f"({_open_edges_description(m)}); {_OPEN_SURFACE_WHY}. Close the mesh in a mesh "
+            "editor (e.g. fill holes / make manifold) and try again"
+        )
+    was_consistent = m.is_winding_consistent
+    with np.errstate(all="ignore"):
+        volume_before = float(m.volume)
+    _fix_orientation(m)
+    if not was_consistent:
+        repaired.append("fixed inconsistent face winding")
+    with np.errstate(all="ignore"):
+        volume = float(m.volume)
+    if was_consistent and volume_before < 0 < volume:
+        repaired.append("inverted inside-out mesh")
+    if repaired:
+        log.info("model %r: repaired mesh: %s", name, "; ".join(repaired))
+    if not np.isfinite(volume) or volume <= 1e-9 * float(np.prod(extents)):
+        raise GeometryError(
+            f"model {name!r}: the mesh encloses no volume ({volume:.3g} m^3 for extents "
+            f"{np.round(extents, 4)} m); it may be a flat sheet or self-cancelling surfaces"
+        )
+    return m
+
+
+_OBJ_GROUP = re.compile(r"^\s*[og]\b")
+
+
+def _parse_obj_groups(path: Path) -> list[trimesh.Trimesh]:
+    """Parts of an OBJ file, one per ``o``/``g`` block with faces (fans for polygons)."""
+    vertices: list[list[float]] = []
+    groups: list[list[list[int]]] = [[]]
+    with open(path, encoding="utf-8", errors="replace") as fh:
+        for line in fh:
+            if line.startswith("v "):
+                vertices.append([float(x) for x in line.split()[1:4]])
+            elif line.startswith("f "):
+                idx = []
+                for tok in line.split()[1:]:
+                    i = int(tok.split("/")[0])
+                    idx.append(i - 1 if i > 0 else len(vertices) + i)
+                groups[-1].extend([idx[0], idx[k], idx[k + 1]] for k in range(1, len(idx) - 1))
+            elif _OBJ_GROUP.match(line) and groups[-1]:
+                groups.append([])
+    v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    parts = []
+    for g in groups:
+        if g:
+            f = np.asarray(g, dtype=np.int64)
+            part = trimesh.Trimesh(v, f, process=False)
+            part.remove_unreferenced_vertices()
+            parts.append(part)
+    return parts
+
+
+def load_convex_parts(path: str | Path) -> list[trimesh.Trimesh]:
+    """Read convex parts: one per OBJ object/group, else one per geometry or connected piece.
+
+    Returns the parts as read (file units; not yet hulled or validated).
+
+    Raises:
+        ModelFileError: the file is missing, unreadable or has no triangles.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ModelFileError(f"convex parts file not found: {path}")
+    parts: list[trimesh.Trimesh] = []
+    try:
+        if path.suffix.lower() == ".obj":
+            parts = _parse_obj_groups(path)
+        if len(parts) <= 1:
+            loaded = trimesh.load(path)
+            if isinstance(loaded, trimesh.Scene):
+                geoms = [g for g in loaded.dump() if isinstance(g, trimesh.Trimesh)]
+            else:
+                geoms = [loaded] if isinstance(loaded, trimesh.Trimesh) else []
+            parts = []
+            for g in geoms:
+                parts.extend(g.split(only_watertight=False) if len(geoms) == 1 else [g])
+    except (ValueError, IndexError, OSError) as exc:
+        raise ModelFileError(f"cannot read convex parts file {path}: {exc}") from exc
+    except Exception as exc:  # trimesh raises many types for bad files
+        raise ModelFileError(
+            f"cannot read convex parts file {path}: {type(exc).__name__}: {exc}"
+        ) from exc
+    parts = [p for p in parts if len(p.faces) > 0]
+    if not parts:
+        raise ModelFileError(f"convex parts file {path} contains no triangles")
+    return parts

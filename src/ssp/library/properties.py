@@ -1,0 +1,291 @@
+"""The per-folder ``models.yaml``: units, masses, friction, convex parts and symmetries.
+
+In the spirit of the reference's ``object_property_database.yaml`` (notes/reference-impl.md
+section 8), but every key is validated (unknown keys are errors, so typos fail loudly)::
+
+    units: m            # or cm / mm; applies to every mesh of the folder unless overridden
+    defaults: {density: 700, friction: 1.0}
+    objects:
+      drill:
+        mesh: drill.obj            # default: <name>.obj / .ply / .stl in the folder
+        mass: 1.2                  # kg, or density: kg/m^3 (not both)
+        friction: 0.8
+        units: m                   # optional per-object override
+        convex_parts: drill.parts.obj   # one convex part per OBJ object/group; skips CoACD
+        symmetries_discrete: [[16 numbers, row-major 4x4, translation in the file's units]]
+        symmetries_continuous: [{axis: [0, 0, 1], offset: [0, 0, 0]}]
+
+A folder without ``models.yaml`` is fine: every mesh file is a model named after its stem, with
+the defaults. Mesh files a present ``models.yaml`` does not list are loaded with the defaults too.
+"""
+
+from __future__ import annotations
+
+import difflib
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from ssp.errors import ModelError, ModelFileError
+from ssp.library.mesh import UNIT_SCALES
+from ssp.library.symmetry import Symmetry
+
+log = logging.getLogger(__name__)
+
+PROPERTIES_FILE = "models.yaml"
+#: Mesh file suffixes picked up from a models folder, in order of preference.
+MESH_SUFFIXES = (".obj", ".ply", ".stl")
+
+Units = Literal["m", "cm", "mm"]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class _Properties(_Strict):
+    mass: float | None = Field(None, gt=0, allow_inf_nan=False, description="kg")
+    density: float | None = Field(None, gt=0, allow_inf_nan=False, description="kg/m^3")
+    friction: float | None = Field(None, ge=0, allow_inf_nan=False)
+
+    @model_validator(mode="after")
+    def _mass_or_density(self) -> _Properties:
+        if self.mass is not None and self.density is not None:
+            raise ValueError("give mass or density, not both")
+        return self
+
+
+class DefaultsSpec(_Properties):
+    """Folder-wide defaults (an object's own values win)."""
+
+
+class ContinuousSymmetrySpec(_Strict):
+    axis: tuple[float, float, float]
+    offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+class ObjectSpec(_Properties):
+    """One ``objects:`` entry."""
+
+    mesh: str | None = None
+    units: Units | None = None
+    convex_parts: str | None = None
+    description: str = ""
+    symmetries_discrete: list[list[float]] = Field(default_factory=list)
+    symmetries_continuous: list[ContinuousSymmetrySpec] = Field(default_factory=list)
+
+    @field_validator("symmetries_discrete")
+    @classmethod
+    def _sixteen(cls, v: list[list[float]]) -> list[list[float]]:
+        for i, s in enumerate(v):
+            if len(s) != 16:
+                raise ValueError(f"entry {i} has {len(s)} numbers; a row-major 4x4 needs 16")
+        return v
+
+
+class PropertiesFile(_Strict):
+    """The whole ``models.yaml``."""
+
+    units: Units = "m"
+    defaults: DefaultsSpec = Field(default_factory=DefaultsSpec)
+    objects: dict[str, ObjectSpec | None] = Field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class ModelEntry:
+    """Everything needed to build one model of a folder (paths absolute, scale to metres)."""
+
+    name: str
+    mesh_path: Path
+    scale: float = 1.0
+    mass: float | None = None
+    density: float | None = None
+    friction: float | None = None
+    convex_parts_path: Path | None = None
+    symmetry: Symmetry | None = None
+    description: str = ""
+    #: Why this entry cannot be built (e.g. its mesh file is missing); raised when building it.
+    problem: ModelError | None = None
+
+
+def _allowed_keys(model: type[BaseModel]) -> list[str]:
+    return list(model.model_fields)
+
+
+def _describe_error(err: dict[str, Any]) -> str:
+    loc = [str(x) for x in err.get("loc", ())]
+    # pydantic adds the union member name ("ObjectSpec") to the location; drop it
+    loc = [x for x in loc if x not in ("ObjectSpec", "DefaultsSpec", "ContinuousSymmetrySpec")]
+    where = ".".join(loc) or "(top level)"
+    if err.get("type") == "extra_forbidden":
+        key = loc[-1] if loc else "?"
+        if len(loc) == 1:
+            allowed = _allowed_keys(PropertiesFile)
+        elif loc[0] == "defaults":
+            allowed = _allowed_keys(DefaultsSpec)
+        elif "symmetries_continuous" in loc:
+            allowed = _allowed_keys(ContinuousSymmetrySpec)
+        else:
+            allowed = _allowed_keys(ObjectSpec)
+        close = difflib.get_close_matches(key, allowed, n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        return f"{where}: unknown key {key!r}{hint}; allowed keys: {', '.join(allowed)}"
+    msg = str(err.get("msg", "invalid value"))
+    if msg.startswith("Value error, "):
+        msg = msg[len("Value error, ") :]
+    return f"{where}: {msg}"
+
+
+def read_properties(path: str | Path) -> PropertiesFile:
+    """Parse and validate a ``models.yaml``.
+
+    Raises:
+        ModelFileError: unreadable or not YAML. ModelError: invalid content (file and key named).
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ModelFileError(f"cannot read {path}: {exc}") from exc
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ModelFileError(f"{path} is not valid YAML: {exc}") from exc
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ModelError(f"{path}: the top level must be a mapping (units, defaults, objects)")
+    try:
+        return PropertiesFile.model_validate(data)
+    except ValidationError as exc:
+        lines = [_describe_error(e) for e in exc.errors()]
+        raise ModelError(f"{path}: invalid model properties:\n  " + "\n  ".join(lines)) from None
+
+
+def _find_mesh(folder: Path, name: str) -> Path | None:
+    for suffix in MESH_SUFFIXES:
+        for candidate in (folder / f"{name}{suffix}", folder / f"{name}{suffix.upper()}"):
+            if candidate.is_file():
+                return candidate
+    return None
+
+
+def _mesh_files(folder: Path) -> dict[str, Path]:
+    """Mesh files of ``folder`` by stem (preferring .obj, then .ply, then .stl)."""
+    found: dict[str, Path] = {}
+    files = sorted(
+        (p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in MESH_SUFFIXES),
+        key=lambda p: (p.stem, MESH_SUFFIXES.index(p.suffix.lower()), p.name),
+    )
+    for p in files:
+        if p.stem in found:
+            log.warning("ignoring %s: %s has the same model name", p.name, found[p.stem].name)
+            continue
+        found[p.stem] = p
+    return found
+
+
+def _entry(
+    folder: Path, props_path: Path, props: PropertiesFile, name: str, spec: ObjectSpec
+) -> ModelEntry:
+    """The :class:`ModelEntry` of one ``objects:`` item; ModelError naming the file and key."""
+    defaults = props.defaults
+    if spec.mesh is not None:
+        mesh_path = (folder / spec.mesh).resolve()
+        if not mesh_path.is_file():
+            raise ModelFileError(f"{props_path}: objects.{name}.mesh: file not found: {spec.mesh}")
+    else:
+        found = _find_mesh(folder, name)
+        if found is None:
+            raise ModelFileError(
+                f"{props_path}: objects.{name}: no mesh file {name}.obj/.ply/.stl in "
+                f"{folder}; add `mesh: <file>`"
+            )
+        mesh_path = found.resolve()
+    parts_path = None
+    if spec.convex_parts is not None:
+        parts_path = (folder / spec.convex_parts).resolve()
+        if not parts_path.is_file():
+            raise ModelFileError(
+                f"{props_path}: objects.{name}.convex_parts: file not found: {spec.convex_parts}"
+            )
+    scale = UNIT_SCALES[spec.units or props.units]
+    if spec.mass is not None or spec.density is not None:
+        mass, density = spec.mass, spec.density
+    else:
+        mass, density = defaults.mass, defaults.density
+    symmetry = None
+    if spec.symmetries_discrete or spec.symmetries_continuous:
+        info = {
+            "symmetries_discrete": spec.symmetries_discrete,
+            "symmetries_continuous": [
+                {"axis": list(c.axis), "offset": list(c.offset)} for c in spec.symmetries_continuous
+            ],
+        }
+        try:
+            symmetry = Symmetry.from_bop(info, scale=scale)
+        except ModelError as exc:
+            raise ModelError(f"{props_path}: objects.{name}: {exc}") from exc
+    return ModelEntry(
+        name=name,
+        mesh_path=mesh_path,
+        scale=scale,
+        mass=mass,
+        density=density,
+        friction=spec.friction if spec.friction is not None else defaults.friction,
+        convex_parts_path=parts_path,
+        symmetry=symmetry,
+        description=spec.description,
+    )
+
+
+def read_folder(folder: str | Path) -> list[ModelEntry]:
+    """The models of a folder: its ``models.yaml`` entries plus unlisted mesh files.
+
+    An entry whose mesh or parts file is missing is returned with ``problem`` set (building
+    it raises that error), so one bad entry does not hide the others.
+
+    Raises:
+        ModelFileError: the folder is missing. ModelError: ``models.yaml`` is invalid.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise ModelFileError(f"models folder not found: {folder}")
+    props_path = folder / PROPERTIES_FILE
+    props = read_properties(props_path) if props_path.is_file() else PropertiesFile()
+    defaults = props.defaults
+    entries: list[ModelEntry] = []
+    used: set[Path] = set()
+
+    for name, spec in props.objects.items():
+        try:
+            entry = _entry(folder, props_path, props, name, spec or ObjectSpec())
+        except ModelError as exc:
+            entry = ModelEntry(name=name, mesh_path=folder / name, problem=exc)
+        if entry.problem is None:
+            used.add(entry.mesh_path)
+            if entry.convex_parts_path is not None:
+                used.add(entry.convex_parts_path)
+        entries.append(entry)
+
+    listed = {e.name for e in entries}
+    for stem, path in _mesh_files(folder).items():
+        if path.resolve() in used or stem in listed:
+            continue
+        if props_path.is_file():
+            log.info("%s is not listed in %s; loading it with the defaults", path.name, props_path)
+        entries.append(
+            ModelEntry(
+                name=stem,
+                mesh_path=path.resolve(),
+                scale=UNIT_SCALES[props.units],
+                mass=defaults.mass,
+                density=defaults.density,
+                friction=defaults.friction,
+            )
+        )
+    return entries
