@@ -49,6 +49,17 @@ class PhysicsConfig(_Section):
     solver_iterations: int = Field(100, ge=1, description="Constraint solver iterations.")
     solver_tolerance: float = Field(1e-8, gt=0, description="Constraint solver tolerance.")
     noslip_iterations: int = Field(0, ge=0, description="Noslip solver iterations (0 = off).")
+    contact_margin: float | None = Field(
+        None,
+        ge=0,
+        le=0.001,
+        description=(
+            "Contact margin, m: contacts engage this far before the surfaces touch, which "
+            "cancels the rest penetration of stiff contacts and lets touching stacks engage at "
+            "once. None = 0.08 g dt^2 (0.02 mm at dt = 5 ms, the order of the rest penetration "
+            "in a stack with the default solref/solimp; it scales with dt^2)."
+        ),
+    )
 
     @property
     def solref(self) -> tuple[float, float]:
