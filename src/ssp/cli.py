@@ -123,7 +123,7 @@ def _library(models: Path | None, config: Path | None):
     return lib
 
 
-ModelsArg = typer.Option(None, "--models", "-m", help="Model folder (default: built-in models).")
+ModelsArg = typer.Argument(None, help="Model folder (default: the built-in models).")
 
 
 @models_app.command("list")

@@ -1,0 +1,74 @@
+"""The command line: version, config dump, models, demo and bench write what they promise."""
+
+import json
+
+import yaml
+from typer.testing import CliRunner
+
+from ssp import __version__
+from ssp.cli import app
+from ssp.config import SSPConfig
+
+runner = CliRunner()
+
+
+def test_version():
+    r = runner.invoke(app, ["--version"])
+    assert r.exit_code == 0
+    assert __version__ in r.output and "mujoco" in r.output
+
+
+def test_dump_config_is_loadable_yaml(tmp_path):
+    r = runner.invoke(app, ["dump-config"])
+    assert r.exit_code == 0
+    assert SSPConfig.from_dict(yaml.safe_load(r.output)) == SSPConfig()
+    out = tmp_path / "c.yaml"
+    r = runner.invoke(app, ["dump-config", "--out", str(out)])
+    assert r.exit_code == 0 and out.exists()
+
+
+def test_bad_config_is_a_clean_error(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("physics:\n  timestep: 0\n")
+    r = runner.invoke(app, ["dump-config", "--config", str(bad)])
+    assert r.exit_code == 1
+    assert "timestep" in r.output and "Traceback" not in r.output
+
+
+def test_models_list_and_show():
+    r = runner.invoke(app, ["models", "list"])
+    assert r.exit_code == 0, r.output
+    for name in ("cube", "block", "link", "node"):
+        assert name in r.output
+    r = runner.invoke(app, ["models", "show", "cube", "--json"])
+    assert r.exit_code == 0, r.output
+    info = json.loads(r.output)
+    assert info["extents_mm"] == [50.8, 50.8, 50.8]
+    assert info["discrete_symmetries"] == 24
+
+
+def test_models_show_unknown_name_lists_known():
+    r = runner.invoke(app, ["models", "show", "no_such_model"])
+    assert r.exit_code == 1
+    assert "cube" in r.output
+
+
+def test_models_prepare_reports_each_model(tmp_path):
+    folder = tmp_path / "models"
+    r = runner.invoke(app, ["models", "export-builtin", str(folder)])
+    assert r.exit_code == 0, r.output
+    (folder / "broken.obj").write_text("this is not a mesh\n")
+    r = runner.invoke(app, ["models", "prepare", str(folder), "--cache", str(tmp_path / "c")])
+    assert r.exit_code == 1  # one model failed ...
+    assert "broken" in r.output and "mallet" in r.output  # ... and the others were prepared
+    assert "exact" in r.output
+
+
+def test_demo_writes_report(tmp_path):
+    r = runner.invoke(app, ["demo", "--out", str(tmp_path)])
+    assert r.exit_code == 0, r.output
+    report = json.loads((tmp_path / "foundation.json").read_text())
+    assert report["tower"]["max_drift_mm"] < 0.1
+    assert report["relaxation"]["accel_from_rest_after_m_s2"] < 0.1 * 9.81
+    assert (tmp_path / "foundation.png").stat().st_size > 10_000
+    assert "not yet available" in r.output
