@@ -44,3 +44,11 @@ class InvalidPoseError(SSPError, ValueError):
 
 class PhysicsError(SSPError):
     """The physics engine failed (unstable simulation, bad state)."""
+
+
+class DuplicateObjectError(SSPError, ValueError):
+    """Two objects given to a world or scene share one id."""
+
+
+class WorldMismatchError(PhysicsError, ValueError):
+    """A saved world state was restored into a world other than the one that saved it."""

@@ -106,19 +106,26 @@ def _relaxation(lib: ObjectLibrary, cfg: SSPConfig) -> tuple[dict, World]:
     }, world
 
 
-def _draw(ax, world: World, axes: tuple[int, int], title: str) -> None:
+def _draw(ax, world: World, axes: tuple[int, int], title: str, labels: bool = False) -> None:
+    import matplotlib
     from matplotlib.collections import PolyCollection
 
-    cmap = __import__("matplotlib").colormaps["tab10"]
+    cmap = matplotlib.colormaps["tab10"]
     for k, oid in enumerate(world.ids):
         mesh = world.model_of(oid).mesh
         T = world.get_pose(oid)
         v = mesh.vertices @ T[:3, :3].T + T[:3, 3]
         tris = v[mesh.faces][:, :, list(axes)]
-        ax.add_collection(PolyCollection(tris, facecolor=cmap(k % 10), edgecolor="none", alpha=0.9))
-    ax.axhline(0.0, color="k", lw=0.8) if axes[1] == 2 else None
+        ax.add_collection(PolyCollection(tris, facecolor=cmap(k % 10), edgecolor="none"))
+        if labels:
+            ax.annotate(world.model_of(oid).name, v.mean(axis=0)[list(axes)], fontsize=7,
+                        xytext=(0, 16), textcoords="offset points", ha="center")
+    if axes[1] == 2:
+        ax.axhline(0.0, color="k", lw=0.8)
     ax.autoscale_view()
+    ax.margins(0.15)
     ax.set_aspect("equal")
+    ax.locator_params(axis="x", nbins=4)
     ax.set_title(title, fontsize=9)
     ax.set_xlabel("xyz"[axes[0]] + " (m)")
     ax.set_ylabel("xyz"[axes[1]] + " (m)")
@@ -148,7 +155,7 @@ def run_foundation_demo(out: Path, config: SSPConfig | None = None) -> dict:
     _draw(
         axs[0], w_tower, (0, 2), f"10-cube tower after 2 s\n(drift {tower['max_drift_mm']:.3f} mm)"
     )
-    _draw(axs[1], w_tools, (0, 1), "built-in tools settled (top view)")
+    _draw(axs[1], w_tools, (0, 1), "built-in tools settled (top view)", labels=True)
     _draw(
         axs[2],
         w_relax,

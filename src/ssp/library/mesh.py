@@ -11,7 +11,6 @@ winding, inside-out bodies) and raises a typed error naming the model for the re
 from __future__ import annotations
 
 import logging
-import re
 from pathlib import Path
 
 import numpy as np
@@ -244,36 +243,6 @@ def validate_mesh(
     return m
 
 
-_OBJ_GROUP = re.compile(r"^\s*[og]\b")
-
-
-def _parse_obj_groups(path: Path) -> list[trimesh.Trimesh]:
-    """Parts of an OBJ file, one per ``o``/``g`` block with faces (fans for polygons)."""
-    vertices: list[list[float]] = []
-    groups: list[list[list[int]]] = [[]]
-    with open(path, encoding="utf-8", errors="replace") as fh:
-        for line in fh:
-            if line.startswith("v "):
-                vertices.append([float(x) for x in line.split()[1:4]])
-            elif line.startswith("f "):
-                idx = []
-                for tok in line.split()[1:]:
-                    i = int(tok.split("/")[0])
-                    idx.append(i - 1 if i > 0 else len(vertices) + i)
-                groups[-1].extend([idx[0], idx[k], idx[k + 1]] for k in range(1, len(idx) - 1))
-            elif _OBJ_GROUP.match(line) and groups[-1]:
-                groups.append([])
-    v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
-    parts = []
-    for g in groups:
-        if g:
-            f = np.asarray(g, dtype=np.int64)
-            part = trimesh.Trimesh(v, f, process=False)
-            part.remove_unreferenced_vertices()
-            parts.append(part)
-    return parts
-
-
 def load_convex_parts(path: str | Path) -> list[trimesh.Trimesh]:
     """Read convex parts: one per OBJ object/group, else one per geometry or connected piece.
 
@@ -288,7 +257,10 @@ def load_convex_parts(path: str | Path) -> list[trimesh.Trimesh]:
     parts: list[trimesh.Trimesh] = []
     try:
         if path.suffix.lower() == ".obj":
-            parts = _parse_obj_groups(path)
+            # one geometry per OBJ object/group (trimesh's OBJ loader does the splitting)
+            scene = trimesh.load(path, split_objects=True, group_material=False, force="scene",
+                                 process=False)
+            parts = [g for g in scene.geometry.values() if isinstance(g, trimesh.Trimesh)]
         if len(parts) <= 1:
             loaded = trimesh.load(path)
             if isinstance(loaded, trimesh.Scene):

@@ -32,7 +32,12 @@ import mujoco
 import numpy as np
 
 from ssp.config import PhysicsConfig
-from ssp.errors import PhysicsError, SSPError, UnknownObjectError
+from ssp.errors import (
+    DuplicateObjectError,
+    PhysicsError,
+    UnknownObjectError,
+    WorldMismatchError,
+)
 from ssp.geometry import validate_pose
 from ssp.library.model import ObjectInstance, ObjectModel
 from ssp.physics.contacts import Contacts
@@ -50,14 +55,6 @@ _FATAL_WARNINGS = {
 }
 _FATAL_IDX = np.array(sorted(_FATAL_WARNINGS), dtype=int)
 _world_serial = itertools.count(1)
-
-
-class DuplicateObjectError(SSPError, ValueError):
-    """Two instances given to a :class:`World` share one object id."""
-
-
-class WorldMismatchError(SSPError, ValueError):
-    """A :class:`WorldState` was restored into a world other than the one that saved it."""
 
 
 @dataclass(frozen=True, eq=False)
