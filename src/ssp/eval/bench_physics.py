@@ -18,17 +18,8 @@ from ssp import __version__
 from ssp.config import SSPConfig
 from ssp.eval import scenes
 from ssp.library import ObjectLibrary
+from ssp.library.builtin import TOOL_NAMES
 from ssp.physics import World
-
-#: Built-in classes used as "tool-like" objects (non-convex, several parts).
-TOOL_CLASSES_MIN = 6
-
-
-def _tools(lib: ObjectLibrary) -> list:
-    tools = [lib[n] for n in lib.names if n not in ("cube", "block", "link", "node")]
-    if len(tools) < TOOL_CLASSES_MIN:
-        raise RuntimeError(f"expected >= {TOOL_CLASSES_MIN} tool-like built-in models")
-    return tools
 
 
 def _median_us(fn, n_calls: int, repeats: int) -> float:
@@ -77,7 +68,7 @@ def run_physics_bench(config: SSPConfig, out: Path, repeats: int = 5) -> dict:
     import mujoco
 
     lib = ObjectLibrary.builtin(config.library)
-    tools = _tools(lib)
+    tools = [lib[n] for n in TOOL_NAMES]
     rows = []
     for n in (10, 20):
         rows.append(

@@ -24,6 +24,7 @@ from ssp.config import SSPConfig
 from ssp.eval import scenes
 from ssp.geometry import make_pose, rotation_angle
 from ssp.library import ObjectInstance, ObjectLibrary
+from ssp.library.builtin import TOOL_NAMES
 from ssp.physics import World
 
 
@@ -32,35 +33,35 @@ def _max_penetration_mm(world: World) -> float:
     return float(max(0.0, c.depth.max()) * 1000) if len(c.depth) else 0.0
 
 
-def _tower(lib: ObjectLibrary, cfg: SSPConfig) -> tuple[dict, World]:
-    instances, poses = scenes.tower(lib["cube"], 10)
+def _simulate(instances, poses, cfg: SSPConfig, seconds: float) -> tuple[World, float]:
+    """A world at ``poses`` after ``seconds`` of dynamics, and the wall time per step (us)."""
     world = World(instances, config=cfg.physics)
     world.set_poses(poses)
-    steps = int(round(2.0 / cfg.physics.timestep))
+    steps = int(round(seconds / cfg.physics.timestep))
     t0 = time.perf_counter()
     world.step(steps, quasi_static=False)
-    dt = time.perf_counter() - t0
+    return world, (time.perf_counter() - t0) / steps * 1e6
+
+
+def _tower(lib: ObjectLibrary, cfg: SSPConfig) -> tuple[dict, World]:
+    instances, poses = scenes.tower(lib["cube"], 10)
+    world, us_per_step = _simulate(instances, poses, cfg, 2.0)
     drift = max(np.linalg.norm(world.get_pose(i)[:3, 3] - poses[i][:3, 3]) for i in world.ids)
     return {
         "objects": len(instances),
         "simulated_s": 2.0,
         "max_drift_mm": drift * 1000,
         "max_penetration_mm": _max_penetration_mm(world),
-        "us_per_step": dt / steps * 1e6,
+        "us_per_step": us_per_step,
     }, world
 
 
 def _tools(lib: ObjectLibrary, cfg: SSPConfig) -> tuple[dict, World]:
-    tools = [lib[n] for n in lib.names if n not in ("cube", "block", "link", "node")]
+    tools = [lib[n] for n in TOOL_NAMES]
     instances, poses = scenes.scatter(tools, len(tools), spacing=0.4, seed=1)
     for T in poses.values():
         T[2, 3] += 0.02
-    world = World(instances, config=cfg.physics)
-    world.set_poses(poses)
-    steps = int(round(2.0 / cfg.physics.timestep))
-    t0 = time.perf_counter()
-    world.step(steps, quasi_static=False)
-    dt = time.perf_counter() - t0
+    world, us_per_step = _simulate(instances, poses, cfg, 2.0)
     lin, _ = world.acceleration_from_rest()
     return {
         "objects": len(instances),
@@ -68,7 +69,7 @@ def _tools(lib: ObjectLibrary, cfg: SSPConfig) -> tuple[dict, World]:
         "simulated_s": 2.0,
         "max_penetration_mm": _max_penetration_mm(world),
         "max_residual_acceleration_m_s2": float(np.linalg.norm(lin, axis=1).max()),
-        "us_per_step": dt / steps * 1e6,
+        "us_per_step": us_per_step,
     }, world
 
 

@@ -115,18 +115,16 @@ def build_mjmodel(
     # MuJoCo 4 adds the margins of the two geoms of a pair: give each geom half.
     half_margin = 0.5 * contact_margin(config)
 
+    # contact settings shared by every geom (table and object parts)
+    contact = dict(solref=solref, solimp=solimp, condim=CONDIM, margin=half_margin,
+                   contype=1, conaffinity=1)
     if table:
         spec.worldbody.add_geom(
             name="table",
             type=mujoco.mjtGeom.mjGEOM_PLANE,
             size=[0.0, 0.0, 1.0],  # zero half-sizes: infinite plane
             friction=[float(config.table_friction), *spin],
-            solref=solref,
-            solimp=solimp,
-            condim=CONDIM,
-            margin=half_margin,
-            contype=1,
-            conaffinity=1,
+            **contact,
         )
 
     mesh_names: dict[int, list[str]] = {}  # id(model) -> mesh asset names of its parts
@@ -169,12 +167,7 @@ def build_mjmodel(
                 type=mujoco.mjtGeom.mjGEOM_MESH,
                 meshname=name,
                 friction=[float(model.friction), *spin],
-                solref=solref,
-                solimp=solimp,
-                condim=CONDIM,
-                margin=half_margin,
-                contype=1,
-                conaffinity=1,
+                **contact,
             )
 
     try:
