@@ -27,6 +27,7 @@ test: $(STAMP)  ## run the test suite
 
 lint: $(STAMP)  ## ruff
 	$(VENV)/bin/ruff check src tests
+	$(VENV)/bin/ruff format --check src tests
 
 bench: $(STAMP)  ## physics benchmark (writes bench-out/physics/results.json)
 	$(VENV)/bin/ssp bench physics --out bench-out/physics

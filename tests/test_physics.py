@@ -18,8 +18,9 @@ H = 0.0508  # edge of the conftest cube (2 inch)
 def rot(axis, angle_deg):
     from scipy.spatial.transform import Rotation
 
-    return Rotation.from_rotvec(np.asarray(axis, float) / np.linalg.norm(axis)
-                                * np.radians(angle_deg)).as_matrix()
+    return Rotation.from_rotvec(
+        np.asarray(axis, float) / np.linalg.norm(axis) * np.radians(angle_deg)
+    ).as_matrix()
 
 
 def cube_world(model, n, **kw) -> World:
@@ -37,8 +38,9 @@ def tower(model, n, z0=0.0) -> World:
 # --------------------------------------------------------------------------- construction
 def test_build_ids_and_models(cube_model, make_box):
     box = make_box("box", (0.1, 0.05, 0.02), 0.3)
-    w = World([ObjectInstance("a", cube_model), ObjectInstance("b", box),
-               ObjectInstance("c", cube_model)])
+    w = World(
+        [ObjectInstance("a", cube_model), ObjectInstance("b", box), ObjectInstance("c", cube_model)]
+    )
     assert w.ids == ("a", "b", "c") and len(w) == 3 and "b" in w
     assert cube_model.extents == pytest.approx([H, H, H])
     assert w.model_of("b") is box and w.model_of("c") is cube_model
@@ -384,8 +386,10 @@ def test_disabled_object_quasi_static_is_exact(cube_model):
 def _busy_world(model) -> World:
     w = cube_world(model, 5)
     for i in range(4):
-        w.set_pose(f"c{i}", make_pose(rot([1, i, 0.5], 7 * i), [0.01 * i, 0.005 * i,
-                                                                   H / 2 + i * (H + 0.002)]))
+        w.set_pose(
+            f"c{i}",
+            make_pose(rot([1, i, 0.5], 7 * i), [0.01 * i, 0.005 * i, H / 2 + i * (H + 0.002)]),
+        )
     w.set_pose("c4", make_pose(t=[0.2, 0, 0.1]))
     return w
 
@@ -430,12 +434,14 @@ def test_world_state_is_immutable_and_tied_to_its_world(cube_model):
 def test_independent_worlds_are_deterministic(cube_model, make_box):
     def run():
         plank = make_box("plank", (0.2, 0.04, 0.02), 0.15, friction=0.6)
-        w = World([ObjectInstance("p", plank)]
-                  + [ObjectInstance(f"c{i}", cube_model) for i in range(3)])
+        w = World(
+            [ObjectInstance("p", plank)] + [ObjectInstance(f"c{i}", cube_model) for i in range(3)]
+        )
         w.set_pose("p", make_pose(rot([0, 1, 0], 10), [0, 0, 0.06]))
         for i in range(3):
-            w.set_pose(f"c{i}", make_pose(rot([1, 0, 1], 20 * i), [0.05 * (i - 1), 0.0,
-                                                                    0.12 + 0.06 * i]))
+            w.set_pose(
+                f"c{i}", make_pose(rot([1, 0, 1], 20 * i), [0.05 * (i - 1), 0.0, 0.12 + 0.06 * i])
+            )
         w.step(60, quasi_static=False)
         w.step(20)
         return w.pose_array(), w.contacts().normal_force
@@ -445,8 +451,7 @@ def test_independent_worlds_are_deterministic(cube_model, make_box):
 
 
 # --------------------------------------------------------------------------- failures
-def test_divergence_raises_physics_error_and_state_is_restorable(cube_model, tmp_path,
-                                                                 monkeypatch):
+def test_divergence_raises_physics_error_and_state_is_restorable(cube_model, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)  # MuJoCo logs the warning to ./MUJOCO_LOG.TXT
     w = cube_world(cube_model, 1)
     w.set_pose("c0", make_pose(t=[0, 0, 0.2]))

@@ -233,9 +233,8 @@ def load_config(path: str | Path) -> SSPConfig:
 
 def dump_config(config: SSPConfig, path: str | Path | None = None) -> str:
     """YAML text of ``config`` (written to ``path`` when given), with a units header."""
-    text = (
-        "# ssp configuration. Units: metres, kilograms, seconds, radians.\n"
-        + yaml.safe_dump(config.to_dict(), sort_keys=False)
+    text = "# ssp configuration. Units: metres, kilograms, seconds, radians.\n" + yaml.safe_dump(
+        config.to_dict(), sort_keys=False
     )
     if path is not None:
         Path(path).write_text(text)

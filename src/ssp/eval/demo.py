@@ -119,8 +119,14 @@ def _draw(ax, world: World, axes: tuple[int, int], title: str, labels: bool = Fa
         tris = v[mesh.faces][:, :, list(axes)]
         ax.add_collection(PolyCollection(tris, facecolor=cmap(k % 10), edgecolor="none"))
         if labels:
-            ax.annotate(world.model_of(oid).name, v.mean(axis=0)[list(axes)], fontsize=7,
-                        xytext=(0, 16), textcoords="offset points", ha="center")
+            ax.annotate(
+                world.model_of(oid).name,
+                v.mean(axis=0)[list(axes)],
+                fontsize=7,
+                xytext=(0, 16),
+                textcoords="offset points",
+                ha="center",
+            )
     if axes[1] == 2:
         ax.axhline(0.0, color="k", lw=0.8)
     ax.autoscale_view()

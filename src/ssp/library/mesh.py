@@ -258,8 +258,9 @@ def load_convex_parts(path: str | Path) -> list[trimesh.Trimesh]:
     try:
         if path.suffix.lower() == ".obj":
             # one geometry per OBJ object/group (trimesh's OBJ loader does the splitting)
-            scene = trimesh.load(path, split_objects=True, group_material=False, force="scene",
-                                 process=False)
+            scene = trimesh.load(
+                path, split_objects=True, group_material=False, force="scene", process=False
+            )
             parts = [g for g in scene.geometry.values() if isinstance(g, trimesh.Trimesh)]
         if len(parts) <= 1:
             loaded = trimesh.load(path)

@@ -76,13 +76,17 @@ class Symmetry:
     def from_bop(cls, info: dict, scale: float = 1.0) -> Symmetry:
         """From a BOP ``models_info`` entry; ``scale`` converts its units to metres (mm: 1e-3)."""
         try:
-            discrete = [np.asarray(s, dtype=float).reshape(4, 4) for s in
-                        info.get("symmetries_discrete", [])]
+            discrete = [
+                np.asarray(s, dtype=float).reshape(4, 4)
+                for s in info.get("symmetries_discrete", [])
+            ]
             for T in discrete:
                 T[:3, 3] *= scale
             continuous = tuple(
-                ContinuousSymmetry(np.asarray(c["axis"], dtype=float),
-                                   np.asarray(c.get("offset", [0, 0, 0]), dtype=float) * scale)
+                ContinuousSymmetry(
+                    np.asarray(c["axis"], dtype=float),
+                    np.asarray(c.get("offset", [0, 0, 0]), dtype=float) * scale,
+                )
                 for c in info.get("symmetries_continuous", [])
             )
         except (KeyError, TypeError, ValueError) as exc:

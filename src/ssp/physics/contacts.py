@@ -60,8 +60,9 @@ class Contacts:
     @classmethod
     def empty(cls, ids: tuple[str, ...]) -> Contacts:
         z = np.zeros(0)
-        return cls(ids, np.zeros(0, int), np.zeros(0, int), np.zeros((0, 3)), np.zeros((0, 3)),
-                   z, z.copy())
+        return cls(
+            ids, np.zeros(0, int), np.zeros(0, int), np.zeros((0, 3)), np.zeros((0, 3)), z, z.copy()
+        )
 
     def __len__(self) -> int:
         return len(self.depth)
@@ -86,8 +87,15 @@ class Contacts:
     def select(self, mask: np.ndarray) -> Contacts:
         """The subset of contacts where the boolean ``mask`` (n,) is true."""
         mask = np.asarray(mask, dtype=bool)
-        return Contacts(self.ids, self.obj_a[mask], self.obj_b[mask], self.position[mask],
-                        self.normal[mask], self.depth[mask], self.normal_force[mask])
+        return Contacts(
+            self.ids,
+            self.obj_a[mask],
+            self.obj_b[mask],
+            self.position[mask],
+            self.normal[mask],
+            self.depth[mask],
+            self.normal_force[mask],
+        )
 
     def involving(self, index: int) -> Contacts:
         """Contacts of object ``index`` (as a or b); ``-1`` gives the table's contacts."""

@@ -72,9 +72,10 @@ def _check_model(model: ObjectModel, oid: str) -> None:
         problems.append("center_of_mass must be 3 finite numbers")
     if inertia.shape != (3, 3) or not np.all(np.isfinite(inertia)):
         problems.append("inertia must be a finite 3x3 matrix")
-    elif not np.allclose(inertia, inertia.T, rtol=1e-6, atol=1e-15) or np.linalg.eigvalsh(
-        0.5 * (inertia + inertia.T)
-    )[0] <= 0:
+    elif (
+        not np.allclose(inertia, inertia.T, rtol=1e-6, atol=1e-15)
+        or np.linalg.eigvalsh(0.5 * (inertia + inertia.T))[0] <= 0
+    ):
         problems.append("inertia must be symmetric positive definite")
     if not model.convex_parts:
         problems.append("it has no convex parts (nothing to collide with)")
@@ -116,8 +117,9 @@ def build_mjmodel(
     half_margin = 0.5 * contact_margin(config)
 
     # contact settings shared by every geom (table and object parts)
-    contact = dict(solref=solref, solimp=solimp, condim=CONDIM, margin=half_margin,
-                   contype=1, conaffinity=1)
+    contact = dict(
+        solref=solref, solimp=solimp, condim=CONDIM, margin=half_margin, contype=1, conaffinity=1
+    )
     if table:
         spec.worldbody.add_geom(
             name="table",
@@ -158,8 +160,12 @@ def build_mjmodel(
         body.mass = float(model.mass)
         body.ipos = [float(x) for x in model.center_of_mass]
         body.fullinertia = [
-            inertia[0, 0], inertia[1, 1], inertia[2, 2],
-            inertia[0, 1], inertia[0, 2], inertia[1, 2],
+            inertia[0, 0],
+            inertia[1, 1],
+            inertia[2, 2],
+            inertia[0, 1],
+            inertia[0, 2],
+            inertia[1, 2],
         ]
         for j, name in enumerate(mesh_names[id(model)]):
             body.add_geom(

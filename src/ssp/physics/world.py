@@ -297,8 +297,9 @@ class World:
 
     def set_poses(self, poses: Mapping[str, np.ndarray]) -> None:
         """Set several poses at once (all validated before any is written)."""
-        items = [(self.index(oid), validate_pose(T, what=f"pose of {oid!r}"))
-                 for oid, T in poses.items()]
+        items = [
+            (self.index(oid), validate_pose(T, what=f"pose of {oid!r}")) for oid, T in poses.items()
+        ]
         for k, T in items:
             self._write_pose(k, T)
         self._forward_current = False
@@ -558,5 +559,6 @@ class World:
         normal[swap] *= -1.0
         if keep.all():
             return Contacts(self._ids, a, b, pos, normal, depth, force)
-        return Contacts(self._ids, a[keep], b[keep], pos[keep], normal[keep], depth[keep],
-                        force[keep])
+        return Contacts(
+            self._ids, a[keep], b[keep], pos[keep], normal[keep], depth[keep], force[keep]
+        )
