@@ -1,0 +1,264 @@
+"""Between frames: data association, transition modes, symmetry snapping (paper section V-C).
+
+* :func:`associate` gives every hypothesis of a frame an object instance id: the id it carries,
+  else the id of the previous object it matches (Hungarian assignment), else a fresh one.
+* :func:`classify` names an object's transition mode (added / removed / static / perturbed /
+  support-retained) from its previous and current poses (DESIGN section 4, "Temporal").
+* :func:`snap_symmetric` picks, among the symmetric equivalents of a pose, the one closest to
+  the previous frame's, so a symmetric object never flips between frames (DESIGN "Symmetry").
+
+Ephemeral objects and the support test behind ``retained`` need the physics and the camera;
+they belong to the scene parser, which passes its verdict to :func:`classify`.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import replace
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+from scipy.spatial.transform import Rotation
+
+from ssp.config import TemporalConfig
+from ssp.errors import DuplicateObjectError, SSPError
+from ssp.library.symmetry import Symmetry
+from ssp.probability import pose_change
+from ssp.scene import Hypothesis, TransitionMode
+
+__all__ = ["associate", "classify", "default_id_factory", "snap_symmetric"]
+
+#: Cost of a forbidden (gated-out) pair in the assignment matrix.
+_FORBIDDEN = 1e6
+
+
+def default_id_factory(taken: Iterable[str] = ()) -> Callable[[str], str]:
+    """A deterministic ``new_id(class_name)``: ``f"{class_name}_{k}"``, k = 0, 1, ... per class,
+    skipping every id in ``taken`` and every id it has already returned."""
+    used = set(taken)
+    counters: dict[str, itertools.count] = {}
+
+    def new_id(class_name: str) -> str:
+        counter = counters.setdefault(class_name, itertools.count())
+        while True:
+            candidate = f"{class_name}_{next(counter)}"
+            if candidate not in used:
+                used.add(candidate)
+                return candidate
+
+    return new_id
+
+
+class _Cluster:
+    """Hypotheses of one class taken to describe one physical object."""
+
+    def __init__(self, first: Hypothesis, order: int, instance_id: str | None = None) -> None:
+        self.members = [first]
+        self.order = order  # position of its first (best) hypothesis, for stable ordering
+        self.first_index = order  # smallest input position among its members
+        self.instance_id = instance_id
+
+    def add(self, h: Hypothesis, index: int) -> None:
+        self.members.append(h)
+        self.first_index = min(self.first_index, index)
+
+    @property
+    def best(self) -> Hypothesis:
+        return self.members[0]
+
+
+def associate(
+    hypotheses: list[Hypothesis],
+    previous: Mapping[str, tuple[str, np.ndarray]],
+    symmetries: Mapping[str, Symmetry],
+    *,
+    max_distance: float = 0.05,
+    rotation_weight: float = 0.05,
+    new_id: Callable[[str], str] | None = None,
+) -> dict[str, list[Hypothesis]]:
+    """Group a frame's hypotheses by object instance id.
+
+    1. **Given ids.** A hypothesis with ``instance_id`` keeps it; its group is fixed.
+    2. **Clustering.** The other hypotheses are visited by decreasing score (ties: input
+       order). Each joins the group of its class whose *best* (first) hypothesis is nearest in
+       translation, if that is within ``max_distance``; groups with a given id are candidates
+       too. Otherwise it starts a new cluster. Only the translation counts here: hypotheses at
+       one place with different orientations are alternative poses of one object (two objects
+       cannot share a volume), and they are what the search compares. Note that two touching
+       objects of one class closer than ``max_distance`` (centre to centre) would merge: keep
+       ``max_distance`` below the smallest object's size.
+    3. **Matching.** Clusters without an id are matched, class by class, to the previous
+       objects of that class not claimed by a given id, with
+       :func:`scipy.optimize.linear_sum_assignment` (globally optimal) on
+       ``cost = dt + rotation_weight * dtheta`` (:func:`ssp.probability.pose_change`,
+       symmetry-aware), minimised over the cluster's members. A pair is allowed only when some
+       member is within ``max_distance`` in translation of the previous pose; the rotation is
+       left out of the gate so that an object which toppled (rotated by 90 degrees in place)
+       keeps its id, and only ranks nearby candidates.
+    4. **New ids.** Unmatched clusters get ``new_id(class_name)`` in a stable order (class name,
+       then decreasing best score, then input order).
+
+    Args:
+        hypotheses: the frame's hypotheses (validated: rigid poses, known classes).
+        previous: previous objects, ``instance_id -> (class_name, T_world_obj)``.
+        symmetries: class name -> model symmetry (missing classes: asymmetric).
+        max_distance: clustering radius and matching gate, m.
+        rotation_weight: metres of cost per radian of symmetric rotation angle.
+        new_id: fresh-id factory; default :func:`default_id_factory` over the previous ids and
+            the given ids (``f"{class}_{k}"``).
+
+    Returns:
+        ``instance_id -> hypotheses`` (each with ``instance_id`` set, best score first), in the
+        order of each group's best hypothesis in the input.
+
+    Raises:
+        DuplicateObjectError: ``new_id`` returned an id already in use.
+    """
+    given_ids = {h.instance_id for h in hypotheses if h.instance_id is not None}
+    if new_id is None:
+        new_id = default_id_factory([*previous, *given_ids])
+
+    order = sorted(range(len(hypotheses)), key=lambda i: (-float(hypotheses[i].score), i))
+    clusters: list[_Cluster] = []
+    by_id: dict[str, _Cluster] = {}
+    for i in order:  # given ids first: their groups seed the clustering
+        h = hypotheses[i]
+        if h.instance_id is None:
+            continue
+        if h.instance_id in by_id:
+            by_id[h.instance_id].add(h, i)
+        else:
+            by_id[h.instance_id] = _Cluster(h, i, h.instance_id)
+            clusters.append(by_id[h.instance_id])
+    for i in order:
+        h = hypotheses[i]
+        if h.instance_id is not None:
+            continue
+        t = np.asarray(h.T_world_obj, dtype=float)[:3, 3]
+        best, best_d = None, np.inf
+        for c in clusters:
+            if c.best.class_name != h.class_name:
+                continue
+            d = float(np.linalg.norm(np.asarray(c.best.T_world_obj)[:3, 3] - t))
+            if d <= max_distance and d < best_d:
+                best, best_d = c, d
+        if best is None:
+            clusters.append(_Cluster(h, i))
+        else:
+            best.add(h, i)
+
+    free = [c for c in clusters if c.instance_id is None]
+    for class_name in sorted({c.best.class_name for c in free}):
+        rows = [c for c in free if c.best.class_name == class_name]
+        rows.sort(key=lambda c: (-float(c.best.score), c.order))
+        cols = sorted(
+            k for k, (cls, _) in previous.items() if cls == class_name and k not in given_ids
+        )
+        if cols:
+            sym = symmetries.get(class_name)
+            cost = np.full((len(rows), len(cols)), _FORBIDDEN)
+            for r, c in enumerate(rows):
+                for j, k in enumerate(cols):
+                    T_prev = previous[k][1]
+                    for h in c.members:
+                        dt, dth = pose_change(T_prev, h.T_world_obj, sym)
+                        if dt <= max_distance:
+                            cost[r, j] = min(cost[r, j], dt + rotation_weight * dth)
+            for r, j in zip(*linear_sum_assignment(cost), strict=True):
+                if cost[r, j] < _FORBIDDEN:
+                    rows[r].instance_id = cols[j]
+        for c in rows:
+            if c.instance_id is None:
+                ident = new_id(class_name)
+                if ident in previous or ident in given_ids or ident in by_id:
+                    raise DuplicateObjectError(f"new_id returned {ident!r}, which is in use")
+                c.instance_id = ident
+                by_id[ident] = c
+
+    clusters.sort(key=lambda c: c.first_index)
+    out: dict[str, list[Hypothesis]] = {}
+    for c in clusters:
+        members = sorted(c.members, key=lambda h: -float(h.score))  # stable: input order on ties
+        out[c.instance_id] = [replace(h, instance_id=c.instance_id) for h in members]
+    return out
+
+
+def classify(
+    prev_pose: np.ndarray | None,
+    cur_pose: np.ndarray | None,
+    symmetry: Symmetry | None,
+    cfg: TemporalConfig,
+    retained: bool = False,
+) -> TransitionMode:
+    """Transition mode of one object between the previous and the current frame.
+
+    * no previous pose: ``ADDED``;
+    * ``retained`` (the object was not detected but kept because objects it supports would be
+      unstable without it; its current pose, if any, is the one the search kept):
+      ``SUPPORT_RETAINED``;
+    * no current pose: ``REMOVED``;
+    * moved less than ``cfg.static_translation`` *and* rotated (symmetry-aware) less than
+      ``cfg.static_rotation``, both strictly: ``STATIC``; else ``PERTURBED``.
+
+    Raises:
+        SSPError: both poses are None, or ``retained`` for an object with no previous pose.
+    """
+    if prev_pose is None:
+        if cur_pose is None:
+            raise SSPError("classify: an object needs a previous or a current pose")
+        if retained:
+            raise SSPError("classify: an object new in this frame cannot be support-retained")
+        return TransitionMode.ADDED
+    if retained:
+        return TransitionMode.SUPPORT_RETAINED
+    if cur_pose is None:
+        return TransitionMode.REMOVED
+    dt, dtheta = pose_change(prev_pose, cur_pose, symmetry)
+    if dt < cfg.static_translation and dtheta < cfg.static_rotation:
+        return TransitionMode.STATIC
+    return TransitionMode.PERTURBED
+
+
+def _quat_angle(R: np.ndarray) -> float:
+    q = Rotation.from_matrix(R).as_quat()
+    return float(2.0 * np.arctan2(np.linalg.norm(q[:3]), abs(q[3])))
+
+
+def snap_symmetric(T_prev: np.ndarray, T_cur: np.ndarray, symmetry: Symmetry | None) -> np.ndarray:
+    """The symmetric equivalent ``T_cur @ S`` of ``T_cur`` closest in rotation to ``T_prev``.
+
+    Every discrete symmetry is tried; a continuous axis is handled exactly, in closed form
+    (the rotation ``phi`` about the axis after ``S`` that maximises the scalar part of the
+    quaternion of ``R_prev^T R_cur R_S R_phi``: ``phi = 2 atan2(-(v.a), w)``); two non-parallel
+    continuous axes (a sphere) make every orientation equivalent, so the result takes
+    ``T_prev``'s rotation about the symmetry centre. Ties (within 1e-9 rad) go to the first
+    symmetry, the identity, so a pose that is already closest is returned unchanged (a copy).
+    The result is the same physical pose as ``T_cur`` (only its parametrisation changes).
+    """
+    T_prev = np.asarray(T_prev, dtype=float)
+    T_cur = np.asarray(T_cur, dtype=float)
+    if symmetry is None or not symmetry.is_symmetric:
+        return T_cur.copy()
+    axes = [c.axis for c in symmetry.continuous]
+    if len(axes) > 1 and any(np.linalg.norm(np.cross(axes[0], a)) > 1e-6 for a in axes[1:]):
+        R = T_cur[:3, :3].T @ T_prev[:3, :3]
+        o = symmetry.continuous[0].offset
+        S = np.eye(4)
+        S[:3, :3] = R
+        S[:3, 3] = o - R @ o
+        return T_cur @ S
+    R_base = T_prev[:3, :3].T @ T_cur[:3, :3]
+    best_T, best_angle = T_cur.copy(), np.inf
+    for S in symmetry.discrete:
+        T = T_cur @ S
+        if symmetry.continuous:
+            cont = symmetry.continuous[0]
+            q = Rotation.from_matrix(R_base @ S[:3, :3]).as_quat()
+            phi = 2.0 * np.arctan2(-float(q[:3] @ cont.axis), q[3])
+            if abs(phi) > 1e-12:
+                T = T @ cont.transform(phi)
+        angle = _quat_angle(T_prev[:3, :3].T @ T[:3, :3])
+        if angle < best_angle - 1e-9:
+            best_T, best_angle = T, angle
+    return best_T
