@@ -93,12 +93,7 @@ class Frame:
             library: the object library (anything with ``in`` and ``names``/iteration, such
                 as :class:`ssp.library.ObjectLibrary`).
         """
-        try:
-            stamp = float(self.stamp)
-        except (TypeError, ValueError) as exc:
-            raise FrameError(f"frame stamp must be a number, got {self.stamp!r}") from exc
-        if not math.isfinite(stamp):
-            raise FrameError(f"frame stamp must be finite, got {stamp}")
+        stamp = _finite_float(self.stamp, "frame stamp")
 
         points, keep = _clean_points(self.points, "frame points")
         if len(points) == 0:
@@ -157,12 +152,7 @@ class Frame:
                     f"{what}: translation {np.linalg.norm(T[:3, 3]):.1f} m from the origin looks "
                     "like millimetres (ssp works in metres): divide it by 1000"
                 )
-            try:
-                score = float(h.score)
-            except (TypeError, ValueError) as exc:
-                raise FrameError(f"{what}: score must be a number, got {h.score!r}") from exc
-            if not math.isfinite(score):
-                raise FrameError(f"{what}: score must be finite, got {score}")
+            score = _finite_float(h.score, f"{what}: score")
             hypotheses.append(replace(h, T_world_obj=T, score=score))
 
         return Frame(
@@ -192,3 +182,14 @@ def _clean_points(
     if dropped and keep.any():
         log.info("%s: dropped %d of %d non-finite points", what, dropped, len(keep))
     return arr[keep], keep
+
+
+def _finite_float(value: object, what: str) -> float:
+    """``value`` as a finite float, or :class:`FrameError` naming ``what``."""
+    try:
+        out = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError) as exc:
+        raise FrameError(f"{what} must be a number, got {value!r}") from exc
+    if not math.isfinite(out):
+        raise FrameError(f"{what} must be finite, got {out}")
+    return out
