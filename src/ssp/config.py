@@ -17,7 +17,7 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from ssp.errors import ConfigError
+from ssp.errors import ConfigError, SSPError
 
 
 class _Section(BaseModel):
@@ -215,17 +215,22 @@ class SSPConfig(_Section):
         return self.model_dump(mode="json")
 
 
+def read_yaml(path: Path, error: type[SSPError], what: str = "file") -> Any:
+    """Parsed YAML of ``path`` (None if empty); raises ``error`` if unreadable or invalid."""
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise error(f"cannot read {what} {path}: {exc}") from exc
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise error(f"{path} is not valid YAML: {exc}") from exc
+
+
 def load_config(path: str | Path) -> SSPConfig:
     """Read a YAML file (partial files allowed) into an :class:`SSPConfig`."""
     path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise ConfigError(f"cannot read config file {path}: {exc}") from exc
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"{path} is not valid YAML: {exc}") from exc
+    data = read_yaml(path, ConfigError, "config file")
     if data is not None and not isinstance(data, dict):
         raise ConfigError(f"{path}: the top level must be a mapping of sections")
     return SSPConfig.from_dict(data)

@@ -11,6 +11,8 @@ from scipy.spatial.transform import Rotation
 
 from ssp.errors import InvalidPoseError
 
+_LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
+
 #: Largest deviation from orthonormality accepted (and silently re-orthonormalised).
 ORTHONORMAL_TOL = 1e-5
 
@@ -77,7 +79,7 @@ def validate_pose(T: np.ndarray, what: str = "pose") -> np.ndarray:
         raise InvalidPoseError(f"{what}: expected shape (4, 4), got {T.shape}")
     if not np.all(np.isfinite(T)):
         raise InvalidPoseError(f"{what}: contains NaN or infinite values")
-    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9):
+    if np.abs(T[3] - _LAST_ROW).max() > 1e-9:
         raise InvalidPoseError(f"{what}: last row must be [0, 0, 0, 1], got {T[3]}")
     R = T[:3, :3]
     err = np.abs(R @ R.T - np.eye(3)).max()

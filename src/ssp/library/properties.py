@@ -27,9 +27,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from ssp.config import read_yaml
 from ssp.errors import ModelError, ModelFileError
 from ssp.library.mesh import UNIT_SCALES
 from ssp.library.symmetry import Symmetry
@@ -147,14 +147,7 @@ def read_properties(path: str | Path) -> PropertiesFile:
         ModelFileError: unreadable or not YAML. ModelError: invalid content (file and key named).
     """
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ModelFileError(f"cannot read {path}: {exc}") from exc
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise ModelFileError(f"{path} is not valid YAML: {exc}") from exc
+    data = read_yaml(path, ModelFileError)
     if data is None:
         data = {}
     if not isinstance(data, dict):
