@@ -1,0 +1,252 @@
+"""Could the camera see an object at a given pose? Ray-wise comparison with the observed cloud.
+
+The scene parser uses this to decide what happened to an object that the detector no longer
+reports: it is *occluded* (something observed lies in front of it: keep it, as "ephemeral"), it
+is *gone* (its volume is seen empty: the surface behind where it would be is observed), or it is
+*visible* (observed points lie on its surface: the detector simply missed it).
+
+Method
+------
+The camera intrinsics are not known; only the world-frame scene points captured by the camera
+and the camera pose ``T_world_cam`` are. Every observed point is moved into the camera frame
+(OpenCV: x right, y down, z forward) and stored by its ray direction, the *normalised image
+coordinates* ``(x/z, y/z)``, with its depth ``z`` (m). For a pinhole camera, pixels are evenly
+spaced in these coordinates (spacing ``1/f`` for a focal length ``f`` in pixels), so distances
+between rays there are pixel distances up to the unknown scale ``f``; near the optical axis they
+are also angles in radians.
+
+For each model sample (a surface point and its outward normal, placed at the queried pose) that
+faces the camera (``normal . (camera - point) > 0``) and lies in front of it (``z > 0``), the
+observed point whose ray is nearest to the sample's ray, within ``angular_resolution``, is
+looked up (one KD-tree query for all samples), and its depth compared to the sample's depth:
+
+* ``|depth_obs - depth| <= depth_tolerance``: **seen**, the surface is where the model says;
+* ``depth_obs < depth - depth_tolerance``: **occluded**, something is in front of it;
+* ``depth_obs > depth + depth_tolerance``: **seen through**, the camera saw past where the
+  surface would be, so that space is empty;
+* no observed point within the radius: **unknown** (missing data, or outside the view).
+
+Limits
+------
+* No intrinsics: the field of view is known only through the observed points, so "unknown"
+  cannot tell a hole in the depth image (e.g. a black or shiny surface) from a ray outside the
+  image. The lookup radius must be about one pixel; where the cloud is sparser than that (e.g.
+  after down-sampling), samples come out unknown. By default the radius is estimated from the
+  cloud itself (see :class:`CameraView`).
+* One depth per ray: a depth image holds one depth per pixel, so the observed point nearest in
+  angle is used, not the nearest in depth. At depth discontinuities (silhouette edges) the
+  answer for a sample within a pixel of the edge may come from either side; such samples are a
+  small fraction of an object's facing samples.
+* ``depth_tolerance`` (m) absorbs sensor noise and small pose errors; surfaces seen at grazing
+  angles change depth quickly from pixel to pixel and may need a larger tolerance.
+* Self-occlusion is handled only through the facing test (exact for convex objects); a concave
+  object's facing samples hidden by its own other parts are classified against what the camera
+  saw in front of them.
+* Depth is compared along the optical axis (``z``), as in a depth image; for points on the same
+  ray this orders them exactly as range does.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ssp.geometry import invert, validate_pose
+
+#: Smallest camera-frame depth (m) taken as "in front of the camera"; avoids dividing by ~0.
+MIN_DEPTH = 1e-6
+
+#: Default lookup radius factor: 1.5 x the median nearest-neighbour ray distance of the cloud.
+#: On a regular pixel grid that distance is one pixel, so 1.5 px reaches the 8 neighbouring
+#: pixels (diagonal: 1.41 px) and lets a ray between pixels always find one.
+RESOLUTION_FACTOR = 1.5
+
+#: Largest number of rays whose nearest-neighbour distance enters the estimate (a strided subset).
+ESTIMATE_MAX_QUERIES = 20_000
+
+#: Lookup radius (normalised image coordinates, ~rad) used when the cloud has too few points
+#: (fewer than 2 distinct rays) to estimate one: about one pixel of a 640 px wide, 60 deg camera.
+FALLBACK_ANGULAR_RESOLUTION = 0.002
+
+
+@dataclass(frozen=True)
+class VisibilityReport:
+    """How the facing samples of an object at a pose compare with what the camera observed.
+
+    The four fractions sum to 1 when ``n_facing > 0``; all are 0.0 when ``n_facing == 0``.
+    """
+
+    #: Samples facing the camera (``normal . (cam - p) > 0``) and in front of it (``z > 0``).
+    n_facing: int
+    #: Fraction of facing samples with an observed point at about their depth.
+    seen: float
+    #: Fraction with an observed point clearly in front of them (something hides them).
+    occluded: float
+    #: Fraction whose ray has an observed point clearly behind them (free space where they are).
+    seen_through: float
+    #: Fraction with no observed point along their ray (missing data, outside the view).
+    unknown: float
+
+
+def _as_points(a: np.ndarray, what: str) -> np.ndarray:
+    """``a`` as a finite float64 (n, 3) array, or ``ValueError``."""
+    try:
+        arr = np.asarray(a, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{what}: not a numeric (n, 3) array ({exc})") from exc
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise ValueError(f"{what}: expected shape (n, 3), got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{what}: contains NaN or infinite values")
+    return arr
+
+
+def _positive(value: float, what: str, *, allow_zero: bool) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{what}: not a number ({value!r})") from exc
+    if not np.isfinite(v) or v < 0.0 or (v == 0.0 and not allow_zero):
+        bound = ">= 0" if allow_zero else "> 0"
+        raise ValueError(f"{what}: must be finite and {bound}, got {value!r}")
+    return v
+
+
+def estimate_angular_resolution(rays: np.ndarray, tree: cKDTree | None = None) -> float:
+    """Lookup radius for rays ``(n, 2)`` in normalised image coordinates (~rad).
+
+    :data:`RESOLUTION_FACTOR` x the median distance from each ray (at most
+    :data:`ESTIMATE_MAX_QUERIES` of them, evenly strided) to its nearest other distinct ray
+    (exact duplicates are ignored). :data:`FALLBACK_ANGULAR_RESOLUTION` when there are fewer
+    than 2 distinct rays.
+    """
+    rays = np.asarray(rays, dtype=float)
+    if len(rays) < 2:
+        return FALLBACK_ANGULAR_RESOLUTION
+    if tree is None:
+        tree = cKDTree(rays)
+    # The median over an evenly strided subset (every point of a small cloud) keeps this cheap
+    # on full depth images; a few neighbours so duplicated rays do not hide the real spacing.
+    queries = rays[:: -(-len(rays) // ESTIMATE_MAX_QUERIES)]
+    k = min(len(rays), 4)
+    dist, _ = tree.query(queries, k=k, workers=1)
+    dist = np.where(dist > 0.0, dist, np.inf)  # drops the ray itself and its duplicates
+    nearest = dist.min(axis=1)
+    nearest = nearest[np.isfinite(nearest)]
+    if nearest.size == 0:
+        return FALLBACK_ANGULAR_RESOLUTION
+    return float(RESOLUTION_FACTOR * np.median(nearest))
+
+
+class CameraView:
+    """The observed scene of one frame, indexed by ray direction; built once per frame.
+
+    Args:
+        points_world: (N, 3) scene points (m, world frame) captured by this camera; may be empty.
+        T_world_cam: (4, 4) camera pose (maps OpenCV camera coordinates to world).
+        angular_resolution: lookup radius around a sample's ray, in normalised image coordinates
+            (~rad; about one pixel, ``1/f``). ``None``: estimated from the cloud as
+            :data:`RESOLUTION_FACTOR` x the median nearest-neighbour ray distance.
+        depth_tolerance: |observed - model| depth (m) still counted as the same surface.
+
+    Only points in front of the camera (``z > MIN_DEPTH``) are kept.
+    """
+
+    def __init__(
+        self,
+        points_world: np.ndarray,
+        T_world_cam: np.ndarray,
+        *,
+        angular_resolution: float | None = None,
+        depth_tolerance: float = 0.005,
+    ) -> None:
+        pts = _as_points(points_world, "points_world")
+        self._T_world_cam = validate_pose(T_world_cam, "T_world_cam")
+        self._T_cam_world = invert(self._T_world_cam)
+        self._depth_tolerance = _positive(depth_tolerance, "depth_tolerance", allow_zero=True)
+
+        p_cam = pts @ self._T_cam_world[:3, :3].T + self._T_cam_world[:3, 3]
+        p_cam = p_cam[p_cam[:, 2] > MIN_DEPTH]
+        self._depths = p_cam[:, 2].copy()
+        rays = p_cam[:, :2] / p_cam[:, 2:3]
+        self._tree = cKDTree(rays) if len(rays) else None
+
+        if angular_resolution is None:
+            self._resolution = estimate_angular_resolution(rays, self._tree)
+        else:
+            self._resolution = _positive(angular_resolution, "angular_resolution", allow_zero=False)
+
+    @property
+    def n_points(self) -> int:
+        """Number of observed points in front of the camera."""
+        return int(len(self._depths))
+
+    @property
+    def angular_resolution(self) -> float:
+        """Lookup radius (normalised image coordinates, ~rad)."""
+        return self._resolution
+
+    @property
+    def depth_tolerance(self) -> float:
+        """Same-surface depth tolerance (m)."""
+        return self._depth_tolerance
+
+    @property
+    def T_world_cam(self) -> np.ndarray:
+        """Camera pose (4, 4), a copy."""
+        return self._T_world_cam.copy()
+
+    def report(self, points_world: np.ndarray, normals_world: np.ndarray) -> VisibilityReport:
+        """Classify model samples already placed in the world.
+
+        Args:
+            points_world: (M, 3) surface samples (m, world frame).
+            normals_world: (M, 3) their outward normals (world frame; need not be unit length;
+                a zero normal never faces the camera).
+        """
+        pts = _as_points(points_world, "points_world")
+        nrm = _as_points(normals_world, "normals_world")
+        if nrm.shape != pts.shape:
+            raise ValueError(
+                f"normals_world: shape {nrm.shape} does not match points_world {pts.shape}"
+            )
+        cam_centre = self._T_world_cam[:3, 3]
+        facing = np.einsum("ij,ij->i", nrm, cam_centre - pts) > 0.0
+        p_cam = pts @ self._T_cam_world[:3, :3].T + self._T_cam_world[:3, 3]
+        facing &= p_cam[:, 2] > MIN_DEPTH
+        p_cam = p_cam[facing]
+        n = int(len(p_cam))
+        if n == 0:
+            return VisibilityReport(0, 0.0, 0.0, 0.0, 0.0)
+        if self._tree is None:
+            return VisibilityReport(n, 0.0, 0.0, 0.0, 1.0)
+
+        depth = p_cam[:, 2]
+        rays = p_cam[:, :2] / depth[:, None]
+        # Nearest ray in angle, not the smallest depth: a depth image holds one depth per pixel.
+        dist, idx = self._tree.query(rays, k=1, distance_upper_bound=self._resolution, workers=1)
+        found = np.isfinite(dist)
+        diff = np.full(n, np.nan)
+        diff[found] = self._depths[idx[found]] - depth[found]
+        tol = self._depth_tolerance
+        n_seen = int(np.count_nonzero(found & (np.abs(diff) <= tol)))
+        n_occluded = int(np.count_nonzero(found & (diff < -tol)))
+        n_through = int(np.count_nonzero(found & (diff > tol)))
+        n_unknown = n - n_seen - n_occluded - n_through
+        return VisibilityReport(n, n_seen / n, n_occluded / n, n_through / n, n_unknown / n)
+
+    def report_pose(
+        self, model_points: np.ndarray, model_normals: np.ndarray, T_world_obj: np.ndarray
+    ) -> VisibilityReport:
+        """Classify model samples ``(M, 3)`` (model frame, m) placed at pose ``T_world_obj``."""
+        pts = _as_points(model_points, "model_points")
+        nrm = _as_points(model_normals, "model_normals")
+        if nrm.shape != pts.shape:
+            raise ValueError(
+                f"model_normals: shape {nrm.shape} does not match model_points {pts.shape}"
+            )
+        T = validate_pose(T_world_obj, "T_world_obj")
+        R = T[:3, :3]
+        return self.report(pts @ R.T + T[:3, 3], nrm @ R.T)
