@@ -188,9 +188,12 @@ def test_data_hand_values():
     np.testing.assert_allclose(np.exp(out), [0.027, 0.5, 0.917, 0.998], atol=1e-3)
 
 
-def test_data_increasing():
-    out = log_data(np.linspace(0, 1, 30), DATA)
-    assert np.all(np.diff(out) > 0)
+def test_data_increasing_then_capped_at_c_max():
+    c = np.linspace(0, 1, 41)
+    out = log_data(c, DATA)
+    below = c <= DATA.c_max
+    assert np.all(np.diff(out[below]) > 0)
+    np.testing.assert_array_equal(out[~below], log_data(DATA.c_max, DATA)[0])
 
 
 def test_data_fit_fraction_exact_half():

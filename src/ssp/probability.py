@@ -216,18 +216,21 @@ def data_fit_fraction(
 
 
 def log_data(fit_fraction: np.ndarray | float, cfg: DataConfig) -> np.ndarray:
-    """``log P_D = log L(s_d (c / C_max - a_d))``, paper Eq. 10.
+    """``log P_D = log L(s_d (min(c / C_max, 1) - a_d))``, paper Eq. 10.
+
+    ``C_max`` is the fit fraction counted as full: one camera sees at most about half of an
+    object's surface, so a fit above ``C_max`` says nothing more about the pose, only about the
+    view; ``c / C_max`` is therefore capped at 1 (a decision of ours; the paper leaves it open).
 
     Args:
-        fit_fraction: ``(n,)`` ``c`` from :func:`data_fit_fraction` (dimensionless, 0..1). Not
-            clipped at ``C_max``: the formula is applied as written.
+        fit_fraction: ``(n,)`` ``c`` from :func:`data_fit_fraction` (dimensionless, 0..1).
         cfg: steepness ``s_d``, midpoint ``a_d``, ``C_max``.
 
     Returns:
         ``(n,)`` natural-log probabilities, increasing in ``c``.
     """
     c = np.atleast_1d(np.asarray(fit_fraction, dtype=float))
-    return log_logistic(cfg.steepness * (c / cfg.c_max - cfg.midpoint))
+    return log_logistic(cfg.steepness * (np.minimum(c / cfg.c_max, 1.0) - cfg.midpoint))
 
 
 # --------------------------------------------------------------------------------------------
