@@ -73,7 +73,7 @@ def associate(
     previous: Mapping[str, tuple[str, np.ndarray]],
     symmetries: Mapping[str, Symmetry],
     *,
-    max_distance: float = 0.05,
+    max_distance: float | Mapping[str, float] = 0.05,
     rotation_weight: float = 0.05,
     new_id: Callable[[str], str] | None = None,
 ) -> dict[str, list[Hypothesis]]:
@@ -103,7 +103,8 @@ def associate(
         hypotheses: the frame's hypotheses (validated: rigid poses, known classes).
         previous: previous objects, ``instance_id -> (class_name, T_world_obj)``.
         symmetries: class name -> model symmetry (missing classes: asymmetric).
-        max_distance: clustering radius and matching gate, m.
+        max_distance: clustering radius and matching gate, m; a mapping gives one per class
+            (classes missing from it use 0.05 m).
         rotation_weight: metres of cost per radian of symmetric rotation angle.
         new_id: fresh-id factory; default :func:`default_id_factory` over the previous ids and
             the given ids (``f"{class}_{k}"``).
@@ -116,6 +117,17 @@ def associate(
         DuplicateObjectError: ``new_id`` returned an id already in use.
     """
     given_ids = {h.instance_id for h in hypotheses if h.instance_id is not None}
+    if isinstance(max_distance, Mapping):
+        gates = dict(max_distance)
+
+        def gate(class_name: str) -> float:
+            return float(gates.get(class_name, 0.05))
+    else:
+        radius = float(max_distance)
+
+        def gate(class_name: str) -> float:
+            return radius
+
     if new_id is None:
         new_id = default_id_factory([*previous, *given_ids])
 
@@ -141,7 +153,7 @@ def associate(
             if c.best.class_name != h.class_name:
                 continue
             d = float(np.linalg.norm(np.asarray(c.best.T_world_obj)[:3, 3] - t))
-            if d <= max_distance and d < best_d:
+            if d <= gate(h.class_name) and d < best_d:
                 best, best_d = c, d
         if best is None:
             clusters.append(_Cluster(h, i))
@@ -163,7 +175,7 @@ def associate(
                     T_prev = previous[k][1]
                     for h in c.members:
                         dt, dth = pose_change(T_prev, h.T_world_obj, sym)
-                        if dt <= max_distance:
+                        if dt <= gate(class_name):
                             cost[r, j] = min(cost[r, j], dt + rotation_weight * dth)
             for r, j in zip(*linear_sum_assignment(cost), strict=True):
                 if cost[r, j] < _FORBIDDEN:
