@@ -158,7 +158,7 @@ def test_force_scales_linearly_with_mass(make_box):
     np.testing.assert_allclose(tau[1], 3.0 * tau[0], rtol=1e-12)
     # and with g and f
     F2, _ = DataForces(
-        [light], [self_field(light)], config=ForcesConfig(gravity_fraction=0.25)
+        [light], [self_field(light)], config=ForcesConfig(gravity_fraction=FRAC / 2)
     ).compute(pose(x=0.006, yaw_deg=3)[None], 2 * G)
     np.testing.assert_allclose(F2[0], F[0], rtol=1e-12)
 

@@ -125,7 +125,23 @@ class ForcesConfig(_Section):
         0.02, gt=0, description="d_t: correspondence cut-off of the point-pair kernel, m."
     )
     gravity_fraction: float = Field(
-        0.5, ge=0, description="f: peak data force F_max = f m g (proportional to mass)."
+        2.0,
+        ge=0,
+        description=(
+            "f: peak data force F_max = f m g (proportional to mass). The paper's default is "
+            "0.5; the reference's block-scene launch used 2.0, which is also what converges "
+            "within the search windows here (docs/calibration.md)."
+        ),
+    )
+    friction_scale: float = Field(
+        0.0,
+        ge=0,
+        le=1,
+        description=(
+            "Sliding friction is multiplied by this while the data forces act (a pull of "
+            "f m g could not slide a resting object against friction mu m g >= f m g); full "
+            "friction returns for the window without forces, where stability is judged."
+        ),
     )
 
 
@@ -143,6 +159,14 @@ class CollisionConfig(_Section):
 
     steepness: float = Field(2000.0, gt=0, description="sigma_c (calibrate).")
     midpoint: float = Field(0.002, ge=0, description="alpha_c (calibrate).")
+    min_depth: float = Field(
+        0.0002,
+        ge=0,
+        description=(
+            "Penetrations shallower than this (m) are taken as solver residue: no overlap "
+            "volume is computed for them (the interior grid could not resolve them anyway)."
+        ),
+    )
 
 
 class SupportConfig(_Section):
@@ -177,14 +201,99 @@ class TemporalConfig(_Section):
     static_rotation: float = Field(
         math.radians(5.0), gt=0, description="Static below this rotation, rad (5 deg)."
     )
+    association_distance: float = Field(
+        0.05, gt=0, description="Largest centre distance of a hypothesis to its object, m."
+    )
+    association_size_fraction: float = Field(
+        0.5,
+        gt=0,
+        description=(
+            "The association gate of a class is at most this fraction of its smallest extent, "
+            "so two touching objects of one class never merge."
+        ),
+    )
+    visible_fit: float = Field(
+        0.5,
+        ge=0,
+        le=1,
+        description=(
+            "An undetected object whose data fit c / C_max at its previous pose is at least "
+            "this is still there (missed detection): it stays."
+        ),
+    )
+    occluded_fraction: float = Field(
+        0.4,
+        ge=0,
+        le=1,
+        description=(
+            "An undetected object is hidden (ephemeral) when at least this fraction of its "
+            "camera-facing surface lies behind observed depth (reference: 40 %)."
+        ),
+    )
+    seen_through_fraction: float = Field(
+        0.3,
+        ge=0,
+        le=1,
+        description=(
+            "An undetected object is gone when at least this fraction of its camera-facing "
+            "surface is seen through (observed depth behind it: its volume is empty)."
+        ),
+    )
+    replaced_overlap: float = Field(
+        0.3,
+        ge=0,
+        le=1,
+        description="An ephemeral object is removed when another object fills this fraction "
+        "of its volume.",
+    )
+    depth_tolerance: float = Field(
+        0.005, gt=0, description="Depth agreement for the visibility tests, m."
+    )
 
 
 class SearchConfig(_Section):
-    """Per-hypothesis simulation windows (Alg. 1, 3)."""
+    """Simulation windows and budgets of the search (Alg. 1, 3; DESIGN section 4).
 
-    settle_with_forces: float = Field(0.45, ge=0, description="Window with data forces, s.")
-    settle_without_forces: float = Field(0.3, ge=0, description="Window without forces, s.")
+    Stepping is quasi-static, so an object moves at most about ``a dt^2`` per step (0.25 mm
+    under gravity at dt = 5 ms): a window of ``w`` seconds corrects errors up to about
+    ``w / dt * 0.25 mm`` (docs/calibration.md measures the windows against their cost).
+    """
+
+    settle_with_forces: float = Field(
+        0.15, ge=0, description="Per-hypothesis window with data forces, s (reference 0.45)."
+    )
+    settle_without_forces: float = Field(
+        0.1, ge=0, description="Per-hypothesis window without forces, s (reference 0.3)."
+    )
+    initial_settle: float = Field(
+        0.15, ge=0, description="Settle of the first guess before the support graph, s."
+    )
+    final_settle: float = Field(
+        0.2, ge=0, description="Settle of the whole chosen scene, with forces, s."
+    )
+    retain_settle: float = Field(
+        0.1, ge=0, description="Settle without an undetected object to test its support, s."
+    )
     hypotheses_per_object: int = Field(5, ge=1, description="k: hypotheses kept per object.")
+    previous_candidates: bool = Field(
+        True, description="Add the previous frame's pose of an object as a candidate (V-C)."
+    )
+    unchanged_shortcut: bool = Field(
+        True,
+        description=(
+            "Skip the search when nothing changed: every known object has a hypothesis within "
+            "the static thresholds of its previous pose and no object appeared or vanished."
+        ),
+    )
+    force_refresh_every: int = Field(
+        4, ge=1, description="Steps between nearest-neighbour refreshes of the data forces."
+    )
+    force_samples: int = Field(
+        300, ge=10, description="Model surface samples used for the data forces per object."
+    )
+    fit_samples: int = Field(
+        1000, ge=10, description="Model surface samples used for the data fit per object."
+    )
 
 
 class SSPConfig(_Section):

@@ -27,6 +27,9 @@ from ssp.library import ObjectInstance, ObjectLibrary
 from ssp.library.builtin import TOOL_NAMES
 from ssp.physics import World
 
+#: Quasi-static relaxation shown by the demo, s (the reference code's 0.45 s window).
+RELAX_SECONDS = 0.45
+
 
 def _max_penetration_mm(world: World) -> float:
     c = world.contacts()
@@ -84,7 +87,7 @@ def _relaxation(lib: ObjectLibrary, cfg: SSPConfig) -> tuple[dict, World]:
     )
     world.set_poses({"cube": T_cube, "block": T_block})
     lin0, _ = world.acceleration_from_rest()
-    steps = int(round(cfg.search.settle_with_forces / cfg.physics.timestep))
+    steps = int(round(RELAX_SECONDS / cfg.physics.timestep))
     world.step(steps, quasi_static=True)
     lin1, _ = world.acceleration_from_rest()
     T_end = world.get_pose("block")

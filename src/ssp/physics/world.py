@@ -197,6 +197,8 @@ class World:
         self._conaffinity0 = m.geom_conaffinity.copy()
         self._com_local = np.array(m.body_ipos[1:], dtype=float)  # (n, 3) COM in body frame
         self._mass = np.array(m.body_mass[1:], dtype=float)
+        self._friction0 = np.array(m.geom_friction[:, 0], dtype=float)
+        self._friction_scale = 1.0
         self._enabled = np.ones(n, dtype=bool)
         self._enabled_ext = np.ones(n + 1, dtype=bool)  # index -1 (table) always enabled
         self._frozen_q = np.zeros(0, dtype=int)  # qpos indices of disabled objects
@@ -376,6 +378,26 @@ class World:
         self._frozen_q = (7 * off[:, None] + np.arange(7)).ravel()
         self._frozen_v = (6 * off[:, None] + np.arange(6)).ravel()
         self._forward_current = False
+
+    @property
+    def friction_scale(self) -> float:
+        """Factor applied to every sliding friction coefficient (1 = the models' values)."""
+        return self._friction_scale
+
+    def set_friction_scale(self, scale: float) -> None:
+        """Scale every geom's sliding friction (objects and table) by ``scale`` >= 0.
+
+        A model parameter, not part of the saved state: :meth:`restore_state` leaves it as is.
+        The search lowers it while the data forces align objects with the data (so a small
+        pull can slide a resting object) and restores it before stability is judged.
+        """
+        scale = float(scale)
+        if not (math.isfinite(scale) and scale >= 0):
+            raise ValueError(f"friction scale must be finite and >= 0, got {scale}")
+        if scale != self._friction_scale:
+            self._m.geom_friction[:, 0] = self._friction0 * scale
+            self._friction_scale = scale
+            self._forward_current = False
 
     # ------------------------------------------------------------------ wrenches
     def apply_wrench(self, oid: str, force, torque) -> None:

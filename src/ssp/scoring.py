@@ -1,0 +1,192 @@
+"""The scene probability of a simulated world state: every term of every enabled object.
+
+``log Pr(s | C, D) = sum_objects (log P_B + log P_C + log P_S + log P_D + log P_T)`` (paper Eq. 3,
+4-10; DESIGN section 4), read from the physics world after a simulation window:
+
+* stability ``P_B``: the acceleration from rest under gravity and contacts alone (data forces
+  are cleared first: a hovering object held by its data force is still unstable);
+* collision ``P_C``: the deepest penetration of each object (contacts, table included) times
+  the fraction of its volume inside other objects or the table (:mod:`ssp.overlap`), computed
+  only for penetrations deeper than ``collision.min_depth`` (solver residue reads as 0);
+* support ``P_S``: the fractions of other objects' weight each object carries (Alg. 2);
+* data ``P_D``: the fraction of model surface samples within ``r_c`` of the object's segment;
+* transition ``P_T``: motion from the previous frame's best pose (0 for new objects).
+
+Scores are only compared between states with the same enabled objects (DESIGN section 4).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ssp.config import SSPConfig
+from ssp.geometry import transform_points
+from ssp.overlap import overlap_fractions
+from ssp.physics import World
+from ssp.probability import (
+    ObjectTerms,
+    collision_severity,
+    data_fit_fraction,
+    log_collision,
+    log_data,
+    log_stability,
+    log_support,
+    log_transition_from_poses,
+)
+from ssp.support import SupportGraph, build_support_graph
+from ssp.timing import StageTimer
+
+__all__ = ["TERM_NAMES", "SceneScore", "SceneScorer"]
+
+#: Column order of :attr:`SceneScore.terms`.
+TERM_NAMES = ("stability", "collision", "support", "data", "transition")
+
+
+@dataclass(frozen=True, eq=False)
+class SceneScore:
+    """Terms of one world state.
+
+    Attributes:
+        ids: object ids (world order).
+        enabled: (n,) bool, objects in the (partial) scene.
+        terms: (n, 5) natural-log terms in :data:`TERM_NAMES` order; 0 for disabled objects.
+        fit: (n,) data fit fraction c of each object (0 when disabled).
+        graph: the support graph of the state.
+        poses: (n, 4, 4) poses of the state.
+    """
+
+    ids: tuple[str, ...]
+    enabled: np.ndarray
+    terms: np.ndarray
+    fit: np.ndarray
+    graph: SupportGraph
+    poses: np.ndarray
+
+    @property
+    def total(self) -> float:
+        """``log Pr(s | C, D)`` of the enabled objects."""
+        return float(self.terms[self.enabled].sum())
+
+    def object_terms(self, i: int) -> ObjectTerms:
+        """The five terms of object ``i``."""
+        return ObjectTerms(*(float(v) for v in self.terms[i]))
+
+
+class SceneScorer:
+    """Scores states of one world during one frame.
+
+    Args:
+        world: the frame's world (its id order defines the arrays).
+        config: the method's constants.
+        segments: ``id -> (K, 3)`` the object's segment (missing or empty: fit 0).
+        previous: ``id -> (4, 4)`` previous frame's best pose, or None for new objects.
+    """
+
+    def __init__(
+        self,
+        world: World,
+        config: SSPConfig,
+        segments: Mapping[str, np.ndarray],
+        previous: Mapping[str, np.ndarray | None],
+    ) -> None:
+        self.config = config
+        self.ids = world.ids
+        self.models = [world.model_of(i) for i in self.ids]
+        self.masses = world.masses
+        self.g = float(config.physics.gravity)
+        self.alpha_max = np.array([m.max_angular_acceleration(self.g) for m in self.models])
+        self.diameters = np.array([m.diameter for m in self.models])
+        self.previous = [previous.get(i) for i in self.ids]
+        self.trees: list[cKDTree | None] = []
+        for oid in self.ids:
+            seg = segments.get(oid)
+            self.trees.append(cKDTree(seg) if seg is not None and len(seg) else None)
+        n_fit = int(config.search.fit_samples)
+        self.fit_samples = []
+        for m in self.models:
+            p = np.asarray(m.surface_points, dtype=float)
+            if len(p) > n_fit:
+                p = p[np.linspace(0, len(p) - 1, n_fit).astype(int)]
+            self.fit_samples.append(p)
+        self.evaluations = 0
+
+    def _overlaps(self, contacts, poses: np.ndarray, deep: np.ndarray) -> np.ndarray:
+        """(n,) volume fraction of each deeply penetrating object inside the objects it
+        penetrates or the table (:func:`ssp.overlap.overlap_fractions`); 0 for the others."""
+        sel = np.asarray(contacts.depth) > self.config.collision.min_depth
+        a = np.asarray(contacts.obj_a)[sel]
+        b = np.asarray(contacts.obj_b)[sel]
+        members = sorted({int(i) for i in a} | {int(j) for j in b if j >= 0})
+        local = {k: m for m, k in enumerate(members)}
+        pairs = sorted(
+            {(local[int(i)], local[int(j)]) for i, j in zip(a, b, strict=True) if j >= 0}
+        )
+        fr = overlap_fractions(
+            [self.models[k] for k in members], poses[members], table=True, pairs=pairs
+        )
+        out = np.zeros(len(self.ids))
+        out[members] = fr
+        return np.where(deep, out, 0.0)
+
+    def fit_fraction(self, i: int, T_world_obj: np.ndarray) -> float:
+        """Data fit c of object ``i`` at a pose (0 without a segment)."""
+        tree = self.trees[i]
+        if tree is None:
+            return 0.0
+        pts = transform_points(T_world_obj, self.fit_samples[i])
+        return data_fit_fraction(pts, tree, self.config.data.inlier_radius)
+
+    def evaluate(self, world: World, timer: StageTimer | None = None) -> SceneScore:
+        """Score the world's current state (its applied wrenches are cleared).
+
+        ``timer`` (optional) accumulates the time of the ``contacts`` stage (accelerations,
+        contacts, support graph) and of the ``scoring`` stage (the terms).
+        """
+        timer = timer if timer is not None else StageTimer()
+        with timer("contacts"):
+            world.clear_wrenches()
+            on = world.enabled
+            poses = world.pose_array()
+            lin, ang = world.acceleration_from_rest()
+            contacts = world.contacts()
+            graph = build_support_graph(contacts, self.masses, self.g)
+        with timer("scoring"):
+            return self._terms(on, poses, lin, ang, contacts, graph)
+
+    def _terms(self, on, poses, lin, ang, contacts, graph) -> SceneScore:
+        cfg = self.config
+        self.evaluations += 1
+        n = len(self.ids)
+        terms = np.zeros((n, 5))
+        fit = np.zeros(n)
+        idx = np.flatnonzero(on)
+        if len(idx) == 0:
+            return SceneScore(self.ids, on, terms, fit, graph, poses)
+
+        terms[idx, 0] = log_stability(
+            lin[idx], ang[idx], self.alpha_max[idx], self.g, cfg.stability
+        )
+
+        depth = np.asarray(graph.penetration, dtype=float)
+        frac = np.zeros(n)
+        deep = (depth > cfg.collision.min_depth) & on
+        if deep.any():
+            frac = self._overlaps(contacts, poses, deep)
+        e_c = collision_severity(depth[idx], frac[idx], self.diameters[idx])
+        terms[idx, 1] = log_collision(e_c, cfg.collision)
+
+        terms[idx, 2] = log_support(graph.support_sums()[idx], cfg.support)
+
+        for i in idx:
+            fit[i] = self.fit_fraction(i, poses[i])
+        terms[idx, 3] = log_data(fit[idx], cfg.data)
+
+        for i in idx:
+            terms[i, 4] = log_transition_from_poses(
+                self.previous[i], poses[i], cfg.transition, self.models[i].symmetry
+            )
+        return SceneScore(self.ids, on, terms, fit, graph, poses)

@@ -1,0 +1,203 @@
+"""Hypothesis evaluation: simulate a candidate scene (Alg. 1) and the layered search (Alg. 3).
+
+:class:`Simulator` is ``SimulateWorld`` of Alg. 1: quasi-static steps under gravity, contacts and
+the data-guiding forces (Eq. 9-10 of the algorithms section), then a window without the forces
+so that what remains is what physics alone holds up. Wrenches are recomputed every
+``force_refresh_every`` steps (their nearest-neighbour targets too) and held in between.
+
+:func:`layered_search` is ``EvaluateHypotheses`` of Alg. 3, O(N k): objects are visited layer by
+layer from the ground (support graph of the settled first guess, Alg. 2); each object's
+candidates (frame hypotheses, its previous-frame pose, and its current pose, the incumbent) are
+set in turn, its supported objects from the next layers are added back for the test (the
+paper's ``AddChildOf``), the partial scene is simulated and scored, and the best *simulated*
+state is kept. Because the incumbent is always among the candidates, keeping the best of each
+object's tests is the same as keeping the best scene within the layer (DESIGN section 4: "global
+within the layer"), and no test can make the partial scene worse than before it.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ssp.config import SSPConfig
+from ssp.errors import PhysicsError
+from ssp.forces import DataForces
+from ssp.physics import World
+from ssp.scoring import SceneScore, SceneScorer
+from ssp.timing import StageTimer
+
+__all__ = ["Candidate", "SearchResult", "Simulator", "layered_search"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, eq=False)
+class Candidate:
+    """One pose to test for an object: ``T_world_obj`` (4x4, m) and where it came from
+    (``"hypothesis"``, ``"previous"``, ``"current"``), with the detector score if any."""
+
+    T_world_obj: np.ndarray
+    source: str
+    score: float = 0.0
+
+
+class Simulator:
+    """Alg. 1 ``SimulateWorld`` on one world with the frame's data forces.
+
+    Args:
+        world: the frame's world.
+        forces: data forces in the world's id order.
+        config: windows, force cadence, gravity.
+        timer: stage timer (``forces``, ``stepping``).
+    """
+
+    def __init__(
+        self, world: World, forces: DataForces, config: SSPConfig, timer: StageTimer
+    ) -> None:
+        self.world = world
+        self.forces = forces
+        self.config = config
+        self.timer = timer
+        self.every = int(config.search.force_refresh_every)
+        self.steps = 0
+
+    def _n_steps(self, seconds: float) -> int:
+        return int(round(seconds / self.world.timestep))
+
+    def settle(self, seconds: float, *, with_forces: bool) -> None:
+        """Quasi-static steps for ``seconds`` of simulated time, with or without data forces.
+
+        Raises :class:`PhysicsError` if the simulation fails (the caller restores a state).
+        """
+        world = self.world
+        n = self._n_steps(seconds)
+        if n <= 0:
+            return
+        if not with_forces:
+            world.clear_wrenches()
+            with self.timer("stepping"):
+                world.step(n)
+            self.steps += n
+            return
+        g = float(self.config.physics.gravity)
+        done = 0
+        world.set_friction_scale(self.config.forces.friction_scale)
+        try:
+            while done < n:
+                with self.timer("forces"):
+                    f, t = self.forces.compute(world.pose_array(), g)
+                    world.apply_wrenches(f, t)
+                k = min(self.every, n - done)
+                with self.timer("stepping"):
+                    world.step(k)
+                done += k
+        finally:
+            world.set_friction_scale(1.0)
+            world.clear_wrenches()
+        self.steps += n
+
+    def window(self) -> None:
+        """The per-hypothesis window: with forces, then without (``config.search``)."""
+        s = self.config.search
+        self.settle(s.settle_with_forces, with_forces=True)
+        self.settle(s.settle_without_forces, with_forces=False)
+
+
+@dataclass
+class SearchResult:
+    """Outcome of :func:`layered_search`.
+
+    Attributes:
+        score: the final scene's score (every object enabled, after the final settle).
+        chosen: ``id -> source`` of the candidate kept for each object.
+        tested: number of candidate simulations run.
+        failed: candidates whose simulation failed (physics error), as ``(id, source)``.
+    """
+
+    score: SceneScore
+    chosen: dict[str, str]
+    tested: int = 0
+    failed: list[tuple[str, str]] = field(default_factory=list)
+
+
+def _score(scorer: SceneScorer, world: World, timer: StageTimer) -> SceneScore:
+    return scorer.evaluate(world, timer)
+
+
+def layered_search(
+    world: World,
+    sim: Simulator,
+    scorer: SceneScorer,
+    candidates: Mapping[str, Sequence[Candidate]],
+    layers: Sequence[Sequence[int]],
+    children: Mapping[int, Sequence[int]],
+    timer: StageTimer,
+) -> SearchResult:
+    """Alg. 3 on ``world``, whose objects sit at their settled first guesses.
+
+    Args:
+        world: every object of the frame, enabled or not, at its first-guess pose.
+        sim: the frame's simulator.
+        scorer: the frame's scorer.
+        candidates: ``id -> candidate poses`` (the current pose is always tested as well).
+        layers: object indices by support layer (:meth:`SupportGraph.layers`).
+        children: object index -> indices of the objects it supports (first-guess graph).
+        timer: stage timer.
+
+    Returns:
+        The final scene (all objects in ``layers`` enabled, settled ``config.search.final_settle``
+        with forces) and the choice per object. The world is left in that state.
+    """
+    ids = world.ids
+    in_search = sorted({i for layer in layers for i in layer})
+    for k in range(len(ids)):
+        world.set_enabled(ids[k], False)
+    chosen: dict[str, str] = {}
+    tested = 0
+    failed: list[tuple[str, str]] = []
+    for layer in layers:
+        for i in layer:
+            world.set_enabled(ids[i], True)
+        for i in sorted(layer, key=lambda k: ids[k]):
+            oid = ids[i]
+            kids = [c for c in children.get(i, ()) if not world.is_enabled(ids[c])]
+            base = world.save_state()
+            kid_poses = {ids[c]: world.get_pose(ids[c]) for c in kids}
+            tests = [Candidate(world.get_pose(oid), "current"), *candidates.get(oid, ())]
+            best_total, best_state, best_source = -np.inf, None, "current"
+            for cand in tests:
+                world.restore_state(base)
+                for c in kids:
+                    world.set_enabled(ids[c], True)
+                world.set_pose(oid, cand.T_world_obj)
+                sim.forces.reset()
+                tested += 1
+                try:
+                    sim.window()
+                except PhysicsError as exc:
+                    log.warning(
+                        "candidate %s of %s failed in simulation: %s", cand.source, oid, exc
+                    )
+                    failed.append((oid, cand.source))
+                    continue
+                total = _score(scorer, world, timer).total
+                if total > best_total:
+                    best_total, best_state, best_source = total, world.save_state(), cand.source
+            world.restore_state(best_state if best_state is not None else base)
+            for kid, T in kid_poses.items():  # children are tested in their own layer
+                world.set_pose(kid, T)
+                world.set_enabled(kid, False)
+            chosen[oid] = best_source
+    for i in in_search:
+        world.set_enabled(ids[i], True)
+    sim.forces.reset()
+    try:
+        sim.settle(sim.config.search.final_settle, with_forces=True)
+    except PhysicsError as exc:  # pragma: no cover - the states before it were all stable
+        raise PhysicsError(f"final settle of the chosen scene failed: {exc}") from exc
+    score = _score(scorer, world, timer)
+    return SearchResult(score=score, chosen=chosen, tested=tested, failed=failed)

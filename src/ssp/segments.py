@@ -1,0 +1,109 @@
+"""Each object's own part of the scene cloud (its "segment"), prepared once per frame.
+
+The data forces (Eq. 9-10 of the algorithms section) and the data-fit term (Eq. 10) compare an
+object's model with the scene points that belong to it. Where those come from, in order:
+
+1. ``frame.segments[instance_id]``: the caller segmented the cloud per object;
+2. ``frame.labels``: the label that covers most of the object's best candidate pose (the label
+   of the nearest scene point of each model sample, voted over samples within ``radius``);
+3. otherwise a local crop: the scene points within the object's bounding sphere (plus ``radius``)
+   of any of its candidate poses, leaving out the table (``z < table_clearance``) when the world
+   has one. Neighbouring objects can leak into a crop; labels or segments are better.
+
+All points are world frame, metres.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ssp.geometry import transform_points
+from ssp.library.model import ObjectModel
+from ssp.scene import Frame
+
+__all__ = ["object_segments"]
+
+log = logging.getLogger(__name__)
+
+#: Model samples used to vote for an object's label.
+_VOTE_SAMPLES = 200
+
+
+def _bounding_sphere(model: ObjectModel) -> tuple[np.ndarray, float]:
+    """(centre (3,) in the model frame, radius m) of the model's hull vertices about its COM."""
+    c = np.asarray(model.center_of_mass, dtype=float)
+    return c, model.d_max
+
+
+def object_segments(
+    frame: Frame,
+    objects: Mapping[str, tuple[ObjectModel, Sequence[np.ndarray]]],
+    *,
+    radius: float,
+    table: bool = True,
+    table_clearance: float = 0.002,
+) -> dict[str, np.ndarray]:
+    """Segment points ``(K, 3)`` per object id (possibly empty).
+
+    Args:
+        frame: the validated frame.
+        objects: ``id -> (model, candidate poses)``; the first pose is the best guess.
+        radius: vote distance (labels) and crop margin, m (use the data-force cut-off d_t).
+        table: the world has a table at z = 0; crops leave out points below ``table_clearance``.
+    """
+    points = frame.points
+    tree = cKDTree(points) if len(points) else None
+    out: dict[str, np.ndarray] = {}
+    for oid, (model, poses) in objects.items():
+        if frame.segments is not None and oid in frame.segments:
+            out[oid] = frame.segments[oid]
+            continue
+        if tree is None or not len(poses):
+            out[oid] = np.zeros((0, 3))
+            continue
+        if frame.labels is not None:
+            seg = _by_label(frame, tree, model, poses[0], radius)
+            if seg is not None:
+                out[oid] = seg
+                continue
+        out[oid] = _crop(points, tree, model, poses, radius, table, table_clearance)
+    return out
+
+
+def _by_label(
+    frame: Frame, tree: cKDTree, model: ObjectModel, T: np.ndarray, radius: float
+) -> np.ndarray | None:
+    samples = np.asarray(model.surface_points, dtype=float)
+    if len(samples) > _VOTE_SAMPLES:
+        samples = samples[:: int(np.ceil(len(samples) / _VOTE_SAMPLES))]
+    dist, idx = tree.query(transform_points(T, samples), k=1, distance_upper_bound=radius)
+    hit = np.isfinite(dist)
+    if not hit.any():
+        return None
+    votes = np.asarray(frame.labels)[idx[hit]]
+    values, counts = np.unique(votes, return_counts=True)
+    label = values[np.argmax(counts)]  # ties: the smallest label (np.unique sorts)
+    return frame.points[np.asarray(frame.labels) == label]
+
+
+def _crop(
+    points: np.ndarray,
+    tree: cKDTree,
+    model: ObjectModel,
+    poses: Sequence[np.ndarray],
+    radius: float,
+    table: bool,
+    table_clearance: float,
+) -> np.ndarray:
+    c_local, r = _bounding_sphere(model)
+    centres = np.array([T[:3, :3] @ c_local + T[:3, 3] for T in poses])
+    hits = tree.query_ball_point(centres, r + radius)
+    idx = np.unique(np.concatenate([np.asarray(h, dtype=int) for h in hits]))
+    seg = points[idx]
+    if table:
+        seg = seg[seg[:, 2] >= table_clearance]
+    return seg
