@@ -13,8 +13,7 @@ def test_defaults_match_design():
     assert c.physics.timestep == 0.005
     assert c.physics.solref == pytest.approx((0.01, 1.0))  # time constant 2 dt
     assert c.physics.solimp[:2] == (0.99, 0.999)
-    assert c.stability.steepness == 40 and c.stability.midpoint == 0.1
-    assert c.data.c_max == 0.5 and c.data.inlier_radius == pytest.approx(0.0037)
+    assert c.data.inlier_radius == pytest.approx(0.0037)
     assert c.transition.sigma_rotation == pytest.approx(math.radians(18))
     assert c.temporal.static_translation == pytest.approx(0.0075)
 

@@ -177,11 +177,20 @@ class SupportConfig(_Section):
 
 
 class DataConfig(_Section):
-    """Data fitness P_D = L(s_d (c / C_max - a_d)) (Eq. 10)."""
+    """Data fitness P_D = L(s_d (min(c / C_max, 1) - a_d)) (Eq. 10).
 
-    steepness: float = Field(10.0, gt=0, description="sigma_d.")
-    midpoint: float = Field(0.36, description="alpha_d.")
-    c_max: float = Field(0.5, gt=0, le=1, description="C_max: fit fraction counted as full.")
+    The paper's constants (s_d 10, a_d 0.36, C_max 0.5) saturate: any pose that explains half
+    of the model's samples scores P_D > 0.99, so the term cannot tell a pose 6 mm off from the
+    right one, and the transition term then holds a moved object back (docs/calibration.md).
+    Ours put every c on the log-linear side of the logistic (a_d = C_max = 1): ``log P_D`` is
+    then about ``s_d (c - 1)``, each explained sample adding ``s_d / M``.
+    """
+
+    steepness: float = Field(20.0, gt=0, description="sigma_d (paper 10).")
+    midpoint: float = Field(1.0, description="alpha_d (paper 0.36).")
+    c_max: float = Field(
+        1.0, gt=0, le=1, description="C_max: fit fraction counted as full (paper 0.5)."
+    )
     inlier_radius: float = Field(
         0.0037, gt=0, description="r_c: a surface sample is explained within this distance, m."
     )
@@ -235,8 +244,9 @@ class TemporalConfig(_Section):
         ge=0,
         le=1,
         description=(
-            "An undetected object is gone when at least this fraction of its camera-facing "
-            "surface is seen through (observed depth behind it: its volume is empty)."
+            "An undetected object whose camera-facing surface is seen through (observed depth "
+            "behind it) at least this much is logged as seen empty; it is removed unless it "
+            "carries load."
         ),
     )
     replaced_overlap: float = Field(
@@ -281,8 +291,17 @@ class SearchConfig(_Section):
     unchanged_shortcut: bool = Field(
         True,
         description=(
-            "Skip the search when nothing changed: every known object has a hypothesis within "
-            "the static thresholds of its previous pose and no object appeared or vanished."
+            "Skip the search when nothing changed: no object appeared or vanished and every "
+            "object's previous pose still fits the data (see unchanged_fit_ratio)."
+        ),
+    )
+    unchanged_fit_ratio: float = Field(
+        0.9,
+        gt=0,
+        le=1,
+        description=(
+            "An object is unchanged when the data fit c at its previous pose is at least this "
+            "fraction of the best fit among its hypotheses."
         ),
     )
     force_refresh_every: int = Field(

@@ -51,7 +51,7 @@ from ssp.scene import Frame, FrameError, Hypothesis, TransitionMode
 from ssp.scoring import SceneScore, SceneScorer
 from ssp.search import Candidate, Simulator, layered_search
 from ssp.segments import object_segments
-from ssp.support import GROUND, build_support_graph
+from ssp.support import GROUND
 from ssp.temporal import associate, classify, snap_symmetric
 from ssp.timing import StageTimer
 from ssp.visibility import CameraView
@@ -292,7 +292,7 @@ class SceneParser:
                 T = validate_pose(np.asarray(o["T_world_obj"], dtype=float), f"object {o['id']}")
                 parser._known[str(o["id"])] = _Known(cls_name, T, bool(o.get("ephemeral")))
         except (KeyError, TypeError, ValueError) as exc:
-            if isinstance(exc, InvalidPoseError):
+            if isinstance(exc, InvalidPoseError | UnknownObjectError):
                 raise
             raise SSPError(f"malformed scene state: {exc!r}") from exc
         return parser
@@ -383,14 +383,12 @@ class SceneParser:
 
         # First guess per detected object: the previous pose when the best hypothesis agrees.
         first: dict[str, np.ndarray] = {}
-        static_guess: dict[str, bool] = {}
         for oid in detected:
             best = groups[oid][0].T_world_obj
-            static_guess[oid] = False
             if oid in prev_pose:
                 dt, dth = pose_change(prev_pose[oid], best, models[oid].symmetry)
                 if dt < cfg.temporal.static_translation and dth < cfg.temporal.static_rotation:
-                    first[oid], static_guess[oid] = prev_pose[oid], True
+                    first[oid] = prev_pose[oid]
                     continue
             first[oid] = best
 
@@ -445,12 +443,16 @@ class SceneParser:
             and bool(self._known)
             and not missing
             and set(detected) == set(self._known)
-            and all(static_guess.values())
+            and all(
+                self._still_fits(scorer, world.index(oid), prev_pose[oid], groups[oid])
+                for oid in detected
+            )
         )
         retained: set[str] = set()
         tested = 0
         chosen: dict[str, str] = {}
         if unchanged:
+            world.set_poses({oid: prev_pose[oid] for oid in ids})
             sim.settle(cfg.search.final_settle, with_forces=True)
             score = scorer.evaluate(world, timer)
             chosen = {oid: "unchanged" for oid in ids}
@@ -505,6 +507,14 @@ class SceneParser:
             counters,
         )
 
+    def _still_fits(
+        self, scorer: SceneScorer, i: int, T_prev: np.ndarray, hyps: list[Hypothesis]
+    ) -> bool:
+        """Does the previous pose fit the data about as well as the best hypothesis?"""
+        c_prev = scorer.fit_fraction(i, T_prev)
+        c_best = max(scorer.fit_fraction(i, h.T_world_obj) for h in hyps)
+        return c_prev > 0 and c_prev >= self.config.search.unchanged_fit_ratio * c_best
+
     # -------------------------------------------------------------- undetected objects
     def _triage_missing(
         self,
@@ -515,8 +525,12 @@ class SceneParser:
         first: Mapping[str, np.ndarray],
         segments: Mapping[str, np.ndarray],
     ) -> dict[str, str]:
-        """Verdict per undetected object: ``removed``, ``visible``, ``ephemeral`` or
-        ``candidate`` (removed unless it carries load; decided after the first settle)."""
+        """Verdict per undetected object, in the paper's order (section V-C): ``removed``
+        (another object's best hypothesis fills its volume), ``visible`` (still fits the data:
+        kept), ``ephemeral`` (hidden behind observed depth: kept) or ``candidate``: removed
+        unless objects it supports move without it (support-retained), which is decided after
+        the first settle. Physics wins over a contradictory view: an object seen through but
+        carrying load is retained (and the contradiction logged)."""
         t = self.config.temporal
         verdicts: dict[str, str] = {}
         if not missing:
@@ -550,16 +564,13 @@ class SceneParser:
             if min(c / self.config.data.c_max, 1.0) >= t.visible_fit:
                 verdicts[oid] = "visible"
                 continue
+            verdicts[oid] = "candidate"
             if view is not None:
                 rep = view.report_pose(model.surface_points, model.surface_normals, T)
                 if rep.n_facing and rep.seen_through >= t.seen_through_fraction:
-                    log.info("%s: seen through (%.0f %%): removed", oid, 100 * rep.seen_through)
-                    verdicts[oid] = "removed"
-                    continue
-                if rep.n_facing and rep.occluded >= t.occluded_fraction:
+                    log.info("%s: its volume is seen empty (%.0f %%)", oid, 100 * rep.seen_through)
+                elif rep.n_facing and rep.occluded >= t.occluded_fraction:
                     verdicts[oid] = "ephemeral"
-                    continue
-            verdicts[oid] = "candidate"
         return verdicts
 
     def _carries_load(self, world: World, sim: Simulator, graph, oid: str) -> bool:
@@ -688,7 +699,3 @@ def parse_sequence(
         except SSPError as exc:
             log.warning("frame %d skipped: %s", i, exc)
             yield i, exc
-
-
-# Keep the names used in type hints importable from here.
-_ = (Hypothesis, build_support_graph)

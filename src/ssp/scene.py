@@ -67,7 +67,8 @@ class Frame:
         stamp: time of the frame, s.
         points: ``(N, 3)`` scene points in the world frame, m.
         hypotheses: pose hypotheses (several may describe one object).
-        labels: optional ``(N,)`` integer segment label per point.
+        labels: optional ``(N,)`` integer segment label per point; negative labels mark points
+            of no object (table, background).
         segments: optional points ``(K, 3)`` per instance id (the object's own segment).
         T_world_cam: optional camera pose (OpenCV camera frame), for visibility reasoning.
     """

@@ -5,7 +5,8 @@ object's model with the scene points that belong to it. Where those come from, i
 
 1. ``frame.segments[instance_id]``: the caller segmented the cloud per object;
 2. ``frame.labels``: the label that covers most of the object's best candidate pose (the label
-   of the nearest scene point of each model sample, voted over samples within ``radius``);
+   of the nearest scene point of each model sample, voted over samples within ``radius``;
+   negative labels mark the table and background and never vote);
 3. otherwise a local crop: the scene points within the object's bounding sphere (plus ``radius``)
    of any of its candidate poses, leaving out the table (``z < table_clearance``) when the world
    has one. Neighbouring objects can leak into a crop; labels or segments are better.
@@ -85,6 +86,9 @@ def _by_label(
     if not hit.any():
         return None
     votes = np.asarray(frame.labels)[idx[hit]]
+    votes = votes[votes >= 0]  # negative labels: table, background, unlabelled
+    if not len(votes):
+        return None
     values, counts = np.unique(votes, return_counts=True)
     label = values[np.argmax(counts)]  # ties: the smallest label (np.unique sorts)
     return frame.points[np.asarray(frame.labels) == label]
