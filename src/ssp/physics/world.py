@@ -485,6 +485,19 @@ class World:
             )
 
     # ------------------------------------------------------------------ state
+    def reset(self) -> None:
+        """Back to the freshly built state: model poses, zero velocities, no wrenches, every
+        object enabled, full friction, time 0, no solver warm start. Stepping after a reset
+        repeats bit for bit whatever the world did before (a reused world gives the same
+        results as a new one)."""
+        mujoco.mj_resetData(self._m, self._d)
+        if not self._enabled.all():
+            self._enabled[:] = True
+            self._apply_enabled()
+        self.set_friction_scale(1.0)
+        mujoco.mj_forward(self._m, self._d)
+        self._forward_current = True
+
     def save_state(self) -> WorldState:
         """Snapshot of the full integration state and the enabled flags."""
         buf = np.empty(self._state_size)
