@@ -1,8 +1,7 @@
 """Scene tests of SceneParser.update (issue 3): small generated scenes, each check able to fail.
 
-Clouds here are the model's surface samples that face up or sideways (the bottom faces are on
-the table and unseen), one label per object, plus a table grid with the objects' footprints cut
-out. Rendered depth is used by the benchmark scenes (ssp.sim).
+Frames are rendered depth with sensor noise (ssp.sim) from a camera about 0.9 m away; the
+simplest tests use a cloud of the models' upward and sideways surface samples instead.
 """
 
 from __future__ import annotations
@@ -21,14 +20,14 @@ from ssp.physics import World
 from ssp.probability import pose_change
 from ssp.scene import Frame, FrameError, Hypothesis, TransitionMode
 from ssp.scoring import SceneScorer
+from ssp.sim.frames import synthetic_frame
+from ssp.sim.render import look_at
 
 LIB = ObjectLibrary.builtin()
 CUBE = LIB["cube"]
 BLOCK = LIB["block"]
 E = float(CUBE.extents[2])
-CAMERA = make_pose(
-    Rotation.from_euler("x", -135, degrees=True).as_matrix(), [0.0, -0.6, 0.6]
-)  # looks down at the origin from the front (OpenCV: z forward)
+CAMERA = look_at([-0.45, -0.55, 0.6], [0.0, 0.0, 0.03])  # about 0.9 m away, from a corner
 
 
 def on_table(model, x=0.0, y=0.0, z_extra=0.0, yaw_deg=0.0, level=0):
@@ -77,16 +76,26 @@ def noisy(T, rng, st=0.005, sr_deg=5.0):
     return out
 
 
-def frame(gt, rng, k=5, stamp=0.0, detect=None, hidden=(), ids=False, **kw):
-    pts, labels = cloud(gt, hidden)
-    hyps = []
-    for oid, (cls, T) in gt.items():
-        if detect is not None and oid not in detect:
-            continue
-        for j in range(k):
-            H = noisy(T, rng, **kw) if k > 1 or kw else T
-            hyps.append(Hypothesis(cls, H, 1.0 - 0.1 * j, oid if ids else None))
-    return Frame(stamp, pts, hyps, labels=labels, T_world_cam=CAMERA)
+def frame(gt, rng, k=5, stamp=0.0, detect=None, hidden=(), ids=False, st=0.005, sr_deg=5.0):
+    """A rendered frame (depth with sensor noise, ssp.sim) of ``gt`` with ``k`` noisy hypotheses
+    per detected object; the points of ``hidden`` objects are dropped (sensor dropout)."""
+    f = synthetic_frame(
+        LIB,
+        gt,
+        T_world_cam=CAMERA,
+        rng=rng,
+        k=k,
+        stamp=stamp,
+        sigma_t=st,
+        sigma_r_deg=sr_deg,
+        detect=detect,
+        give_ids=ids,
+        stride=2,
+    )
+    if hidden:
+        drop = np.isin(f.labels, [i for i, oid in enumerate(gt) if oid in hidden])
+        f.points, f.labels = f.points[~drop], f.labels[~drop]
+    return f
 
 
 def errors(est: SceneEstimate, gt):

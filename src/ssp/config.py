@@ -214,7 +214,7 @@ class TemporalConfig(_Section):
         0.05, gt=0, description="Largest centre distance of a hypothesis to its object, m."
     )
     association_size_fraction: float = Field(
-        0.5,
+        0.8,
         gt=0,
         description=(
             "The association gate of a class is at most this fraction of its smallest extent, "

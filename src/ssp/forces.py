@@ -149,6 +149,13 @@ class DataForces:
             targets in between (see the module docstring for the trade-off). 1 = every call.
         masses: override the models' masses (kg), e.g. ``world.masses``.
         seed: seed of the sample subset.
+        camera_position: (3,) world position of the camera, m, or None. When given, only the
+            samples whose surface normal faces the camera pull (re-decided at each refresh):
+            the far side of an object was never seen, and pulling it toward the nearest seen
+            points would bias the pose toward the camera.
+        sample_filter: optional ``f(k, points (M, 3), normals (M, 3)) -> bool (M,)``, world
+            frame, called at each refresh: samples where it is False do not pull (e.g. samples
+            hidden behind another object, :meth:`ssp.visibility.CameraView.hidden_by_others`).
 
     Objects are packed into padded (n, 3, M_max) arrays once; :meth:`compute` is then a few
     batched numpy operations plus one KD-tree query per object on refresh calls.
@@ -164,7 +171,10 @@ class DataForces:
         refresh_every: int = 1,
         masses: Sequence[float] | np.ndarray | None = None,
         seed: int = 0,
+        camera_position: np.ndarray | None = None,
+        sample_filter=None,
     ) -> None:
+        self.sample_filter = sample_filter
         models = list(models)
         fields = list(fields)
         if len(models) != len(fields):
@@ -185,21 +195,29 @@ class DataForces:
         self.masses = np.asarray(m, dtype=float).reshape(n)
 
         rng = np.random.default_rng(seed)
-        samples = []
+        samples, normals = [], []
         for mo in models:
             p = np.asarray(mo.surface_points, dtype=float)
+            nrm = np.asarray(mo.surface_normals, dtype=float)
             if max_points is not None and len(p) > int(max_points):
                 keep = np.sort(rng.choice(len(p), int(max_points), replace=False))
-                p = p[keep]
+                p, nrm = p[keep], nrm[keep]
             samples.append(p - np.asarray(mo.center_of_mass, dtype=float))
+            normals.append(nrm)
         counts = np.array([len(p) for p in samples], dtype=int)
         self.counts = counts
         mmax = int(counts.max()) if n else 0
         # Samples relative to the COM, model axes, padded: (n, 3, M_max).
         q = np.zeros((n, 3, mmax))
-        for k, p in enumerate(samples):
+        nq = np.zeros((n, 3, mmax))
+        for k, (p, nrm) in enumerate(zip(samples, normals, strict=True)):
             q[k, :, : len(p)] = p.T
+            nq[k, :, : len(p)] = nrm.T
         self._q = q
+        self._normals = nq
+        self.camera_position = (
+            None if camera_position is None else np.asarray(camera_position, float).reshape(3)
+        )
         self._com = np.array([np.asarray(mo.center_of_mass, float) for mo in models]).reshape(n, 3)
         self._active = np.array([f is not None and len(f) > 0 for f in fields], dtype=bool)
         self._targets = np.zeros((n, 3, mmax))
@@ -227,16 +245,30 @@ class DataForces:
         """Query the segments at poses ``T_world_obj`` (n, 4, 4) and cache the targets."""
         T = self._check_poses(T_world_obj)
         r, cog = self._world_samples(T)
-        self._refresh(r, cog)
+        self._refresh(r, cog, T)
 
-    def _refresh(self, r: np.ndarray, cog: np.ndarray) -> None:
+    def _refresh(self, r: np.ndarray, cog: np.ndarray, T: np.ndarray) -> None:
         self._matched[:] = 0.0
+        facing = None
+        nw = (
+            T[:, :3, :3] @ self._normals
+            if self.camera_position is not None or self.sample_filter
+            else None
+        )
+        if self.camera_position is not None:
+            to_cam = self.camera_position[None, :, None] - (r + cog[:, :, None])
+            facing = (nw * to_cam).sum(axis=1) > 0.0
         for k in np.flatnonzero(self._active):
             mk = self.counts[k]
             pts = (r[k, :, :mk] + cog[k, :, None]).T
             tgt, dist = self.fields[k].nearest(pts)
             self._targets[k, :, :mk] = tgt.T
-            self._matched[k, :mk] = np.isfinite(dist)
+            ok = np.isfinite(dist)
+            if facing is not None:
+                ok &= facing[k, :mk]
+            if self.sample_filter is not None and ok.any():
+                ok &= np.asarray(self.sample_filter(k, pts, nw[k, :, :mk].T), dtype=bool)
+            self._matched[k, :mk] = ok
 
     def _check_poses(self, T_world_obj) -> np.ndarray:
         T = np.asarray(T_world_obj, dtype=float)
@@ -257,7 +289,7 @@ class DataForces:
             return np.zeros((0, 3)), np.zeros((0, 3))
         r, cog = self._world_samples(T)
         if self._calls % self.refresh_every == 0:
-            self._refresh(r, cog)
+            self._refresh(r, cog, T)
         self._calls += 1
 
         dt = self.max_distance

@@ -397,7 +397,7 @@ class SceneParser:
                 oid: [first[oid], *(h.T_world_obj for h in groups[oid])] for oid in detected
             }
             cand_poses.update({oid: [prev_pose[oid]] for oid in missing})
-            segments = object_segments(
+            segments, owner = object_segments(
                 frame,
                 {oid: (models[oid], cand_poses[oid]) for oid in cand_poses},
                 radius=cfg.forces.max_distance,
@@ -410,10 +410,24 @@ class SceneParser:
         with timer("world"):
             world = self._world_for({oid: classes[oid] for oid in present})
             ids = world.ids
-            for oid in ids:
-                world.set_enabled(oid, True)
-            world.clear_wrenches()
+            world.reset()  # a reused world must behave exactly as a new one (determinism)
             world.set_poses({oid: first.get(oid, prev_pose.get(oid)) for oid in ids})
+            cam = None if frame.T_world_cam is None else frame.T_world_cam[:3, 3]
+            sample_filter = None
+            if frame.T_world_cam is not None and frame.labels is not None and owner:
+                view = CameraView(
+                    frame.points,
+                    frame.T_world_cam,
+                    labels=frame.labels,
+                    depth_tolerance=cfg.temporal.depth_tolerance,
+                )
+                own = [owner.get(oid) for oid in ids]
+
+                def sample_filter(k, pts, _normals):
+                    if own[k] is None:
+                        return np.ones(len(pts), dtype=bool)
+                    return ~view.hidden_by_others(pts, own[k])
+
             # Data forces and fit: detected objects and undetected ones still seen.
             with_data = {oid for oid in ids if oid in groups or verdicts.get(oid) == "visible"}
             fields = [
@@ -429,12 +443,15 @@ class SceneParser:
                 max_points=cfg.search.force_samples,
                 masses=world.masses,
                 seed=cfg.seed,
+                camera_position=cam,
+                sample_filter=sample_filter,
             )
             scorer = SceneScorer(
                 world,
                 cfg,
                 {oid: segments[oid] for oid in ids if oid in with_data},
                 {oid: prev_pose.get(oid) for oid in ids},
+                camera_position=cam,
             )
             sim = Simulator(world, forces, cfg, timer)
 

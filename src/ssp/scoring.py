@@ -84,6 +84,9 @@ class SceneScorer:
         config: the method's constants.
         segments: ``id -> (K, 3)`` the object's segment (missing or empty: fit 0).
         previous: ``id -> (4, 4)`` previous frame's best pose, or None for new objects.
+        camera_position: (3,) camera position in the world, m, or None. When given, the data
+            fit c counts only the model samples facing the camera (the far side was never
+            observed), so c is the fraction of the *seeable* surface explained.
     """
 
     def __init__(
@@ -92,8 +95,12 @@ class SceneScorer:
         config: SSPConfig,
         segments: Mapping[str, np.ndarray],
         previous: Mapping[str, np.ndarray | None],
+        camera_position: np.ndarray | None = None,
     ) -> None:
         self.config = config
+        self.camera_position = (
+            None if camera_position is None else np.asarray(camera_position, float).reshape(3)
+        )
         self.ids = world.ids
         self.models = [world.model_of(i) for i in self.ids]
         self.masses = world.masses
@@ -106,12 +113,15 @@ class SceneScorer:
             seg = segments.get(oid)
             self.trees.append(cKDTree(seg) if seg is not None and len(seg) else None)
         n_fit = int(config.search.fit_samples)
-        self.fit_samples = []
+        self.fit_samples, self.fit_normals = [], []
         for m in self.models:
             p = np.asarray(m.surface_points, dtype=float)
+            nrm = np.asarray(m.surface_normals, dtype=float)
             if len(p) > n_fit:
-                p = p[np.linspace(0, len(p) - 1, n_fit).astype(int)]
+                sel = np.linspace(0, len(p) - 1, n_fit).astype(int)
+                p, nrm = p[sel], nrm[sel]
             self.fit_samples.append(p)
+            self.fit_normals.append(nrm)
         self.evaluations = 0
 
     def _overlaps(self, contacts, poses: np.ndarray, deep: np.ndarray) -> np.ndarray:
@@ -138,6 +148,9 @@ class SceneScorer:
         if tree is None:
             return 0.0
         pts = transform_points(T_world_obj, self.fit_samples[i])
+        if self.camera_position is not None:
+            nrm = self.fit_normals[i] @ np.asarray(T_world_obj)[:3, :3].T
+            pts = pts[((self.camera_position - pts) * nrm).sum(axis=1) > 0.0]
         return data_fit_fraction(pts, tree, self.config.data.inlier_radius)
 
     def evaluate(self, world: World, timer: StageTimer | None = None) -> SceneScore:

@@ -47,8 +47,9 @@ def object_segments(
     radius: float,
     table: bool = True,
     table_clearance: float = 0.002,
-) -> dict[str, np.ndarray]:
-    """Segment points ``(K, 3)`` per object id (possibly empty).
+) -> tuple[dict[str, np.ndarray], dict[str, int]]:
+    """Segment points ``(K, 3)`` per object id (possibly empty), and the label each object's
+    segment was taken from (only for objects segmented by ``frame.labels``).
 
     Args:
         frame: the validated frame.
@@ -59,6 +60,7 @@ def object_segments(
     points = frame.points
     tree = cKDTree(points) if len(points) else None
     out: dict[str, np.ndarray] = {}
+    owner: dict[str, int] = {}
     for oid, (model, poses) in objects.items():
         if frame.segments is not None and oid in frame.segments:
             out[oid] = frame.segments[oid]
@@ -67,17 +69,18 @@ def object_segments(
             out[oid] = np.zeros((0, 3))
             continue
         if frame.labels is not None:
-            seg = _by_label(frame, tree, model, poses[0], radius)
-            if seg is not None:
-                out[oid] = seg
+            label = _vote_label(frame, tree, model, poses[0], radius)
+            if label is not None:
+                out[oid] = frame.points[np.asarray(frame.labels) == label]
+                owner[oid] = label
                 continue
         out[oid] = _crop(points, tree, model, poses, radius, table, table_clearance)
-    return out
+    return out, owner
 
 
-def _by_label(
+def _vote_label(
     frame: Frame, tree: cKDTree, model: ObjectModel, T: np.ndarray, radius: float
-) -> np.ndarray | None:
+) -> int | None:
     samples = np.asarray(model.surface_points, dtype=float)
     if len(samples) > _VOTE_SAMPLES:
         samples = samples[:: int(np.ceil(len(samples) / _VOTE_SAMPLES))]
@@ -90,8 +93,7 @@ def _by_label(
     if not len(votes):
         return None
     values, counts = np.unique(votes, return_counts=True)
-    label = values[np.argmax(counts)]  # ties: the smallest label (np.unique sorts)
-    return frame.points[np.asarray(frame.labels) == label]
+    return int(values[np.argmax(counts)])  # ties: the smallest label (np.unique sorts)
 
 
 def _crop(

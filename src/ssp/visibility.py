@@ -161,14 +161,21 @@ class CameraView:
         *,
         angular_resolution: float | None = None,
         depth_tolerance: float = 0.005,
+        labels: np.ndarray | None = None,
     ) -> None:
         pts = _as_points(points_world, "points_world")
+        if labels is not None:
+            labels = np.asarray(labels).reshape(-1)
+            if len(labels) != len(pts):
+                raise ValueError(f"labels: {len(labels)} for {len(pts)} points")
         self._T_world_cam = validate_pose(T_world_cam, "T_world_cam")
         self._T_cam_world = invert(self._T_world_cam)
         self._depth_tolerance = _positive(depth_tolerance, "depth_tolerance", allow_zero=True)
 
         p_cam = pts @ self._T_cam_world[:3, :3].T + self._T_cam_world[:3, 3]
-        p_cam = p_cam[p_cam[:, 2] > MIN_DEPTH]
+        front = p_cam[:, 2] > MIN_DEPTH
+        p_cam = p_cam[front]
+        self._labels = None if labels is None else labels[front]
         self._depths = p_cam[:, 2].copy()
         rays = p_cam[:, :2] / p_cam[:, 2:3]
         self._tree = cKDTree(rays) if len(rays) else None
@@ -236,6 +243,31 @@ class CameraView:
         n_through = int(np.count_nonzero(found & (diff > tol)))
         n_unknown = n - n_seen - n_occluded - n_through
         return VisibilityReport(n, n_seen / n, n_occluded / n, n_through / n, n_unknown / n)
+
+    def hidden_by_others(self, points_world: np.ndarray, own_label: int) -> np.ndarray:
+        """(M,) bool: the sample's ray meets an observed point clearly in front of it
+        (``depth_tolerance``) that carries another label than ``own_label``: the sample is
+        hidden behind another object, so the data says nothing about it. Needs ``labels``.
+        An object's own observed surface in front of a misplaced sample does not count."""
+        if self._labels is None:
+            raise ValueError("hidden_by_others needs the labels of the scene points")
+        pts = _as_points(points_world, "points_world")
+        out = np.zeros(len(pts), dtype=bool)
+        if self._tree is None or not len(pts):
+            return out
+        p_cam = pts @ self._T_cam_world[:3, :3].T + self._T_cam_world[:3, 3]
+        ok = p_cam[:, 2] > MIN_DEPTH
+        depth = p_cam[ok, 2]
+        rays = p_cam[ok, :2] / depth[:, None]
+        dist, idx = self._tree.query(rays, k=1, distance_upper_bound=self._resolution, workers=1)
+        found = np.isfinite(dist)
+        hidden = np.zeros(len(depth), dtype=bool)
+        j = idx[found]
+        hidden[found] = (self._depths[j] < depth[found] - self._depth_tolerance) & (
+            self._labels[j] != own_label
+        )
+        out[ok] = hidden
+        return out
 
     def report_pose(
         self, model_points: np.ndarray, model_normals: np.ndarray, T_world_obj: np.ndarray
