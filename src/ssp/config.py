@@ -305,7 +305,12 @@ class SearchConfig(_Section):
         ),
     )
     force_refresh_every: int = Field(
-        4, ge=1, description="Steps between nearest-neighbour refreshes of the data forces."
+        4, ge=1, description="Steps between updates of the data-force wrenches."
+    )
+    correspondence_every: int = Field(
+        2,
+        ge=1,
+        description="Wrench updates between nearest-neighbour queries of the data forces.",
     )
     force_samples: int = Field(
         300, ge=10, description="Model surface samples used for the data forces per object."

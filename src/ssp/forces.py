@@ -154,8 +154,9 @@ class DataForces:
             the far side of an object was never seen, and pulling it toward the nearest seen
             points would bias the pose toward the camera.
         sample_filter: optional ``f(k, points (M, 3), normals (M, 3)) -> bool (M,)``, world
-            frame, called at each refresh: samples where it is False do not pull (e.g. samples
-            hidden behind another object, :meth:`ssp.visibility.CameraView.hidden_by_others`).
+            frame, called on the first refresh after each :meth:`reset`: samples where it is
+            False do not pull (e.g. samples hidden behind another object,
+            :meth:`ssp.visibility.CameraView.hidden_by_others`).
 
     Objects are packed into padded (n, 3, M_max) arrays once; :meth:`compute` is then a few
     batched numpy operations plus one KD-tree query per object on refresh calls.
@@ -175,6 +176,7 @@ class DataForces:
         sample_filter=None,
     ) -> None:
         self.sample_filter = sample_filter
+        self._filter_cache: dict[int, np.ndarray] = {}
         models = list(models)
         fields = list(fields)
         if len(models) != len(fields):
@@ -232,8 +234,10 @@ class DataForces:
 
     def reset(self) -> None:
         """Forget the cached correspondences: the next :meth:`compute` queries again (call it
-        when a pose was changed discontinuously, e.g. a new hypothesis was set)."""
+        when a pose was changed discontinuously, e.g. a new hypothesis was set). The
+        ``sample_filter`` is evaluated once after each reset and kept until the next."""
         self._calls = 0
+        self._filter_cache.clear()
 
     def _world_samples(self, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         R = T[:, :3, :3]
@@ -241,14 +245,18 @@ class DataForces:
         cog = (R @ self._com[:, :, None])[:, :, 0] + T[:, :3, 3]
         return r, cog
 
-    def refresh(self, T_world_obj: np.ndarray) -> None:
-        """Query the segments at poses ``T_world_obj`` (n, 4, 4) and cache the targets."""
+    def refresh(self, T_world_obj: np.ndarray, enabled: np.ndarray | None = None) -> None:
+        """Query the segments at poses ``T_world_obj`` (n, 4, 4) and cache the targets
+        (only for the ``enabled`` objects, (n,) bool, when given)."""
         T = self._check_poses(T_world_obj)
         r, cog = self._world_samples(T)
-        self._refresh(r, cog, T)
+        self._refresh(r, cog, T, enabled)
 
-    def _refresh(self, r: np.ndarray, cog: np.ndarray, T: np.ndarray) -> None:
+    def _refresh(
+        self, r: np.ndarray, cog: np.ndarray, T: np.ndarray, enabled: np.ndarray | None = None
+    ) -> None:
         self._matched[:] = 0.0
+        active = self._active if enabled is None else self._active & np.asarray(enabled, bool)
         facing = None
         nw = (
             T[:, :3, :3] @ self._normals
@@ -258,7 +266,7 @@ class DataForces:
         if self.camera_position is not None:
             to_cam = self.camera_position[None, :, None] - (r + cog[:, :, None])
             facing = (nw * to_cam).sum(axis=1) > 0.0
-        for k in np.flatnonzero(self._active):
+        for k in np.flatnonzero(active):
             mk = self.counts[k]
             pts = (r[k, :, :mk] + cog[k, :, None]).T
             tgt, dist = self.fields[k].nearest(pts)
@@ -267,7 +275,11 @@ class DataForces:
             if facing is not None:
                 ok &= facing[k, :mk]
             if self.sample_filter is not None and ok.any():
-                ok &= np.asarray(self.sample_filter(k, pts, nw[k, :, :mk].T), dtype=bool)
+                keep = self._filter_cache.get(k)
+                if keep is None:  # once per reset(): visibility changes little within a window
+                    keep = np.asarray(self.sample_filter(k, pts, nw[k, :, :mk].T), dtype=bool)
+                    self._filter_cache[k] = keep
+                ok &= keep
             self._matched[k, :mk] = ok
 
     def _check_poses(self, T_world_obj) -> np.ndarray:
@@ -276,12 +288,16 @@ class DataForces:
             raise ValueError(f"poses must have shape ({self.n}, 4, 4), got {T.shape}")
         return T
 
-    def compute(self, T_world_obj: np.ndarray, g: float = 9.81) -> tuple[np.ndarray, np.ndarray]:
+    def compute(
+        self, T_world_obj: np.ndarray, g: float = 9.81, enabled: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Wrenches at poses ``T_world_obj`` (n, 4, 4): ``(forces (n, 3) N, torques (n, 3) N m)``,
         world frame, force at the centre of mass (as ``World.apply_wrenches`` expects).
 
         ``g`` is the gravity magnitude (m/s^2) of ``F_max = f m g``. Queries the segments on
-        every ``refresh_every``-th call, else reuses the cached targets.
+        every ``refresh_every``-th call, else reuses the cached targets. ``enabled`` ((n,) bool,
+        optional): only these objects are queried on a refresh; the others pull nothing until
+        the next refresh.
         """
         T = self._check_poses(T_world_obj)
         n = self.n
@@ -289,7 +305,7 @@ class DataForces:
             return np.zeros((0, 3)), np.zeros((0, 3))
         r, cog = self._world_samples(T)
         if self._calls % self.refresh_every == 0:
-            self._refresh(r, cog, T)
+            self._refresh(r, cog, T, enabled)
         self._calls += 1
 
         dt = self.max_distance

@@ -441,6 +441,7 @@ class SceneParser:
                 fields,
                 config=cfg.forces,
                 max_points=cfg.search.force_samples,
+                refresh_every=cfg.search.correspondence_every,
                 masses=world.masses,
                 seed=cfg.seed,
                 camera_position=cam,

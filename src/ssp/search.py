@@ -89,7 +89,7 @@ class Simulator:
         try:
             while done < n:
                 with self.timer("forces"):
-                    f, t = self.forces.compute(world.pose_array(), g)
+                    f, t = self.forces.compute(world.pose_array(), g, world.enabled)
                     world.apply_wrenches(f, t)
                 k = min(self.every, n - done)
                 with self.timer("stepping"):
