@@ -195,9 +195,11 @@ def layered_search(
     for i in in_search:
         world.set_enabled(ids[i], True)
     sim.forces.reset()
+    chosen_state = world.save_state()
     try:
         sim.settle(sim.config.search.final_settle, with_forces=True)
     except PhysicsError as exc:  # pragma: no cover - the states before it were all stable
-        raise PhysicsError(f"final settle of the chosen scene failed: {exc}") from exc
+        log.warning("final settle failed (%s); keeping the scene as the search left it", exc)
+        world.restore_state(chosen_state)
     score = _score(scorer, world, timer)
     return SearchResult(score=score, chosen=chosen, tested=tested, failed=failed)
