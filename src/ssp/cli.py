@@ -23,6 +23,7 @@ app = typer.Typer(
         "  ssp models list                      # the built-in object models\n\n"
         "  ssp models prepare path/to/meshes    # validate + convex-decompose a model folder\n\n"
         "  ssp bench physics --out bench-out    # physics engine timings\n\n"
+        "  ssp bench calibrate --out cal-out    # measure the stability/collision constants\n\n"
         "  ssp dump-config > ssp.yaml           # every setting, with defaults"
     ),
     no_args_is_help=True,
@@ -257,6 +258,100 @@ def bench_physics(
             f"{r['restore_us']:.1f}",
         )
     console.print(table)
+
+
+@bench_app.command("calibrate")
+@_friendly
+def bench_calibrate(
+    out: Path = typer.Option(Path("bench-out/calibration"), "--out", "-o", help="Output folder."),
+    config: Path | None = ConfigOption,
+    seeds: int = typer.Option(50, min=1, help="Seeds of the resting scenes (one set each)."),
+    quick: bool = typer.Option(
+        False, "--quick", help="Smoke test: towers of 2-3 cubes, bridges, one bad case of each."
+    ),
+) -> None:
+    """Measure the stability and collision inputs on resting and bad scenes; choose s_B, a_B,
+    s_c, a_c (docs/calibration.md). Writes calibration.json and calibration.png."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+
+    from ssp.eval.calibrate import calibrate, write_report
+
+    kwargs = {"families": ("tower", "bridge"), "tower_sizes": (2, 3), "quick_bad": True}
+    with Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        console=err_console,
+        transient=True,
+    ) as progress:
+        task = progress.add_task("calibration scenes", total=None)
+        result = calibrate(
+            _config(config),
+            range(seeds),
+            progress=lambda name: progress.update(task, advance=1, description=name),
+            on_total=lambda n: progress.update(task, total=n),
+            **(kwargs if quick else {}),
+        )
+    files = write_report(result, out)
+    s = result["summary"]
+    table = Table(title=f"resting objects ({result['seconds']:.1f} s, {result['scenes']} scenes)")
+    for col in ("stage", "n", "beta p50", "p99", "max", "d max mm", "e_C max"):
+        table.add_column(col, justify="left" if col == "stage" else "right")
+    for stage, d in s["resting"].items():
+        table.add_row(
+            stage,
+            str(d["objects"]),
+            f"{d['beta']['median']:.2g}",
+            f"{d['beta']['p99']:.2g}",
+            f"{d['beta']['max']:.2g}",
+            f"{d['depth_mm']['max']:.3f}",
+            f"{d['e_c']['max']:.2g}",
+        )
+    console.print(table)
+    bad = Table(title="bad scenes at the set pose (smallest over scenes)")
+    for col in ("kind", "scenes", "beta", "d mm", "e_C"):
+        bad.add_column(col, justify="left" if col == "kind" else "right")
+    kinds: dict[str, list[dict]] = {}
+    for row in s["bad"]:
+        if row["stage"] == "set":
+            kinds.setdefault(f"{row['kind']} {row['param']:g}", []).append(row)
+    for kind, rows in kinds.items():
+        bad.add_row(
+            kind,
+            str(len(rows)),
+            f"{min(r['beta'] for r in rows):.2g}",
+            f"{min(r['depth_mm'] for r in rows):.3f}",
+            f"{min(r['e_c'] for r in rows):.2g}",
+        )
+    console.print(bad)
+    st, co = s["chosen"]["stability"], s["chosen"]["collision"]
+    chosen = Table(title=f"chosen constants (resting basis: {s['basis_stage']})")
+    for col in ("term", "steepness", "midpoint", "separates", "from"):
+        chosen.add_column(col)
+    chosen.add_row(
+        "stability",
+        f"{st['steepness']:g}",
+        f"{st['midpoint']:g}",
+        "yes" if st["achievable"] else "[red]no[/]",
+        f"resting {st['rest_basis']} {st['rest_reference']:.3g} / bad {st['bad_reference']:.3g}",
+    )
+    chosen.add_row(
+        "collision",
+        f"{co['steepness']:g}",
+        f"{co['midpoint']:g}",
+        ("yes" if co["achievable"] else "[red]no[/]")
+        + ("" if co["achievable_for_requested"] else f" (>= {co['bad_overlap_mm_used']:g} mm)"),
+        f"resting max {co['rest_reference']:.3g} / bad {co['bad_reference']:.3g}",
+    )
+    chosen.add_row("min_depth", "", f"{s['chosen']['min_depth_m'] * 1000:g} mm", "", "")
+    console.print(chosen)
+    if result["rejected_scenes"]:
+        console.print(
+            f"[yellow]{len(result['rejected_scenes'])} scenes never came to rest and were "
+            f"dropped:[/] {', '.join(result['rejected_scenes'])}"
+        )
+    for f in files:
+        console.print(f"wrote [bold]{f}[/]")
 
 
 @app.command()
