@@ -92,7 +92,7 @@ def test_stability_hand_values():
 
 
 def test_stability_weights_used():
-    cfg = StabilityConfig(translation_weight=2.0, rotation_weight=0.0)
+    cfg = StabilityConfig(steepness=40.0, midpoint=0.1, translation_weight=2.0, rotation_weight=0.0)
     out = log_stability([[0.1 * G, 0, 0]], [[1e6, 0, 0]], 1.0, G, cfg)
     # 2 * 0.1 - 0.1 = 0.1 -> L(-4); rotation weight 0 -> L(4)
     assert out[0] == pytest.approx(

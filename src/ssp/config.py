@@ -148,8 +148,12 @@ class ForcesConfig(_Section):
 class StabilityConfig(_Section):
     """Stability term P_B = L(-s_B (a_t beta_t - a_B)) L(-s_B (a_R beta_R - a_B)) (Eq. 7)."""
 
-    steepness: float = Field(40.0, gt=0, description="sigma_B (calibrate).")
-    midpoint: float = Field(0.1, ge=0, description="alpha_B (calibrate).")
+    steepness: float = Field(
+        73.0, gt=0, description="sigma_B (calibrated for MuJoCo, docs/calibration.md; paper 40)."
+    )
+    midpoint: float = Field(
+        0.056, ge=0, description="alpha_B (calibrated, docs/calibration.md; paper 0.1)."
+    )
     translation_weight: float = Field(1.0, ge=0, description="alpha_t.")
     rotation_weight: float = Field(1.0, ge=0, description="alpha_R.")
 
@@ -157,10 +161,12 @@ class StabilityConfig(_Section):
 class CollisionConfig(_Section):
     """Collision term P_C = L(-s_c (e_C - a_c)), e_C = d/eps_d * v_c/v_t (Eq. 8)."""
 
-    steepness: float = Field(2000.0, gt=0, description="sigma_c (calibrate).")
-    midpoint: float = Field(0.002, ge=0, description="alpha_c (calibrate).")
+    steepness: float = Field(
+        19000.0, gt=0, description="sigma_c (calibrated for MuJoCo, docs/calibration.md)."
+    )
+    midpoint: float = Field(0.00016, ge=0, description="alpha_c (calibrated, docs/calibration.md).")
     min_depth: float = Field(
-        0.0002,
+        0.0004,
         ge=0,
         description=(
             "Penetrations shallower than this (m) are taken as solver residue: no overlap "
