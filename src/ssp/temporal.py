@@ -174,6 +174,9 @@ def associate(
                 for j, k in enumerate(cols):
                     T_prev = previous[k][1]
                     for h in c.members:
+                        t_h = np.asarray(h.T_world_obj)[:3, 3]
+                        if np.linalg.norm(t_h - np.asarray(T_prev)[:3, 3]) > gate(class_name):
+                            continue  # gated out: skip the (costlier) symmetric rotation
                         dt, dth = pose_change(T_prev, h.T_world_obj, sym)
                         if dt <= gate(class_name):
                             cost[r, j] = min(cost[r, j], dt + rotation_weight * dth)
@@ -261,6 +264,12 @@ def snap_symmetric(T_prev: np.ndarray, T_cur: np.ndarray, symmetry: Symmetry | N
         S[:3, 3] = o - R @ o
         return T_cur @ S
     R_base = T_prev[:3, :3].T @ T_cur[:3, :3]
+    if not symmetry.continuous:  # all discrete candidates at once
+        q = Rotation.from_matrix(R_base[None] @ symmetry.discrete[:, :3, :3]).as_quat()
+        angles = 2.0 * np.arctan2(np.linalg.norm(q[:, :3], axis=1), np.abs(q[:, 3]))
+        # ties within 1e-9 rad go to the first (the identity)
+        best = int(np.flatnonzero(angles <= angles.min() + 1e-9)[0])
+        return T_cur @ symmetry.discrete[best]
     best_T, best_angle = T_cur.copy(), np.inf
     for S in symmetry.discrete:
         T = T_cur @ S
