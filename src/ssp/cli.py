@@ -354,6 +354,48 @@ def bench_calibrate(
         console.print(f"wrote [bold]{f}[/]")
 
 
+@bench_app.command("parser")
+@_friendly
+def bench_parser_cmd(
+    out: Path = typer.Option(Path("bench-out/parser"), "--out", "-o", help="Output folder."),
+    config: Path | None = ConfigOption,
+    sizes: str = typer.Option("5,10,20", help="Scene sizes N (objects), comma separated."),
+    k: int = typer.Option(5, min=1, help="Hypotheses per object."),
+    repeats: int = typer.Option(2, min=1, help="Scenes per size."),
+    seed: int = typer.Option(0, help="Seed of the scenes and the noise."),
+) -> None:
+    """Seconds per frame of the scene parser (added, changed and unchanged frames) for stacks
+    of N cubes and blocks on rendered depth, with the share of each stage. One core."""
+    from ssp.eval.bench_parser import FRAMES, STAGES, bench_parser, write_report
+
+    try:
+        ns = tuple(int(x) for x in sizes.split(",") if x.strip())
+    except ValueError as exc:
+        raise typer.BadParameter(f"--sizes must be integers separated by commas: {exc}") from exc
+    with console.status("timing the scene parser") as status:
+        result = bench_parser(
+            ns, k=k, repeats=repeats, seed=seed, config=_config(config), progress=status.update
+        )
+    files = write_report(result, out)
+    table = Table(title=f"scene parser, k = {k}, {repeats} scenes per size, one core")
+    for col in ("N", "frame", "s/frame", "max", "tested", *STAGES, "other"):
+        table.add_column(col, justify="right")
+    for r in result["rows"]:
+        for name in FRAMES:
+            d = r[name]
+            table.add_row(
+                str(r["objects"]),
+                name,
+                f"{d['sec_per_frame_mean']:.3f}",
+                f"{d['sec_per_frame_max']:.3f}",
+                f"{d['hypotheses_tested_mean']:.0f}",
+                *(f"{100 * d['stage_share'][s]:.0f} %" for s in (*STAGES, "other")),
+            )
+    console.print(table)
+    for f in files:
+        console.print(f"wrote [bold]{f}[/]")
+
+
 @app.command()
 @_friendly
 def demo(

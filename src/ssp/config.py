@@ -291,24 +291,36 @@ class SearchConfig(_Section):
         0.1, ge=0, description="Settle without an undetected object to test its support, s."
     )
     hypotheses_per_object: int = Field(5, ge=1, description="k: hypotheses kept per object.")
+    reach: float = Field(
+        0.02,
+        ge=0,
+        description=(
+            "Objects whose bounding box stays farther than this (m) from every candidate of "
+            "the tested object are left out of its tests (cost independent of scene size)."
+        ),
+    )
     previous_candidates: bool = Field(
         True, description="Add the previous frame's pose of an object as a candidate (V-C)."
     )
     unchanged_shortcut: bool = Field(
         True,
         description=(
-            "Skip the search when nothing changed: no object appeared or vanished and every "
-            "object's previous pose still fits the data (see unchanged_fit_ratio)."
+            "Skip the search when nothing changed: no object appeared or vanished, every "
+            "object's hypotheses lie (median) within the static translation of its previous "
+            "pose, and that pose still fits the data (see unchanged_fit_ratio)."
         ),
     )
     unchanged_fit_ratio: float = Field(
-        0.9,
+        0.7,
         gt=0,
         le=1,
         description=(
             "An object is unchanged when the data fit c at its previous pose is at least this "
-            "fraction of the best fit among its hypotheses."
+            "fraction of the fit it had in the frame that set that pose (minus the tolerance)."
         ),
+    )
+    unchanged_fit_tolerance: float = Field(
+        0.02, ge=0, le=1, description="Absolute slack of that test (barely visible objects)."
     )
     force_refresh_every: int = Field(
         4, ge=1, description="Steps between updates of the data-force wrenches."

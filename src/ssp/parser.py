@@ -47,7 +47,7 @@ from ssp.library.model import ObjectInstance, ObjectModel
 from ssp.overlap import overlap_fractions
 from ssp.physics import World
 from ssp.probability import ObjectTerms, data_fit_fraction, pose_change
-from ssp.scene import Frame, FrameError, Hypothesis, TransitionMode
+from ssp.scene import Frame, FrameError, TransitionMode
 from ssp.scoring import SceneScore, SceneScorer
 from ssp.search import Candidate, Simulator, layered_search
 from ssp.segments import object_segments
@@ -193,6 +193,7 @@ class _Known:
     class_name: str
     T_world_obj: np.ndarray
     ephemeral: bool = False
+    fit: float = 0.0  # data fit c at T_world_obj in the frame that set it
 
 
 # ------------------------------------------------------------------------------ the parser
@@ -248,6 +249,7 @@ class SceneParser:
                     "class": k.class_name,
                     "T_world_obj": k.T_world_obj.tolist(),
                     "ephemeral": k.ephemeral,
+                    "fit": k.fit,
                 }
                 for oid, k in sorted(self._known.items())
             ],
@@ -290,7 +292,9 @@ class SceneParser:
                         f"the library ({', '.join(library.names) or 'empty'})"
                     )
                 T = validate_pose(np.asarray(o["T_world_obj"], dtype=float), f"object {o['id']}")
-                parser._known[str(o["id"])] = _Known(cls_name, T, bool(o.get("ephemeral")))
+                parser._known[str(o["id"])] = _Known(
+                    cls_name, T, bool(o.get("ephemeral")), float(o.get("fit", 0.0))
+                )
         except (KeyError, TypeError, ValueError) as exc:
             if isinstance(exc, InvalidPoseError | UnknownObjectError):
                 raise
@@ -462,7 +466,7 @@ class SceneParser:
             and not missing
             and set(detected) == set(self._known)
             and all(
-                self._still_fits(scorer, world.index(oid), prev_pose[oid], groups[oid])
+                self._unchanged(scorer, world.index(oid), self._known[oid], groups[oid])
                 for oid in detected
             )
         )
@@ -525,13 +529,17 @@ class SceneParser:
             counters,
         )
 
-    def _still_fits(
-        self, scorer: SceneScorer, i: int, T_prev: np.ndarray, hyps: list[Hypothesis]
-    ) -> bool:
-        """Does the previous pose fit the data about as well as the best hypothesis?"""
-        c_prev = scorer.fit_fraction(i, T_prev)
-        c_best = max(scorer.fit_fraction(i, h.T_world_obj) for h in hyps)
-        return c_prev > 0 and c_prev >= self.config.search.unchanged_fit_ratio * c_best
+    def _unchanged(self, scorer: SceneScorer, i: int, known: _Known, hyps) -> bool:
+        """Is object ``i`` where it was? Its hypotheses agree (median distance from the previous
+        pose below the static threshold) and the previous pose fits this frame's data about as
+        well as it fitted the frame that set it (``c_now >= ratio c_then - tolerance``)."""
+        s = self.config.search
+        t_prev = known.T_world_obj[:3, 3]
+        dists = [float(np.linalg.norm(h.T_world_obj[:3, 3] - t_prev)) for h in hyps]
+        if float(np.median(dists)) >= self.config.temporal.static_translation:
+            return False
+        c_now = scorer.fit_fraction(i, known.T_world_obj)
+        return c_now >= s.unchanged_fit_ratio * known.fit - s.unchanged_fit_tolerance
 
     # -------------------------------------------------------------- undetected objects
     def _triage_missing(
@@ -663,7 +671,7 @@ class SceneParser:
                     fit=float(score.fit[i]),
                 )
             )
-            known[oid] = _Known(model.name, T, ephemeral)
+            known[oid] = _Known(model.name, T, ephemeral, float(score.fit[i]))
         gone = tuple(
             ObjectEstimate(
                 oid, models[oid].name, prev_pose[oid], TransitionMode.REMOVED, source="removed"

@@ -128,6 +128,37 @@ def _score(scorer: SceneScorer, world: World, timer: StageTimer) -> SceneScore:
     return scorer.evaluate(world, timer)
 
 
+def _boxes(world: World, indices, poses=None) -> tuple[np.ndarray, np.ndarray]:
+    """World axis-aligned boxes ``(lo (m, 3), hi (m, 3))`` of objects ``indices`` (their
+    convex hull vertices at their current poses, or at ``poses``)."""
+    ids = world.ids
+    lo, hi = [], []
+    for j, k in enumerate(indices):
+        v = world.model_of(ids[k]).hull_vertices
+        T = world.get_pose(ids[k]) if poses is None else poses[j]
+        w = v @ T[:3, :3].T + T[:3, 3]
+        lo.append(w.min(axis=0))
+        hi.append(w.max(axis=0))
+    return np.array(lo).reshape(-1, 3), np.array(hi).reshape(-1, 3)
+
+
+def _out_of_reach(
+    world: World, i: int, poses: Sequence[np.ndarray], kids: Sequence[int], reach: float
+) -> list[int]:
+    """Enabled objects whose box stays farther than ``reach`` (m, per axis) from object ``i``'s
+    boxes at every candidate pose and from its children's boxes."""
+    others = [int(k) for k in np.flatnonzero(world.enabled) if k != i and k not in kids]
+    if not others:
+        return []
+    lo_i, hi_i = _boxes(world, [i] * len(poses), poses)
+    lo_k, hi_k = _boxes(world, list(kids))
+    lo = np.concatenate([lo_i, lo_k]) - reach
+    hi = np.concatenate([hi_i, hi_k]) + reach
+    lo_o, hi_o = _boxes(world, others)
+    touch = np.all((lo_o[:, None] <= hi[None]) & (hi_o[:, None] >= lo[None]), axis=2).any(axis=1)
+    return [k for k, t in zip(others, touch, strict=True) if not t]
+
+
 def layered_search(
     world: World,
     sim: Simulator,
@@ -153,6 +184,7 @@ def layered_search(
         with forces) and the choice per object. The world is left in that state.
     """
     ids = world.ids
+    reach = float(sim.config.search.reach)
     in_search = sorted({i for layer in layers for i in layer})
     for k in range(len(ids)):
         world.set_enabled(ids[k], False)
@@ -165,9 +197,15 @@ def layered_search(
         for i in sorted(layer, key=lambda k: ids[k]):
             oid = ids[i]
             kids = [c for c in children.get(i, ()) if not world.is_enabled(ids[c])]
+            tests = [Candidate(world.get_pose(oid), "current"), *candidates.get(oid, ())]
+            # Objects out of reach of every candidate (and of the children) are set aside for
+            # this object's tests, so a test costs the same in a scene of 5 or 50 objects; the
+            # candidates are compared on the same set of objects, as the scores require.
+            far = _out_of_reach(world, i, [c.T_world_obj for c in tests], kids, reach)
+            for k in far:
+                world.set_enabled(ids[k], False)
             base = world.save_state()
             kid_poses = {ids[c]: world.get_pose(ids[c]) for c in kids}
-            tests = [Candidate(world.get_pose(oid), "current"), *candidates.get(oid, ())]
             best_total, best_state, best_source = -np.inf, None, "current"
             for cand in tests:
                 world.restore_state(base)
@@ -191,6 +229,8 @@ def layered_search(
             for kid, T in kid_poses.items():  # children are tested in their own layer
                 world.set_pose(kid, T)
                 world.set_enabled(kid, False)
+            for k in far:
+                world.set_enabled(ids[k], True)
             chosen[oid] = best_source
     for i in in_search:
         world.set_enabled(ids[i], True)
