@@ -436,8 +436,8 @@ def demo(
     for f in r["files"]:
         console.print(f"wrote [bold]{f}[/]")
     console.print(
-        "[yellow]not yet available:[/] scene parsing of a synthetic sequence "
-        "(needs the scene parser and the benchmark, issues 3-4)."
+        "[yellow]not yet available:[/] the end-to-end demo of a synthetic sequence with the "
+        "comparison table (issue 4); `ssp bench parser` runs the scene parser today."
     )
 
 

@@ -130,7 +130,15 @@ class ForcesConfig(_Section):
         description=(
             "f: peak data force F_max = f m g (proportional to mass). The paper's default is "
             "0.5; the reference's block-scene launch used 2.0, which is also what converges "
-            "within the search windows here (docs/calibration.md)."
+            "within the search windows here (docs/parser.md)."
+        ),
+    )
+    visible_samples_only: bool = Field(
+        True,
+        description=(
+            "With a camera pose, only model samples facing the camera and not hidden behind "
+            "another object pull (and count in the data fit); False: every sample, as in the "
+            "paper."
         ),
     )
     friction_scale: float = Field(
@@ -187,7 +195,7 @@ class DataConfig(_Section):
 
     The paper's constants (s_d 10, a_d 0.36, C_max 0.5) saturate: any pose that explains half
     of the model's samples scores P_D > 0.99, so the term cannot tell a pose 6 mm off from the
-    right one, and the transition term then holds a moved object back (docs/calibration.md).
+    right one, and the transition term then holds a moved object back (docs/parser.md).
     Ours put every c on the log-linear side of the logistic (a_d = C_max = 1): ``log P_D`` is
     then about ``s_d (c - 1)``, each explained sample adding ``s_d / M``.
     """
@@ -272,7 +280,7 @@ class SearchConfig(_Section):
 
     Stepping is quasi-static, so an object moves at most about ``a dt^2`` per step (0.25 mm
     under gravity at dt = 5 ms): a window of ``w`` seconds corrects errors up to about
-    ``w / dt * 0.25 mm`` (docs/calibration.md measures the windows against their cost).
+    ``w / dt * 0.25 mm`` (docs/parser.md, "Quasi-static windows").
     """
 
     settle_with_forces: float = Field(

@@ -416,9 +416,10 @@ class SceneParser:
             ids = world.ids
             world.reset()  # a reused world must behave exactly as a new one (determinism)
             world.set_poses({oid: first.get(oid, prev_pose.get(oid)) for oid in ids})
-            cam = None if frame.T_world_cam is None else frame.T_world_cam[:3, 3]
+            see = cfg.forces.visible_samples_only and frame.T_world_cam is not None
+            cam = frame.T_world_cam[:3, 3] if see else None
             sample_filter = None
-            if frame.T_world_cam is not None and frame.labels is not None and owner:
+            if see and frame.labels is not None and owner:
                 view = CameraView(
                     frame.points,
                     frame.T_world_cam,

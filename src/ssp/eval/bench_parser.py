@@ -9,7 +9,8 @@ and ``k`` noisy hypotheses per object (5 mm / 5 deg RMS). Per scene size N, thre
 * ``unchanged``: the same scene again with fresh hypothesis noise.
 
 Everything runs on one core (``OMP_NUM_THREADS=1``); timings are wall seconds per frame and the
-share of each stage (forces, stepping, contacts, scoring, the rest).
+share of each stage (forces, stepping, contacts, scoring, the rest). The mean symmetry-aware
+error of the estimates and of the hypotheses (ground truth is known) is reported alongside.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from ssp.config import SSPConfig
 from ssp.geometry import make_pose
 from ssp.library import ObjectLibrary
 from ssp.parser import SceneEstimate, SceneParser
+from ssp.probability import pose_change
 from ssp.sim.frames import synthetic_frame
 from ssp.sim.render import look_at
 
@@ -71,6 +73,27 @@ def _slide(gt: dict, dx: float) -> dict:
     return out
 
 
+def _errors(est: SceneEstimate, frame, gt: dict, library) -> tuple[list, list]:
+    """Symmetry-aware (mm, deg) errors of the estimate and of every hypothesis, per gt object
+    (each matched to the nearest estimated object / counted for hypotheses within 2 cm)."""
+    est_err, hyp_err = [], []
+    for cls, T in gt.values():
+        sym = library[cls].symmetry
+        cands = [o for o in est.objects if o.class_name == cls]
+        if cands:
+            o = min(cands, key=lambda o: np.linalg.norm(o.T_world_obj[:3, 3] - T[:3, 3]))
+            dt, dth = pose_change(T, o.T_world_obj, sym)
+            est_err.append((1000 * dt, np.degrees(dth)))
+    for h in frame.hypotheses:
+        T = min(
+            (T for c, T in gt.values() if c == h.class_name),
+            key=lambda T: np.linalg.norm(h.T_world_obj[:3, 3] - T[:3, 3]),
+        )
+        dt, dth = pose_change(T, h.T_world_obj, library[h.class_name].symmetry)
+        hyp_err.append((1000 * dt, np.degrees(dth)))
+    return est_err, hyp_err
+
+
 def _shares(est: SceneEstimate) -> dict[str, float]:
     total = est.timings.get("total", 0.0)
     out = {s: est.timings.get(s, 0.0) / total if total else 0.0 for s in STAGES}
@@ -93,6 +116,7 @@ def bench_parser(
     rows = []
     for n in sizes:
         per: dict[str, list] = {f: [] for f in FRAMES}
+        err: dict[str, tuple[list, list]] = {f: ([], []) for f in FRAMES}
         for r in range(repeats):
             if progress:
                 progress(f"N = {n}, scene {r + 1}/{repeats}")
@@ -109,6 +133,9 @@ def bench_parser(
                 est = parser.update(f)
                 wall = time.perf_counter() - t0
                 per[name].append((wall, est))
+                e, h = _errors(est, f, scenes[name], lib)
+                err[name][0].extend(e)
+                err[name][1].extend(h)
         row = {"objects": n, "k": k, "n_times_k": n * k}
         for name in FRAMES:
             walls = [w for w, _ in per[name]]
@@ -120,6 +147,12 @@ def bench_parser(
                 "hypotheses_tested_mean": float(np.mean([e.hypotheses_tested for e in ests])),
                 "unchanged_shortcut": [bool(e.unchanged) for e in ests],
                 "stage_share": {s: float(np.mean([sh[s] for sh in shares])) for s in shares[0]},
+                "error": {
+                    "ssp_mm_mean": float(np.mean([e[0] for e in err[name][0]])),
+                    "ssp_deg_mean": float(np.mean([e[1] for e in err[name][0]])),
+                    "hypotheses_mm_mean": float(np.mean([e[0] for e in err[name][1]])),
+                    "hypotheses_deg_mean": float(np.mean([e[1] for e in err[name][1]])),
+                },
             }
         rows.append(row)
     xs = np.array([r["n_times_k"] for r in rows], dtype=float)
@@ -162,8 +195,8 @@ def write_report(result: dict, out: Path) -> tuple[Path, Path]:
         f"# Parser timing (k = {result['k']}, {result['repeats']} scenes per size, one core)",
         "",
         "| N | frame | s/frame mean | s/frame max | tested | forces | stepping | contacts "
-        "| scoring | other |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| scoring | other | ssp error | hypotheses error |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in result["rows"]:
         for name in FRAMES:
@@ -173,7 +206,9 @@ def write_report(result: dict, out: Path) -> tuple[Path, Path]:
                 f"| {r['objects']} | {name} | {d['sec_per_frame_mean']:.3f} | "
                 f"{d['sec_per_frame_max']:.3f} | {d['hypotheses_tested_mean']:.0f} | "
                 + " | ".join(f"{100 * sh[s]:.0f} %" for s in (*STAGES, "other"))
-                + " |"
+                + f" | {d['error']['ssp_mm_mean']:.2f} mm / {d['error']['ssp_deg_mean']:.2f} deg"
+                + f" | {d['error']['hypotheses_mm_mean']:.2f} mm / "
+                + f"{d['error']['hypotheses_deg_mean']:.2f} deg |"
             )
     lines += ["", "Linear fit of s/frame against N k:", ""]
     for name, f in result["linear_fit_vs_n_times_k"].items():
