@@ -397,3 +397,21 @@ def test_from_state_rejects_bad_states():
     good["objects"] = [{"id": "z", "class": "nope", "T_world_obj": np.eye(4).tolist()}]
     with pytest.raises(UnknownObjectError):
         SceneParser.from_state(LIB, good)
+
+
+def test_object_hidden_behind_a_new_tower_is_kept_as_ephemeral():
+    rng = np.random.default_rng(15)
+    a = {"a": ("cube", on_table(CUBE, x=0.06, y=0.07))}
+    tower3 = {f"t{i}": ("cube", on_table(CUBE, x=0.009, y=0.008, level=i)) for i in range(3)}
+    parser = SceneParser(LIB)
+    est0 = parser.update(frame(a, rng, ids=True))
+    gt1 = {**a, **tower3}  # a tower now stands between the camera and "a"
+    est1 = parser.update(frame(gt1, rng, stamp=1.0, detect=set(tower3), ids=True))
+    assert "a" in est1, [o.id for o in est1.removed]
+    assert est1["a"].ephemeral and est1["a"].mode == TransitionMode.STATIC
+    dt, _ = pose_change(est0["a"].T_world_obj, est1["a"].T_world_obj)
+    assert dt < 0.002
+    assert parser.state()["objects"][0]["ephemeral"] is True
+    # the tower is taken away and "a" is seen again: no longer ephemeral
+    est2 = parser.update(frame(a, rng, stamp=2.0, ids=True))
+    assert not est2["a"].ephemeral and [o.id for o in est2.removed] == ["t0", "t1", "t2"]
