@@ -40,7 +40,7 @@ import numpy as np
 
 from ssp.config import SSPConfig
 from ssp.errors import InvalidPoseError, PhysicsError, SSPError, UnknownObjectError
-from ssp.forces import DataForces, SegmentField
+from ssp.forces import SegmentField
 from ssp.geometry import transform_points, validate_pose
 from ssp.library.library import ObjectLibrary
 from ssp.library.model import ObjectInstance, ObjectModel
@@ -441,16 +441,8 @@ class SceneParser:
                 else None
                 for oid in ids
             ]
-            forces = DataForces(
-                [world.model_of(i) for i in ids],
-                fields,
-                config=cfg.forces,
-                max_points=cfg.search.force_samples,
-                refresh_every=cfg.search.correspondence_every,
-                masses=world.masses,
-                seed=cfg.seed,
-                camera_position=cam,
-                sample_filter=sample_filter,
+            sim = Simulator.for_world(
+                world, fields, cfg, timer, camera_position=cam, sample_filter=sample_filter
             )
             scorer = SceneScorer(
                 world,
@@ -459,7 +451,6 @@ class SceneParser:
                 {oid: prev_pose.get(oid) for oid in ids},
                 camera_position=cam,
             )
-            sim = Simulator(world, forces, cfg, timer)
 
         unchanged = (
             cfg.search.unchanged_shortcut

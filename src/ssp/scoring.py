@@ -40,10 +40,32 @@ from ssp.probability import (
 from ssp.support import SupportGraph, build_support_graph
 from ssp.timing import StageTimer
 
-__all__ = ["TERM_NAMES", "SceneScore", "SceneScorer"]
+__all__ = ["TERM_NAMES", "SceneScore", "SceneScorer", "contact_overlaps"]
 
 #: Column order of :attr:`SceneScore.terms`.
 TERM_NAMES = ("stability", "collision", "support", "data", "transition")
+
+
+def contact_overlaps(
+    models, contacts, poses: np.ndarray, deep: np.ndarray, min_depth: float
+) -> np.ndarray:
+    """(n,) volume fraction ``v_c / v_t`` (Eq. 8) of each object flagged in ``deep`` ((n,)
+    bool) inside the objects it penetrates by more than ``min_depth`` (m), or below the table
+    (:func:`ssp.overlap.overlap_fractions`); 0 for the others. ``models`` and ``poses``
+    ((n, 4, 4)) are in the contacts' id order."""
+    sel = np.asarray(contacts.depth) > min_depth
+    a = np.asarray(contacts.obj_a)[sel]
+    b = np.asarray(contacts.obj_b)[sel]
+    out = np.zeros(len(models))
+    members = sorted({int(i) for i in a} | {int(j) for j in b if j >= 0})
+    if not members:
+        return out
+    local = {k: m for m, k in enumerate(members)}
+    pairs = sorted({(local[int(i)], local[int(j)]) for i, j in zip(a, b, strict=True) if j >= 0})
+    out[members] = overlap_fractions(
+        [models[k] for k in members], poses[members], table=True, pairs=pairs
+    )
+    return np.where(deep, out, 0.0)
 
 
 @dataclass(frozen=True, eq=False)
@@ -125,22 +147,7 @@ class SceneScorer:
         self.evaluations = 0
 
     def _overlaps(self, contacts, poses: np.ndarray, deep: np.ndarray) -> np.ndarray:
-        """(n,) volume fraction of each deeply penetrating object inside the objects it
-        penetrates or the table (:func:`ssp.overlap.overlap_fractions`); 0 for the others."""
-        sel = np.asarray(contacts.depth) > self.config.collision.min_depth
-        a = np.asarray(contacts.obj_a)[sel]
-        b = np.asarray(contacts.obj_b)[sel]
-        members = sorted({int(i) for i in a} | {int(j) for j in b if j >= 0})
-        local = {k: m for m, k in enumerate(members)}
-        pairs = sorted(
-            {(local[int(i)], local[int(j)]) for i, j in zip(a, b, strict=True) if j >= 0}
-        )
-        fr = overlap_fractions(
-            [self.models[k] for k in members], poses[members], table=True, pairs=pairs
-        )
-        out = np.zeros(len(self.ids))
-        out[members] = fr
-        return np.where(deep, out, 0.0)
+        return contact_overlaps(self.models, contacts, poses, deep, self.config.collision.min_depth)
 
     def fit_fraction(self, i: int, T_world_obj: np.ndarray) -> float:
         """Data fit c of object ``i`` at a pose (0 without a segment)."""

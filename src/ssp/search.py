@@ -65,6 +65,33 @@ class Simulator:
         self.every = int(config.search.force_refresh_every)
         self.steps = 0
 
+    @classmethod
+    def for_world(
+        cls,
+        world: World,
+        fields,
+        config: SSPConfig,
+        timer: StageTimer,
+        *,
+        camera_position: np.ndarray | None = None,
+        sample_filter=None,
+    ) -> Simulator:
+        """A simulator whose data forces pull each object of ``world`` toward its
+        :class:`~ssp.forces.SegmentField` in ``fields`` (world id order; None: no pull), with
+        the sample budget, cadence and seed of ``config``."""
+        forces = DataForces(
+            [world.model_of(i) for i in world.ids],
+            fields,
+            config=config.forces,
+            max_points=config.search.force_samples,
+            refresh_every=config.search.correspondence_every,
+            masses=world.masses,
+            seed=config.seed,
+            camera_position=camera_position,
+            sample_filter=sample_filter,
+        )
+        return cls(world, forces, config, timer)
+
     def _n_steps(self, seconds: float) -> int:
         return int(round(seconds / self.world.timestep))
 

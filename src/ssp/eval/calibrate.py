@@ -50,13 +50,13 @@ from scipy.spatial.transform import Rotation
 from ssp import __version__
 from ssp.config import CollisionConfig, LibraryConfig, SSPConfig, StabilityConfig
 from ssp.eval import scenes
-from ssp.forces import DataForces, SegmentField
+from ssp.forces import SegmentField
 from ssp.geometry import make_pose
 from ssp.library import ObjectInstance, ObjectLibrary, ObjectModel
 from ssp.library.builtin import TOOL_NAMES
-from ssp.overlap import overlap_fractions
 from ssp.physics import World
 from ssp.probability import collision_severity, log_collision, log_stability
+from ssp.scoring import contact_overlaps
 from ssp.search import Simulator
 from ssp.support import build_support_graph
 from ssp.timing import StageTimer
@@ -134,22 +134,7 @@ def _measure(world: World, cfg: SSPConfig, targets: Sequence[str] | None) -> lis
     depth = np.asarray(graph.penetration, dtype=float)
     poses = world.pose_array()
     min_depth = float(cfg.collision.min_depth)
-    frac = np.zeros(len(ids))
-    deep = depth > min_depth
-    if deep.any():  # the scorer's selection: deep contacts, their pairs and the table
-        sel = np.asarray(contacts.depth) > min_depth
-        a = np.asarray(contacts.obj_a)[sel]
-        b = np.asarray(contacts.obj_b)[sel]
-        members = sorted({int(i) for i in a} | {int(j) for j in b if j >= 0})
-        local = {k: m for m, k in enumerate(members)}
-        pairs = sorted(
-            {(local[int(i)], local[int(j)]) for i, j in zip(a, b, strict=True) if j >= 0}
-        )
-        fr = overlap_fractions(
-            [models[k] for k in members], poses[members], table=True, pairs=pairs
-        )
-        frac[members] = fr
-        frac = np.where(deep, frac, 0.0)
+    frac = contact_overlaps(models, contacts, poses, depth > min_depth, min_depth)
     diam = np.array([m.diameter for m in models])
     e_c = collision_severity(depth, frac, diam)
     amax = np.array([m.max_angular_acceleration(g) for m in models])
@@ -234,16 +219,7 @@ def _search_window(world: World, cfg: SSPConfig, gt: dict[str, np.ndarray]) -> N
         m = world.model_of(oid)
         pts = np.asarray(m.surface_points) @ gt[oid][:3, :3].T + gt[oid][:3, 3]
         fields.append(SegmentField(pts, cfg.forces.max_distance))
-    forces = DataForces(
-        [world.model_of(i) for i in ids],
-        fields,
-        config=cfg.forces,
-        max_points=cfg.search.force_samples,
-        refresh_every=cfg.search.correspondence_every,
-        masses=world.masses,
-        seed=cfg.seed,
-    )
-    Simulator(world, forces, cfg, StageTimer()).window()
+    Simulator.for_world(world, fields, cfg, StageTimer()).window()
     world.clear_wrenches()
 
 
