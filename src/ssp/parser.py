@@ -407,7 +407,15 @@ class SceneParser:
                 radius=cfg.forces.max_distance,
                 table=self.table,
             )
-            verdicts = self._triage_missing(frame, missing, models, prev_pose, first, segments)
+            view = None
+            if frame.T_world_cam is not None:
+                view = CameraView(
+                    frame.points,
+                    frame.T_world_cam,
+                    labels=frame.labels,
+                    depth_tolerance=cfg.temporal.depth_tolerance,
+                )
+            verdicts = self._triage_missing(view, missing, models, prev_pose, first, segments)
 
         removed = {oid for oid, v in verdicts.items() if v == "removed"}
         present = [oid for oid in sorted(classes) if oid not in removed]
@@ -420,12 +428,6 @@ class SceneParser:
             cam = frame.T_world_cam[:3, 3] if see else None
             sample_filter = None
             if see and frame.labels is not None and owner:
-                view = CameraView(
-                    frame.points,
-                    frame.T_world_cam,
-                    labels=frame.labels,
-                    depth_tolerance=cfg.temporal.depth_tolerance,
-                )
                 own = [owner.get(oid) for oid in ids]
 
                 def sample_filter(k, pts, _normals):
@@ -536,7 +538,7 @@ class SceneParser:
     # -------------------------------------------------------------- undetected objects
     def _triage_missing(
         self,
-        frame: Frame,
+        view: CameraView | None,
         missing: list[str],
         models: Mapping[str, ObjectModel],
         prev_pose: Mapping[str, np.ndarray],
@@ -553,11 +555,6 @@ class SceneParser:
         verdicts: dict[str, str] = {}
         if not missing:
             return verdicts
-        view = (
-            CameraView(frame.points, frame.T_world_cam, depth_tolerance=t.depth_tolerance)
-            if frame.T_world_cam is not None
-            else None
-        )
         det_ids = sorted(first)
         for oid in missing:
             model, T = models[oid], prev_pose[oid]

@@ -144,7 +144,6 @@ class SceneScorer:
                 p, nrm = p[sel], nrm[sel]
             self.fit_samples.append(p)
             self.fit_normals.append(nrm)
-        self.evaluations = 0
 
     def _overlaps(self, contacts, poses: np.ndarray, deep: np.ndarray) -> np.ndarray:
         return contact_overlaps(self.models, contacts, poses, deep, self.config.collision.min_depth)
@@ -179,7 +178,6 @@ class SceneScorer:
 
     def _terms(self, on, poses, lin, ang, contacts, graph) -> SceneScore:
         cfg = self.config
-        self.evaluations += 1
         n = len(self.ids)
         terms = np.zeros((n, 5))
         fit = np.zeros(n)
