@@ -1,0 +1,1 @@
+"""Pictures of results: estimate-vs-truth overlays and the HTML report."""
