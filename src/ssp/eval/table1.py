@@ -1,0 +1,425 @@
+"""``ssp bench table1``: the paper's Table I on synthetic sequences, ssp beside its baselines.
+
+:func:`run_table1` feeds every frame of every sequence to every method (a fresh method per
+sequence; :mod:`ssp.eval.baselines`) and measures, per method:
+
+* ``accuracy``: error to the ground truth of every matched object in every frame, occluded
+  objects included; ``precision``: spread about the object's mean estimate over the repeated
+  frames of one static scene (:mod:`ssp.eval.metrics` has the exact definitions, the matching
+  and its gate). Both as mean and std of translation (mm) and rotation (deg), symmetry-aware.
+  ``matched`` / ``missed`` / ``false_positives`` count the object-frames behind them.
+* ``max_penetration_mm``: the method's output objects placed in a physics world
+  (:class:`ssp.physics.World`, table at z = 0) as they are, no simulation; the deepest contact
+  penetration (``world.contacts().depth``, table contacts included), maximum over all frames.
+* ``unsupported_objects``: **mean number per frame** of output objects that are not physically
+  supported, in the same world: an object is unsupported when no support path leads to it from
+  the table (:meth:`ssp.support.SupportGraph.unsupported` of
+  :func:`ssp.support.build_support_graph` on the contacts: a floating object, or one resting
+  only on floating ones) *or* its centre of mass, at rest, would accelerate downwards faster
+  than ``0.1 g`` (:meth:`World.acceleration_from_rest`: tipping or sliding off its support).
+  An object pushed up or sideways out of a penetration is not counted here (that is the
+  penetration column). ``unsupported_total`` is the sum over frames.
+* ``sec_per_frame``: mean wall time of ``method.update(frame)``, one frame.
+
+``induced_noise`` is the error of every hypothesis against its source object
+(:func:`ssp.eval.metrics.hypothesis_errors`, with ``SimSequence.info["hypothesis_sources"]``
+when the generator recorded them).
+Per-object and per-frame records for plots are kept under ``result["records"]``, column-wise.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from ssp.config import SSPConfig
+from ssp.eval.baselines import METHODS, Detection, make_method
+from ssp.eval.metrics import (
+    DEFAULT_GATE,
+    hypothesis_errors,
+    match_frame,
+    precision_deviations,
+    summarize,
+)
+from ssp.library.model import ObjectInstance
+from ssp.physics import World
+from ssp.sim.sequence import SimSequence
+from ssp.support import build_support_graph
+
+__all__ = [
+    "DEFAULT_METHODS",
+    "PAPER_TABLE1",
+    "PhysicsCheck",
+    "run_table1",
+    "write_table1",
+]
+
+DEFAULT_METHODS = ("ssp", "estimator", "icp", "bestfit", "temporal_filter")
+
+#: The paper's Table I: experiment -> row -> ((trans mm mean, std), (rot deg mean, std)).
+PAPER_TABLE1 = {
+    "isolated": {
+        "induced": ((3.05, 1.11), (3.35, 1.2)),
+        "accuracy": ((5.25, 0.96), (2.79, 2.92)),
+        "precision": ((1.57, 1.27), (0.72, 1.2)),
+    },
+    "structure": {
+        "induced": ((5.19, 2.81), (5.7, 3.02)),
+        "accuracy": ((3.65, 3.41), (2.23, 1.94)),
+        "precision": ((2.49, 3.34), (1.23, 1.25)),
+    },
+}
+
+#: Downward acceleration from rest (fraction of g) above which an object is unsupported.
+UNSUPPORTED_ACCELERATION = 0.1
+
+_OBJECT_COLUMNS = ("sequence", "frame", "object", "class", "visib_fract", "trans_mm", "rot_deg")
+_FRAME_COLUMNS = (
+    "sequence",
+    "frame",
+    "objects",
+    "matched",
+    "missed",
+    "false_positives",
+    "penetration_mm",
+    "unsupported",
+    "sec",
+)
+
+
+class PhysicsCheck:
+    """Penetration and support of a set of output objects, in a MuJoCo world with a table.
+
+    Worlds are cached by the multiset of classes (reset before each use, so results do not
+    depend on the cache).
+    """
+
+    def __init__(self, library, config: SSPConfig, max_worlds: int = 32) -> None:
+        self.library = library
+        self.config = config
+        self.max_worlds = int(max_worlds)
+        self._worlds: dict[tuple[str, ...], World] = {}
+
+    def __call__(self, detections: Sequence[Detection]) -> tuple[float, int]:
+        """``(deepest penetration m (>= 0), number of unsupported objects)``."""
+        if not detections:
+            return 0.0, 0
+        order = sorted(range(len(detections)), key=lambda i: (detections[i][0], i))
+        key = tuple(detections[i][0] for i in order)
+        world = self._worlds.get(key)
+        if world is None:
+            if len(self._worlds) >= self.max_worlds:
+                self._worlds.clear()
+            world = World(
+                [ObjectInstance(f"o{j}", self.library[c]) for j, c in enumerate(key)],
+                table=True,
+                config=self.config.physics,
+            )
+            self._worlds[key] = world
+        world.reset()
+        world.set_poses({f"o{j}": detections[i][1] for j, i in enumerate(order)})
+        contacts = world.contacts()
+        g = float(self.config.physics.gravity)
+        lin, _ = world.acceleration_from_rest()
+        graph = build_support_graph(contacts, world.masses, g)
+        bad = set(graph.unsupported())
+        bad |= {int(k) for k in np.flatnonzero(lin[:, 2] < -UNSUPPORTED_ACCELERATION * g)}
+        return max(contacts.max_depth, 0.0), len(bad)
+
+
+def _sources(seq: SimSequence) -> list | None:
+    """The generator's per-frame source ids of the hypotheses, if recorded and consistent."""
+    src = (seq.info or {}).get("hypothesis_sources")
+    if not isinstance(src, list | tuple) or len(src) != len(seq.frames):
+        return None
+    if any(len(s) != len(f.hypotheses) for s, f in zip(src, seq.frames, strict=True)):
+        return None
+    return list(src)
+
+
+def _common(values: list):
+    """The value if all agree, else the list."""
+    return values[0] if values and all(v == values[0] for v in values) else values
+
+
+def run_table1(
+    sequences: Sequence[SimSequence],
+    library,
+    config: SSPConfig | None = None,
+    methods: Sequence[str] = DEFAULT_METHODS,
+    progress: Callable[[str], None] | None = None,
+    *,
+    gate: float = DEFAULT_GATE,
+) -> dict:
+    """Run every method on every frame of ``sequences``; a JSON-ready dict (module docstring).
+
+    Args:
+        sequences: the synthetic sequences (:class:`SimSequence`), usually of one experiment.
+        library: the object library (every class of the sequences).
+        config: ssp's constants (also used by the baselines: association gates, segments, data
+            fit radius); default ``SSPConfig()``.
+        methods: names from :data:`ssp.eval.baselines.METHODS`, in report order.
+        progress: called with a short message before each frame.
+        gate: matching gate, m (:func:`ssp.eval.metrics.match_frame`).
+    """
+    config = config if config is not None else SSPConfig()
+    methods = tuple(methods)
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown:
+        raise ValueError(f"unknown methods {unknown}; known: {', '.join(METHODS)}")
+    physics = PhysicsCheck(library, config)
+
+    hyp_t: list[float] = []
+    hyp_r: list[float] = []
+    hyp_outliers = 0
+    err = {m: ([], []) for m in methods}
+    counts = {m: {"matched": 0, "missed": 0, "false_positives": 0} for m in methods}
+    stacks: dict[str, dict[tuple, list[np.ndarray]]] = {m: {} for m in methods}
+    stack_class: dict[tuple, str] = {}
+    records = {
+        m: {
+            "objects": {c: [] for c in _OBJECT_COLUMNS},
+            "frames": {c: [] for c in _FRAME_COLUMNS},
+        }
+        for m in methods
+    }
+    total_frames = 0
+
+    for s, seq in enumerate(sequences):
+        runners = {m: make_method(m, library, config) for m in methods}
+        sources = _sources(seq)
+        for i, sf in enumerate(seq.frames):
+            if progress is not None:
+                progress(f"sequence {s + 1}/{len(sequences)}, frame {i + 1}/{len(seq)}")
+            total_frames += 1
+            frame = seq.frame(i)
+            errs, outliers = hypothesis_errors(
+                sf.gt, sf.hypotheses, library, gate, None if sources is None else sources[i]
+            )
+            hyp_outliers += outliers
+            hyp_t.extend(e[0] for e in errs)
+            hyp_r.extend(e[1] for e in errs)
+            for m, runner in runners.items():
+                t0 = time.perf_counter()
+                dets = runner.update(frame)
+                wall = time.perf_counter() - t0
+                fm = match_frame(sf.gt, dets, library, gate)
+                depth, n_unsup = physics(dets)
+                c = counts[m]
+                c["matched"] += len(fm.matches)
+                c["missed"] += len(fm.missed)
+                c["false_positives"] += len(fm.false_positives)
+                by_gt = fm.by_gt()
+                obj = records[m]["objects"]
+                for gid, (cls, _) in sf.gt.items():
+                    mt = by_gt.get(gid)
+                    vis = sf.visib_fract.get(gid)
+                    obj["sequence"].append(s)
+                    obj["frame"].append(sf.index)
+                    obj["object"].append(gid)
+                    obj["class"].append(cls)
+                    obj["visib_fract"].append(None if vis is None else float(vis))
+                    obj["trans_mm"].append(None if mt is None else mt.trans_mm)
+                    obj["rot_deg"].append(None if mt is None else mt.rot_deg)
+                    if mt is not None:
+                        err[m][0].append(mt.trans_mm)
+                        err[m][1].append(mt.rot_deg)
+                        key = (s, gid, sf.static_group)
+                        stacks[m].setdefault(key, []).append(np.array(dets[mt.est_index][1]))
+                        stack_class[key] = cls
+                fr = records[m]["frames"]
+                for name, value in (
+                    ("sequence", s),
+                    ("frame", sf.index),
+                    ("objects", len(dets)),
+                    ("matched", len(fm.matches)),
+                    ("missed", len(fm.missed)),
+                    ("false_positives", len(fm.false_positives)),
+                    ("penetration_mm", 1000.0 * depth),
+                    ("unsupported", n_unsup),
+                    ("sec", wall),
+                ):
+                    fr[name].append(value)
+
+    out_methods = {}
+    for m in methods:
+        pt, pr = [], []
+        for key, poses in stacks[m].items():
+            dt, dr = precision_deviations(poses, library[stack_class[key]].symmetry)
+            pt.extend(dt)
+            pr.extend(dr)
+        fr = records[m]["frames"]
+        n = max(len(fr["sec"]), 1)
+        out_methods[m] = {
+            "accuracy": summarize(*err[m]),
+            "precision": summarize(pt, pr),
+            "max_penetration_mm": float(max(fr["penetration_mm"], default=0.0)),
+            "unsupported_objects": float(sum(fr["unsupported"]) / n),
+            "unsupported_total": int(sum(fr["unsupported"])),
+            "sec_per_frame": float(sum(fr["sec"]) / n),
+            **counts[m],
+        }
+
+    noise = summarize(hyp_t, hyp_r)
+    return {
+        "protocol": "table1",
+        "experiment": _common([seq.experiment for seq in sequences]),
+        "seed": _common([seq.seed for seq in sequences]),
+        "sequences": len(sequences),
+        "frames": total_frames,
+        "induced_noise": {
+            "trans_mm_mean": noise["trans_mm_mean"],
+            "rot_deg_mean": noise["rot_deg_mean"],
+            "trans_mm_std": noise["trans_mm_std"],
+            "rot_deg_std": noise["rot_deg_std"],
+            "hypotheses": len(hyp_t),
+            "outliers": hyp_outliers,
+        },
+        "methods": out_methods,
+        "match_gate_mm": 1000.0 * gate,
+        "records": records,
+    }
+
+
+# ------------------------------------------------------------------------------ report
+def _pm(mean, std, digits: int = 2) -> str:
+    if mean is None:
+        return "n/a"
+    return f"{mean:.{digits}f} ± {std:.{digits}f}"
+
+
+def _markdown(result: dict) -> str:
+    exp = result["experiment"]
+    lines = [
+        f"# Table I: {exp} ({result['sequences']} sequences, {result['frames']} frames)",
+        "",
+        "Translation and rotation errors are mean ± std (symmetry-aware). Accuracy: error to "
+        "the ground truth of every matched object in every frame (occluded included); "
+        "precision: spread about the object's mean estimate over each static scene. "
+        "Penetration: deepest contact of the output objects, maximum over frames; unsupported: "
+        "mean number per frame of output objects with no support path from the table or "
+        f"falling faster than {UNSUPPORTED_ACCELERATION:g} g; matches within "
+        f"{result.get('match_gate_mm', 50):.0f} mm.",
+        "",
+        "| Method | Category | Translation (mm) | Rotation (deg) | max penetration (mm) "
+        "| unsupported / frame | s / frame | matched / missed / false pos. |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    n = result["induced_noise"]
+    lines.append(
+        f"| hypotheses | Induced Noise | {_pm(n['trans_mm_mean'], n['trans_mm_std'])} | "
+        f"{_pm(n['rot_deg_mean'], n['rot_deg_std'])} | | | | "
+        f"{n.get('hypotheses', '')} hyp., {n.get('outliers', 0)} outliers |"
+    )
+    for name, d in result["methods"].items():
+        a, p = d["accuracy"], d["precision"]
+        lines.append(
+            f"| {name} | Accuracy | {_pm(a['trans_mm_mean'], a['trans_mm_std'])} | "
+            f"{_pm(a['rot_deg_mean'], a['rot_deg_std'])} | {d['max_penetration_mm']:.2f} | "
+            f"{d['unsupported_objects']:.2f} | {d['sec_per_frame']:.3f} | "
+            f"{d.get('matched', '')} / {d.get('missed', '')} / {d.get('false_positives', '')} |"
+        )
+        lines.append(
+            f"| {name} | Precision | {_pm(p['trans_mm_mean'], p['trans_mm_std'])} | "
+            f"{_pm(p['rot_deg_mean'], p['rot_deg_std'])} | | | | |"
+        )
+    lines += [
+        "",
+        "The paper's Table I, for reference (ssp on Gazebo data):",
+        "",
+        "| Test | Category | Translation (mm) | Rotation (deg) |",
+        "|---|---|---|---|",
+    ]
+    labels = {"induced": "Induced Noise", "accuracy": "Accuracy", "precision": "Precision"}
+    tests = {"isolated": "Isolated Object", "structure": "Complex Structure"}
+    for key, rows in PAPER_TABLE1.items():
+        for row, ((tm, ts), (rm, rs)) in rows.items():
+            lines.append(f"| {tests[key]} | {labels[row]} | {tm} ± {ts} | {rm} ± {rs} |")
+    lines += [
+        "",
+        "Plots: `error_vs_visibility.png` (mean error per visible-fraction bin), "
+        "`error_over_frames.png` (mean error per frame index over objects and sequences).",
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def _object_arrays(rec: dict) -> tuple[np.ndarray, ...]:
+    o = rec["objects"]
+    ok = np.array([t is not None for t in o["trans_mm"]], dtype=bool)
+    t = np.array([v if v is not None else np.nan for v in o["trans_mm"]], dtype=float)
+    r = np.array([v if v is not None else np.nan for v in o["rot_deg"]], dtype=float)
+    vis = np.array([v if v is not None else np.nan for v in o["visib_fract"]], dtype=float)
+    frame = np.array(o["frame"], dtype=int)
+    return ok, t, r, vis, frame
+
+
+def _plots(result: dict, out: Path) -> list[Path]:
+    from matplotlib.figure import Figure  # Agg through savefig; no pyplot, no global backend
+    from matplotlib.ticker import MaxNLocator
+
+    records = result.get("records", {})
+    edges = np.linspace(0.0, 1.0, 11)
+    centres = 0.5 * (edges[:-1] + edges[1:])
+
+    fig = Figure(figsize=(10, 4), layout="constrained")
+    axes = fig.subplots(1, 2)
+    for name, rec in records.items():
+        ok, t, r, vis, _ = _object_arrays(rec)
+        sel = ok & np.isfinite(vis)
+        b = np.clip(np.digitize(vis[sel], edges) - 1, 0, len(centres) - 1)
+        for ax, v in zip(axes, (t[sel], r[sel]), strict=True):
+            means = np.array([v[b == k].mean() if np.any(b == k) else np.nan for k in range(10)])
+            ax.plot(centres, means, marker="o", label=name)
+    for ax, what in zip(axes, ("translation error (mm)", "rotation error (deg)"), strict=True):
+        ax.set_xlabel("visible fraction")
+        ax.set_ylabel(what)
+        ax.set_xlim(0, 1)
+        ax.grid(alpha=0.3)
+    axes[0].legend()
+    fig.suptitle(f"Error vs visibility ({result.get('experiment')})")
+    p1 = out / "error_vs_visibility.png"
+    fig.savefig(p1, dpi=110)
+
+    fig = Figure(figsize=(10, 4), layout="constrained")
+    axes = fig.subplots(1, 2)
+    for name, rec in records.items():
+        ok, t, r, _, frame = _object_arrays(rec)
+        if not ok.any():
+            continue
+        idx = np.unique(frame[ok])
+        for ax, v in zip(axes, (t, r), strict=True):
+            ax.plot(idx, [v[ok & (frame == k)].mean() for k in idx], marker=".", label=name)
+    for ax, what in zip(axes, ("translation error (mm)", "rotation error (deg)"), strict=True):
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+        ax.set_xlabel("frame")
+        ax.set_ylabel(what)
+        ax.grid(alpha=0.3)
+    axes[0].legend()
+    fig.suptitle(f"Error over frames ({result.get('experiment')}, mean over objects)")
+    p2 = out / "error_over_frames.png"
+    fig.savefig(p2, dpi=110)
+    return [p1, p2]
+
+
+def write_table1(result: dict, out_dir: str | Path) -> list[Path]:
+    """``results.json``, ``results.md`` (Table I layout with the paper's numbers) and the plots
+    ``error_vs_visibility.png`` and ``error_over_frames.png`` in ``out_dir`` (created)."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    j = out / "results.json"
+    rest = {k: v for k, v in result.items() if k != "records"}
+    text = json.dumps(rest, indent=2)
+    if "records" in result:  # column lists on one line each: the file stays readable
+        recs = ",\n".join(
+            f"    {json.dumps(name)}: " + json.dumps(rec, separators=(",", ":"))
+            for name, rec in result["records"].items()
+        )
+        text = text[: text.rindex("}")].rstrip() + ',\n  "records": {\n' + recs + "\n  }\n}"
+    j.write_text(text + "\n")
+    m = out / "results.md"
+    m.write_text(_markdown(result))
+    return [j, m, *_plots(result, out)]
