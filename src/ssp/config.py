@@ -231,8 +231,8 @@ class TemporalConfig(_Section):
         0.8,
         gt=0,
         description=(
-            "The association gate of a class is at most this fraction of its smallest extent, "
-            "so two touching objects of one class never merge."
+            "The association gate of a class is at most this fraction of its median extent "
+            "(the centre distance of two such objects side by side), so they never merge."
         ),
     )
     visible_fit: float = Field(

@@ -52,7 +52,7 @@ from ssp.scoring import SceneScore, SceneScorer
 from ssp.search import Candidate, Simulator, layered_search
 from ssp.segments import object_segments
 from ssp.support import GROUND
-from ssp.temporal import associate, classify, snap_symmetric
+from ssp.temporal import associate, association_gates, classify, snap_symmetric
 from ssp.timing import StageTimer
 from ssp.visibility import CameraView
 
@@ -310,13 +310,6 @@ class SceneParser:
             self._world_key = key
         return self._world
 
-    def _gates(self) -> dict[str, float]:
-        t = self.config.temporal
-        return {
-            name: min(t.association_distance, t.association_size_fraction * float(m.extents.min()))
-            for name, m in self.library.items()
-        }
-
     def _id_factory(self, counters: dict[str, int], taken: set[str]):
         def new_id(class_name: str) -> str:
             while True:
@@ -366,7 +359,7 @@ class SceneParser:
                 frame.hypotheses,
                 previous,
                 {n: m.symmetry for n, m in lib.items()},
-                max_distance=self._gates(),
+                max_distance=association_gates(self.library, cfg.temporal),
                 new_id=self._id_factory(counters, taken),
             )
             for oid, hyps in groups.items():

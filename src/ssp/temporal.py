@@ -27,10 +27,24 @@ from ssp.library.symmetry import Symmetry
 from ssp.probability import pose_change
 from ssp.scene import Hypothesis, TransitionMode
 
-__all__ = ["associate", "classify", "default_id_factory", "snap_symmetric"]
+__all__ = ["association_gates", "associate", "classify", "default_id_factory", "snap_symmetric"]
 
 #: Cost of a forbidden (gated-out) pair in the assignment matrix.
 _FORBIDDEN = 1e6
+
+
+def association_gates(library: Mapping, cfg: TemporalConfig) -> dict[str, float]:
+    """Per-class association radius, m: ``min(association_distance, association_size_fraction
+    x the model's median extent)``. The median extent is the centre distance of two objects
+    of the class lying side by side (a thin wrench's thickness would give a gate smaller than
+    the hypotheses' own noise, so one wrench would split into several objects)."""
+    return {
+        name: min(
+            cfg.association_distance,
+            cfg.association_size_fraction * float(np.median(np.asarray(m.extents, float))),
+        )
+        for name, m in library.items()
+    }
 
 
 def default_id_factory(taken: Iterable[str] = ()) -> Callable[[str], str]:
