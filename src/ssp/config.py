@@ -141,6 +141,17 @@ class ForcesConfig(_Section):
             "paper."
         ),
     )
+    final_icp: bool = Field(
+        True,
+        description=(
+            "Before the output, pull each detected object toward its point-to-plane ICP pose "
+            "on its segment (the reference code's cached-ICP force mode) and let physics "
+            "settle it, then a window without forces."
+        ),
+    )
+    icp_max_distance: float = Field(
+        0.01, gt=0, description="Correspondence cut-off of that ICP, m."
+    )
     friction_scale: float = Field(
         0.0,
         ge=0,

@@ -176,6 +176,7 @@ class DataForces:
         sample_filter=None,
     ) -> None:
         self.sample_filter = sample_filter
+        self._pose_targets: dict[int, np.ndarray] = {}
         self._filter_cache: dict[int, np.ndarray] = {}
         models = list(models)
         fields = list(fields)
@@ -232,6 +233,20 @@ class DataForces:
             f"refresh_every={self.refresh_every})"
         )
 
+    def set_pose_target(self, k: int, T_target: np.ndarray | None) -> None:
+        """Pull object ``k`` toward a whole pose instead of its segment: every sample is paired
+        with its own position at ``T_target`` (4, 4), world frame (the reference code's
+        cached-ICP force mode: a spring in pose space, same kernel and F_max). ``None`` returns
+        the object to nearest-point pairs. Kept across :meth:`reset`."""
+        if T_target is None:
+            self._pose_targets.pop(k, None)
+            return
+        T = np.asarray(T_target, dtype=float)
+        mk = self.counts[k]
+        R = T[:3, :3]
+        com = R @ self._com[k] + T[:3, 3]
+        self._pose_targets[k] = (R @ self._q[k, :, :mk]) + com[:, None]
+
     def reset(self) -> None:
         """Forget the cached correspondences: the next :meth:`compute` queries again (call it
         when a pose was changed discontinuously, e.g. a new hypothesis was set). The
@@ -266,7 +281,14 @@ class DataForces:
         if self.camera_position is not None:
             to_cam = self.camera_position[None, :, None] - (r + cog[:, :, None])
             facing = (nw * to_cam).sum(axis=1) > 0.0
+        for k, targets in self._pose_targets.items():
+            if enabled is None or enabled[k]:
+                mk = self.counts[k]
+                self._targets[k, :, :mk] = targets
+                self._matched[k, :mk] = 1.0
         for k in np.flatnonzero(active):
+            if k in self._pose_targets:
+                continue
             mk = self.counts[k]
             pts = (r[k, :, :mk] + cog[k, :, None]).T
             tgt, dist = self.fields[k].nearest(pts)
