@@ -154,6 +154,7 @@ def run_table1(
     progress: Callable[[str], None] | None = None,
     *,
     gate: float = DEFAULT_GATE,
+    on_output: Callable[[int, int, str, list[Detection]], None] | None = None,
 ) -> dict:
     """Run every method on every frame of ``sequences``; a JSON-ready dict (module docstring).
 
@@ -165,6 +166,8 @@ def run_table1(
         methods: names from :data:`ssp.eval.baselines.METHODS`, in report order.
         progress: called with a short message before each frame.
         gate: matching gate, m (:func:`ssp.eval.metrics.match_frame`).
+        on_output: called as ``on_output(sequence index, frame index, method, detections)``
+            after each method's update (e.g. to draw estimate-vs-truth images).
     """
     config = config if config is not None else SSPConfig()
     methods = tuple(methods)
@@ -207,6 +210,8 @@ def run_table1(
                 t0 = time.perf_counter()
                 dets = runner.update(frame)
                 wall = time.perf_counter() - t0
+                if on_output is not None:
+                    on_output(s, i, m, dets)
                 fm = match_frame(sf.gt, dets, library, gate)
                 depth, n_unsup = physics(dets)
                 c = counts[m]
