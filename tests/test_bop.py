@@ -1,0 +1,130 @@
+"""BOP-layout reader/writer of synthetic sequences (ssp.sim.bop)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from ssp.library import ObjectLibrary
+from ssp.sim.bop import DEPTH_SCALE, read_bop, simulate_to_disk, write_bop
+from ssp.sim.generate import generate_sequence
+
+
+@pytest.fixture(scope="module")
+def lib():
+    return ObjectLibrary.builtin()
+
+
+@pytest.fixture(scope="module")
+def seq(lib):
+    return generate_sequence(
+        "structure", 2, lib, stages=2, frames_per_stage=2, stride=8, n_objects=6
+    )
+
+
+def test_round_trip(lib, seq, tmp_path):
+    out = write_bop(seq, tmp_path / "scene", scene_id=7)
+    for name in (
+        "scene_gt.json",
+        "scene_camera.json",
+        "scene_gt_info.json",
+        "camera.json",
+        "hypotheses.json",
+        "hypotheses_gt.json",
+        "models.json",
+        "sequence.json",
+        "depth/000000.png",
+        "mask_visib/000003_000005.png",
+    ):
+        assert (out / name).exists(), name
+    back = read_bop(out, lib)
+    assert back.experiment == seq.experiment and back.seed == seq.seed
+    assert back.camera == seq.camera
+    np.testing.assert_allclose(back.T_world_cam, seq.T_world_cam, atol=1e-12)
+    assert back.models == seq.models
+    assert len(back) == len(seq)
+    for a, b in zip(seq.frames, back.frames, strict=True):
+        assert (a.index, a.stamp, a.static_group) == (b.index, b.stamp, b.static_group)
+        assert list(a.gt) == list(b.gt)
+        for iid, (cls, T) in a.gt.items():
+            assert b.gt[iid][0] == cls
+            np.testing.assert_allclose(b.gt[iid][1], T, atol=1e-9)
+        assert b.visib_fract == a.visib_fract
+        np.testing.assert_array_equal(b.instance, a.instance)
+        assert b.depth.dtype == np.float32
+        assert np.abs(b.depth - a.depth).max() <= DEPTH_SCALE / 2000 + 1e-6
+        np.testing.assert_array_equal(b.depth > 0, a.depth > 0)
+        assert len(b.hypotheses) == len(a.hypotheses)
+        for ha, hb in zip(a.hypotheses, b.hypotheses, strict=True):
+            assert (ha.class_name, ha.score) == (hb.class_name, hb.score)
+            assert hb.instance_id is None
+            np.testing.assert_allclose(hb.T_world_obj, ha.T_world_obj, atol=1e-12)
+    # the frames of one static scene share their ground truth exactly after reading too
+    for iid in back.frames[0].gt:
+        np.testing.assert_array_equal(back.frames[0].gt[iid][1], back.frames[1].gt[iid][1])
+    assert back.info["hypothesis_sources"] == seq.info["hypothesis_sources"]
+    assert back.info["stage_objects"] == seq.info["stage_objects"]
+
+
+def test_bop_files(seq, tmp_path):
+    out = write_bop(seq, tmp_path / "scene")
+    gt = json.loads((out / "scene_gt.json").read_text())
+    cam = json.loads((out / "scene_camera.json").read_text())
+    info = json.loads((out / "scene_gt_info.json").read_text())
+    models = json.loads((out / "models.json").read_text())
+    hyps = json.loads((out / "hypotheses.json").read_text())
+    last = str(len(seq) - 1)
+    assert len(gt[last]) == len(seq.frames[-1].gt)
+    e = gt[last][0]
+    assert len(e["cam_R_m2c"]) == 9 and len(e["cam_t_m2c"]) == 3
+    assert 500 < np.linalg.norm(e["cam_t_m2c"]) < 2000  # mm, ~1 m from the camera
+    assert models["obj_ids"][str(e["obj_id"])] in ("cube", "block")
+    assert cam["0"]["depth_scale"] == DEPTH_SCALE and len(cam["0"]["cam_K"]) == 9
+    # world -> camera -> model composes to the world pose
+    R_w2c = np.reshape(cam["0"]["cam_R_w2c"], (3, 3))
+    np.testing.assert_allclose(R_w2c.T, seq.T_world_cam[:3, :3], atol=1e-12)
+    row = info[last][0]
+    assert {"visib_fract", "px_count_visib", "px_count_all", "bbox_visib"} <= set(row)
+    assert row["px_count_visib"] <= row["px_count_all"]
+    assert all("inst_id" not in h and set(h) == {"class", "obj_id", "score", "R", "t"}
+               for h in hyps[last])  # fmt: skip
+
+
+def test_read_plain_bop_masks(lib, seq, tmp_path):
+    out = write_bop(seq, tmp_path / "scene")
+    shutil.rmtree(out / "instance")
+    back = read_bop(out, lib)
+    for a, b in zip(seq.frames, back.frames, strict=True):
+        np.testing.assert_array_equal(b.instance >= 0, a.instance >= 0)
+        np.testing.assert_array_equal(b.instance[a.instance >= 0], a.instance[a.instance >= 0])
+
+
+def test_read_needs_the_classes(lib, seq, tmp_path):
+    out = write_bop(seq, tmp_path / "scene")
+    with pytest.raises(ValueError, match="not in the library"):
+        read_bop(out, ObjectLibrary([lib["mallet"]]))
+
+
+def test_simulate_to_disk(lib, tmp_path):
+    calls = []
+    paths = simulate_to_disk(
+        "isolated",
+        2,
+        5,
+        None,
+        tmp_path,
+        library=lib,
+        stages=1,
+        frames_per_stage=1,
+        stride=8,
+        objects_per_stage=2,
+        progress=lambda done, total, path: calls.append((done, total, path)),
+    )
+    assert paths == [tmp_path / "isolated" / "000000", tmp_path / "isolated" / "000001"]
+    assert [c[:2] for c in calls] == [(1, 2), (2, 2)]
+    seqs = [read_bop(p, lib) for p in paths]
+    assert [s.seed for s in seqs] == [5, 6]
+    assert all(len(s) == 1 and len(s.frames[0].gt) == 2 for s in seqs)
