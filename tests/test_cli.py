@@ -64,11 +64,47 @@ def test_models_prepare_reports_each_model(tmp_path):
     assert "exact" in r.output
 
 
-def test_demo_writes_report(tmp_path):
-    r = runner.invoke(app, ["demo", "--out", str(tmp_path)])
+def test_foundation_demo_writes_report(tmp_path):
+    r = runner.invoke(app, ["demo", "--foundation", "--out", str(tmp_path)])
     assert r.exit_code == 0, r.output
     report = json.loads((tmp_path / "foundation.json").read_text())
     assert report["tower"]["max_drift_mm"] < 0.1
     assert report["relaxation"]["accel_from_rest_after_m_s2"] < 0.1 * 9.81
     assert (tmp_path / "foundation.png").stat().st_size > 10_000
-    assert "not yet available" in r.output
+
+
+def test_sequence_demo_writes_the_report(tmp_path):
+    from ssp.eval.sequence_demo import run_sequence_demo
+
+    result = run_sequence_demo(tmp_path, stages=2, frames_per_stage=2, stride=4)
+    page = (tmp_path / "report.html").read_text()
+    assert "<td>ssp</td>" in page and "frames/003.png" in page
+    assert set(result["methods"]) == {"ssp", "estimator", "icp", "bestfit", "temporal_filter"}
+    assert result["methods"]["ssp"]["max_penetration_mm"] < 1.0
+
+
+def test_simulate_and_table1_commands(tmp_path):
+    small = ["--stages", "1", "--frames-per-stage", "2", "--stride", "4", "--seed", "3"]
+    r = runner.invoke(app, ["simulate", "--out", str(tmp_path / "sim"), *small])
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "sim" / "structure" / "000000" / "scene_gt.json").exists()
+    r = runner.invoke(
+        app,
+        [
+            "bench",
+            "table1",
+            "--sequences",
+            "1",
+            "--experiment",
+            "isolated",
+            "--out",
+            str(tmp_path / "t1"),
+            *small,
+        ],
+    )
+    assert r.exit_code == 0, r.output
+    result = json.loads((tmp_path / "t1" / "results.json").read_text())
+    assert result["protocol"] == "table1" and result["experiment"] == "isolated"
+    assert result["frames"] == 2 and "ssp" in result["methods"]
+    r = runner.invoke(app, ["bench", "table1", "--experiment", "towers", "--out", str(tmp_path)])
+    assert r.exit_code != 0 and "isolated or structure" in r.output
