@@ -325,8 +325,8 @@ class SearchConfig(_Section):
         True,
         description=(
             "Skip the search when nothing changed: no object appeared or vanished, every "
-            "object's hypotheses lie (median) within the static translation of its previous "
-            "pose, and that pose still fits the data (see unchanged_fit_ratio)."
+            "object's hypotheses (per-axis median) lie within the static translation of its "
+            "previous pose, and that pose still fits the data (see unchanged_fit_ratio)."
         ),
     )
     unchanged_fit_ratio: float = Field(

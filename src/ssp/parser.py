@@ -522,13 +522,14 @@ class SceneParser:
         )
 
     def _unchanged(self, scorer: SceneScorer, i: int, known: _Known, hyps) -> bool:
-        """Is object ``i`` where it was? Its hypotheses agree (median distance from the previous
-        pose below the static threshold) and the previous pose fits this frame's data about as
-        well as it fitted the frame that set it (``c_now >= ratio c_then - tolerance``)."""
+        """Is object ``i`` where it was? Its hypotheses agree (their per-axis median position
+        lies within the static threshold of the previous pose) and the previous pose fits this
+        frame's data about as well as it fitted the frame that set it
+        (``c_now >= ratio c_then - tolerance``)."""
         s = self.config.search
-        t_prev = known.T_world_obj[:3, 3]
-        dists = [float(np.linalg.norm(h.T_world_obj[:3, 3] - t_prev)) for h in hyps]
-        if float(np.median(dists)) >= self.config.temporal.static_translation:
+        cfg_t = self.config.temporal
+        centre = np.median([h.T_world_obj[:3, 3] for h in hyps], axis=0)  # per-axis median
+        if np.linalg.norm(centre - known.T_world_obj[:3, 3]) >= cfg_t.static_translation:
             return False
         c_now = scorer.fit_fraction(i, known.T_world_obj)
         return c_now >= s.unchanged_fit_ratio * known.fit - s.unchanged_fit_tolerance
