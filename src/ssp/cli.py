@@ -272,18 +272,10 @@ def bench_calibrate(
 ) -> None:
     """Measure the stability and collision inputs on resting and bad scenes; choose s_B, a_B,
     s_c, a_c (docs/calibration.md). Writes calibration.json and calibration.png."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
-
     from ssp.eval.calibrate import calibrate, write_report
 
     kwargs = {"families": ("tower", "bridge"), "tower_sizes": (2, 3), "quick_bad": True}
-    with Progress(
-        TextColumn("{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        console=err_console,
-        transient=True,
-    ) as progress:
+    with _bar() as progress:
         task = progress.add_task("calibration scenes", total=None)
         result = calibrate(
             _config(config),
@@ -404,6 +396,24 @@ ModelsOption = typer.Option(
 )
 
 
+StagesOption = typer.Option(5, min=1, help="Static scenes per sequence.")
+FramesOption = typer.Option(4, min=1, help="Repeated frames of each static scene.")
+StrideOption = typer.Option(1, min=1, help="Render every n-th pixel (1: 640 x 480).")
+
+
+def _bar():
+    """A transient progress bar on stderr."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+
+    return Progress(
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        console=err_console,
+        transient=True,
+    )
+
+
 def _experiment(name: str) -> str:
     if name not in ("isolated", "structure"):
         raise typer.BadParameter(f"--experiment must be isolated or structure, not {name!r}")
@@ -420,25 +430,17 @@ def simulate(
         0, help="Seed of the first sequence (0-99 development, 1000+ reports)."
     ),
     models: Path | None = ModelsOption,
-    stages: int = typer.Option(5, min=1, help="Static scenes per sequence."),
-    frames_per_stage: int = typer.Option(4, min=1, help="Repeated frames of each static scene."),
-    stride: int = typer.Option(1, min=1, help="Render every n-th pixel (1: 640 x 480)."),
+    stages: int = StagesOption,
+    frames_per_stage: int = FramesOption,
+    stride: int = StrideOption,
     config: Path | None = ConfigOption,
 ) -> None:
     """Write synthetic sequences (depth, masks, ground truth, hypotheses) in BOP layout."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
-
     from ssp.sim.bop import simulate_to_disk
 
     experiment = _experiment(experiment)
     lib = _library(models, config)
-    with Progress(
-        TextColumn("{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        console=err_console,
-        transient=True,
-    ) as progress:
+    with _bar() as progress:
         task = progress.add_task(f"simulating {experiment}", total=sequences)
         paths = simulate_to_disk(
             experiment,
@@ -494,15 +496,13 @@ def bench_table1(
         1000, help="Seed of the first sequence (0-99 development, 1000+ reports)."
     ),
     models: Path | None = ModelsOption,
-    stages: int = typer.Option(5, min=1, help="Static scenes per sequence."),
-    frames_per_stage: int = typer.Option(4, min=1, help="Repeated frames of each static scene."),
-    stride: int = typer.Option(1, min=1, help="Render every n-th pixel (1: 640 x 480)."),
+    stages: int = StagesOption,
+    frames_per_stage: int = FramesOption,
+    stride: int = StrideOption,
     config: Path | None = ConfigOption,
 ) -> None:
     """The paper's Table I: every method (ssp, estimator, icp, bestfit, temporal_filter) on the
     same synthetic sequences; writes results.json, results.md and plots."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
-
     from ssp.eval.table1 import run_table1, write_table1
     from ssp.sim.generate import generate_sequence
 
@@ -510,13 +510,7 @@ def bench_table1(
     cfg = _config(config)
     lib = _library(models, config)
     seqs = []
-    with Progress(
-        TextColumn("{task.description}"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        console=err_console,
-        transient=True,
-    ) as progress:
+    with _bar() as progress:
         task = progress.add_task(f"simulating {experiment}", total=sequences)
         for i in range(sequences):
             seqs.append(
