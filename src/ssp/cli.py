@@ -554,7 +554,7 @@ def demo(
     ),
 ) -> None:
     """Run the built-in demo: a short synthetic block structure parsed frame by frame by ssp and
-    by its baselines; prints the comparison and writes OUT/report.html (about a minute)."""
+    by its baselines; prints the comparison and writes OUT/report.html (about 30 s)."""
     if foundation:
         _foundation_demo(out, config)
         return

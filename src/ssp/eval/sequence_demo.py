@@ -38,7 +38,7 @@ def run_sequence_demo(
     seed: int = 1000,
     stages: int = 4,
     frames_per_stage: int = 4,
-    stride: int = 2,
+    stride: int = 1,
     progress: Callable[[str], None] | None = None,
 ) -> dict:
     """Run the demo; returns the Table I result dict plus ``files`` and ``seconds``."""

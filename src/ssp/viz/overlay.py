@@ -98,7 +98,7 @@ def overlay(
         r0, r1 = max(box[0] - pad, 0), min(box[1] + pad + 1, img.shape[0])
         c0, c1 = max(box[2] - pad, 0), min(box[3] + pad + 1, img.shape[1])
         img = img[r0:r1, c0:c1]
-        scale = max(1, int(min_size // max(img.shape[:2])))
+        scale = max(1, int(np.ceil(min_size / max(img.shape[:2]))))
         if scale > 1:
             img = np.repeat(np.repeat(img, scale, axis=0), scale, axis=1)
     return img
