@@ -37,7 +37,8 @@ each static scene), all with the same ground truth. Per stage the clean scene is
 (:func:`ssp.sim.render.render`) and each object once alone (in its image bounding box only),
 which gives the BOP ``visib_fract`` (visible pixels in the scene / pixels of the object
 alone, the table present in both). Per frame, fresh Kinect-like depth noise
-(:func:`ssp.sim.render.add_depth_noise`) and fresh hypotheses
+(:func:`ssp.sim.render.add_depth_noise`: axial noise growing with distance squared, disparity
+quantisation :data:`~ssp.sim.render.KINECT_QUANTUM`, missing pixels at edges) and fresh hypotheses
 (:func:`ssp.sim.hypotheses.draw_hypotheses`) are drawn.
 
 Randomness: the layout comes from ``default_rng([seed, 0, experiment code])`` and frame ``i``
@@ -69,7 +70,7 @@ from ssp.sim.hypotheses import (
     draw_hypotheses,
     induced_errors,
 )
-from ssp.sim.render import Camera, add_depth_noise, look_at, render
+from ssp.sim.render import KINECT_QUANTUM, Camera, add_depth_noise, look_at, render
 from ssp.sim.sequence import SimFrame, SimSequence
 
 __all__ = [
@@ -667,7 +668,7 @@ def generate_sequence(
         for _ in range(frames_per_stage):
             i = len(frames)
             frng = np.random.default_rng([seed, 1, i])
-            depth = add_depth_noise(scene.depth, frng).astype(np.float32)
+            depth = add_depth_noise(scene.depth, frng, quantum=KINECT_QUANTUM).astype(np.float32)
             hyps, src = draw_hypotheses(gt, visib, library, noise, frng)
             frames.append(
                 SimFrame(

@@ -320,6 +320,10 @@ def _edge_mask(depth: np.ndarray, threshold: float) -> np.ndarray:
     return edge & valid
 
 
+#: Disparity quantisation of a Kinect-like sensor: depth step at 1 m, m (1/8-pixel disparity).
+KINECT_QUANTUM = 0.0028
+
+
 def add_depth_noise(
     depth: np.ndarray,
     rng: np.random.Generator,
