@@ -258,3 +258,25 @@ def test_snap_sequence_never_flips():
         cur = pose(R=rot("z", deg - 90 * (k % 2)))  # the estimator alternates equivalents
         T = snap_symmetric(T, cur, CUBE_SYM)
         assert _angle_between(pose(R=rot("z", deg)), T) == pytest.approx(0.0, abs=1e-6)
+
+
+def test_hypotheses_sharing_a_volume_are_one_object():
+    from ssp.library import ObjectLibrary
+    from ssp.parser import SceneParser
+
+    lib = ObjectLibrary.builtin()
+    block = lib["block"]
+    assert block.extents[0] > 1.9 * block.extents[1]  # long along x
+    z = -float(block.mesh.bounds[0, 2])
+    a = Hypothesis("block", make_pose(t=[0.0, 0.0, z]), 0.9)
+    b = Hypothesis("block", make_pose(t=[0.022, 0.0, z]), 0.8)  # 22 mm along its length
+    far = Hypothesis("block", make_pose(t=[0.0, 0.03, z]), 0.7)  # beside it: no shared volume
+    sym = {"block": block.symmetry}
+    gate = {"block": 0.02}
+    assert len(associate([a, b, far], {}, sym, max_distance=gate)) == 3
+    merged = associate(
+        [a, b, far], {}, sym, max_distance=gate, same_volume=SceneParser(lib)._same_volume
+    )
+    assert len(merged) == 2
+    groups = sorted(merged.values(), key=len)
+    assert [h.score for h in groups[1]] == [0.9, 0.8] and [h.score for h in groups[0]] == [0.7]

@@ -281,6 +281,15 @@ class TemporalConfig(_Section):
         description="An ephemeral object is removed when another object fills this fraction "
         "of its volume.",
     )
+    merge_overlap: float = Field(
+        0.3,
+        ge=0,
+        le=1,
+        description=(
+            "Hypothesis groups of one class whose best poses share this fraction of the "
+            "volume are one object (two objects cannot share a volume); 1 disables merging."
+        ),
+    )
     depth_tolerance: float = Field(
         0.005, gt=0, description="Depth agreement for the visibility tests, m."
     )

@@ -311,6 +311,18 @@ class SceneParser:
             self._world_key = key
         return self._world
 
+    def _same_volume(self, a, b) -> bool:
+        """Do hypotheses ``a`` and ``b`` (one class) share ``temporal.merge_overlap`` of the
+        model's volume? (interior samples of ``a`` inside ``b``'s convex parts)"""
+        model = self.library[a.class_name]
+        ta, tb = np.asarray(a.T_world_obj)[:3, 3], np.asarray(b.T_world_obj)[:3, 3]
+        if np.linalg.norm(ta - tb) > model.diameter:
+            return False
+        frac = overlap_fractions(
+            [model, model], np.stack([a.T_world_obj, b.T_world_obj]), table=False, pairs=[(0, 1)]
+        )
+        return bool(frac[0] >= self.config.temporal.merge_overlap)
+
     def _id_factory(self, counters: dict[str, int], taken: set[str]):
         def new_id(class_name: str) -> str:
             while True:
@@ -361,6 +373,7 @@ class SceneParser:
                 previous,
                 {n: m.symmetry for n, m in lib.items()},
                 max_distance=association_gates(self.library, cfg.temporal),
+                same_volume=self._same_volume,
                 new_id=self._id_factory(counters, taken),
             )
             for oid, hyps in groups.items():

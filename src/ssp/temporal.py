@@ -90,6 +90,7 @@ def associate(
     max_distance: float | Mapping[str, float] = 0.05,
     rotation_weight: float = 0.05,
     new_id: Callable[[str], str] | None = None,
+    same_volume: Callable[[Hypothesis, Hypothesis], bool] | None = None,
 ) -> dict[str, list[Hypothesis]]:
     """Group a frame's hypotheses by object instance id.
 
@@ -102,6 +103,10 @@ def associate(
        cannot share a volume), and they are what the search compares. Note that two touching
        objects of one class closer than ``max_distance`` (centre to centre) would merge: keep
        ``max_distance`` below the smallest object's size.
+    2b. **Merging** (with ``same_volume``): a cluster whose best hypothesis occupies the same
+       volume as the best of an earlier (better-scored) cluster of its class joins it: two
+       objects cannot share a volume, so widely spread hypotheses of one half-hidden object
+       do not become two objects.
     3. **Matching.** Clusters without an id are matched, class by class, to the previous
        objects of that class not claimed by a given id, with
        :func:`scipy.optimize.linear_sum_assignment` (globally optimal) on
@@ -120,6 +125,8 @@ def associate(
         max_distance: clustering radius and matching gate, m; a mapping gives one per class
             (classes missing from it use 0.05 m).
         rotation_weight: metres of cost per radian of symmetric rotation angle.
+        same_volume: ``f(h1, h2) -> bool``, do two hypotheses of one class overlap so much
+            that they must be one object (see step 2b); None: no merging.
         new_id: fresh-id factory; default :func:`default_id_factory` over the previous ids and
             the given ids (``f"{class}_{k}"``).
 
@@ -173,6 +180,26 @@ def associate(
             clusters.append(_Cluster(h, i))
         else:
             best.add(h, i)
+
+    if same_volume is not None:  # two objects cannot share a volume: merge such clusters
+        kept: list[_Cluster] = []
+        for c in clusters:
+            target = None
+            if c.instance_id is None:
+                target = next(
+                    (
+                        k
+                        for k in kept
+                        if k.best.class_name == c.best.class_name and same_volume(k.best, c.best)
+                    ),
+                    None,
+                )
+            if target is None:
+                kept.append(c)
+            else:
+                for h in c.members:
+                    target.add(h, c.first_index)
+        clusters = kept
 
     free = [c for c in clusters if c.instance_id is None]
     for class_name in sorted({c.best.class_name for c in free}):
