@@ -151,10 +151,6 @@ class SearchResult:
     failed: list[tuple[str, str]] = field(default_factory=list)
 
 
-def _score(scorer: SceneScorer, world: World, timer: StageTimer) -> SceneScore:
-    return scorer.evaluate(world, timer)
-
-
 def _boxes(world: World, indices, poses=None) -> tuple[np.ndarray, np.ndarray]:
     """World axis-aligned boxes ``(lo (m, 3), hi (m, 3))`` of objects ``indices`` (their
     convex hull vertices at their current poses, or at ``poses``)."""
@@ -249,7 +245,7 @@ def layered_search(
                     )
                     failed.append((oid, cand.source))
                     continue
-                total = _score(scorer, world, timer).total
+                total = scorer.evaluate(world, timer).total
                 if total > best_total:
                     best_total, best_state, best_source = total, world.save_state(), cand.source
             world.restore_state(best_state if best_state is not None else base)
@@ -268,5 +264,5 @@ def layered_search(
     except PhysicsError as exc:  # pragma: no cover - the states before it were all stable
         log.warning("final settle failed (%s); keeping the scene as the search left it", exc)
         world.restore_state(chosen_state)
-    score = _score(scorer, world, timer)
+    score = scorer.evaluate(world, timer)
     return SearchResult(score=score, chosen=chosen, tested=tested, failed=failed)

@@ -10,7 +10,8 @@ and ``k`` noisy hypotheses per object (5 mm / 5 deg RMS). Per scene size N, thre
 
 Everything runs on one core (``OMP_NUM_THREADS=1``); timings are wall seconds per frame and the
 share of each stage (forces, stepping, contacts, scoring, the rest). The mean symmetry-aware
-error of the estimates and of the hypotheses (ground truth is known) is reported alongside.
+error of the estimates and of the hypotheses (ground truth is known; matched as in
+:mod:`ssp.eval.metrics`) is reported alongside.
 """
 
 from __future__ import annotations
@@ -24,10 +25,10 @@ from pathlib import Path
 import numpy as np
 
 from ssp.config import SSPConfig
+from ssp.eval.metrics import hypothesis_errors, match_frame
 from ssp.geometry import make_pose
 from ssp.library import ObjectLibrary
 from ssp.parser import SceneEstimate, SceneParser
-from ssp.probability import pose_change
 from ssp.sim.frames import synthetic_frame
 from ssp.sim.render import look_at
 
@@ -74,24 +75,11 @@ def _slide(gt: dict, dx: float) -> dict:
 
 
 def _errors(est: SceneEstimate, frame, gt: dict, library) -> tuple[list, list]:
-    """Symmetry-aware (mm, deg) errors of the estimate and of every hypothesis, per gt object
-    (each matched to the nearest estimated object / counted for hypotheses within 2 cm)."""
-    est_err, hyp_err = [], []
-    for cls, T in gt.values():
-        sym = library[cls].symmetry
-        cands = [o for o in est.objects if o.class_name == cls]
-        if cands:
-            o = min(cands, key=lambda o: np.linalg.norm(o.T_world_obj[:3, 3] - T[:3, 3]))
-            dt, dth = pose_change(T, o.T_world_obj, sym)
-            est_err.append((1000 * dt, np.degrees(dth)))
-    for h in frame.hypotheses:
-        T = min(
-            (T for c, T in gt.values() if c == h.class_name),
-            key=lambda T: np.linalg.norm(h.T_world_obj[:3, 3] - T[:3, 3]),
-        )
-        dt, dth = pose_change(T, h.T_world_obj, library[h.class_name].symmetry)
-        hyp_err.append((1000 * dt, np.degrees(dth)))
-    return est_err, hyp_err
+    """Symmetry-aware (mm, deg) errors of the estimate's matched objects and of every
+    hypothesis (:func:`ssp.eval.metrics.match_frame`, :func:`hypothesis_errors`)."""
+    fm = match_frame(gt, [(o.class_name, o.T_world_obj) for o in est.objects], library)
+    hyp_err, _ = hypothesis_errors(gt, frame.hypotheses, library)
+    return [(m.trans_mm, m.rot_deg) for m in fm.matches], hyp_err
 
 
 def _shares(est: SceneEstimate) -> dict[str, float]:
