@@ -52,3 +52,19 @@ class DuplicateObjectError(SSPError, ValueError):
 
 class WorldMismatchError(PhysicsError, ValueError):
     """A saved world state was restored into a world other than the one that saved it."""
+
+
+class InputError(SSPError, ValueError):
+    """An input file or folder (cloud, hypotheses JSON, scene description) that cannot be used."""
+
+
+class CloudFormatError(InputError):
+    """A point-cloud file (PLY, PCD) that is corrupt, empty or lacks the x, y, z fields."""
+
+
+class PerceptionError(SSPError):
+    """The perception front end could not process a frame (segmentation, pose hypotheses)."""
+
+
+class TableNotFoundError(PerceptionError):
+    """No support plane (table) was found in a cloud, so gravity cannot be derived."""
