@@ -1,0 +1,201 @@
+"""Object segments of a scene cloud: Euclidean clustering and label handling.
+
+:func:`euclidean_clusters` joins points closer than ``tolerance`` (a kd-tree radius graph from
+scipy's ``cKDTree.query_pairs`` and its connected components). :func:`segment_cloud` turns a
+world-frame cloud, with or without per-point labels, into instance segments (:class:`Segmentation`).
+Labels are deterministic: clusters are numbered by descending size, ties by their lowest point
+index.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from ssp.errors import PerceptionError
+
+__all__ = ["Segmentation", "euclidean_clusters", "segment_cloud"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Segmentation:
+    """Instance segments of a cloud.
+
+    Attributes:
+        labels: ``(N,)`` int64 segment label per point; -1 for table, background and noise.
+        classes: segment label -> object class name, or None when the class is unknown.
+    """
+
+    labels: np.ndarray
+    classes: dict[int, str | None] = field(default_factory=dict)
+
+    @property
+    def segment_ids(self) -> list[int]:
+        """The segment labels, ascending."""
+        return sorted(self.classes)
+
+    def points(self, points: np.ndarray, label: int) -> np.ndarray:
+        """The rows of ``points`` ``(N, 3)`` in segment ``label``."""
+        return np.asarray(points)[self.labels == label]
+
+
+def euclidean_clusters(
+    points: np.ndarray, *, tolerance: float = 0.006, min_points: int = 30
+) -> np.ndarray:
+    """Euclidean clusters of a cloud: labels ``(N,)`` int64.
+
+    Two points are in one cluster when a chain of points links them with steps of at most
+    ``tolerance`` (m). Clusters are numbered 0, 1, ... by descending size, ties by their lowest
+    point index; points of clusters smaller than ``min_points``, and non-finite points, get -1.
+    """
+    p = _check_points(points, "points")
+    if not tolerance > 0:
+        raise ValueError(f"tolerance must be > 0, got {tolerance}")
+    labels = np.full(len(p), -1, dtype=np.int64)
+    finite = np.flatnonzero(np.isfinite(p).all(axis=1))
+    if len(finite) == 0:
+        return labels
+    q = p[finite]
+    # sliding-midpoint tree: ~2x faster to build than the balanced one, queries as fast
+    tree = cKDTree(q, balanced_tree=False)
+    pairs = tree.query_pairs(float(tolerance), output_type="ndarray")
+    graph = coo_matrix(
+        (np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(len(q), len(q))
+    )
+    _, comp = connected_components(graph.tocsr(), directed=False)
+    labels[finite] = _renumber(comp, min_points)
+    return labels
+
+
+def segment_cloud(
+    points_world: np.ndarray,
+    labels: np.ndarray | None = None,
+    label_classes: Mapping[int, str] | None = None,
+    *,
+    table_height: float = 0.004,
+    tolerance: float = 0.006,
+    min_points: int = 30,
+) -> Segmentation:
+    """Instance segments of a world-frame cloud (z up, table top at z = 0).
+
+    Three modes:
+
+    * ``labels`` given, no ``label_classes``: the labels are instance segments and keep their
+      values (negative = background, becomes -1); class unknown (None).
+    * ``labels`` and ``label_classes`` given: the labels are *class* regions (one label may
+      cover several touching or separate objects, e.g. a colour class). Each region is split
+      into Euclidean clusters, each cluster a new segment of that class
+      (``label_classes[label]``, None for a label missing from it). New labels are numbered by
+      descending size, ties by lowest point index.
+    * no ``labels``: points less than ``table_height`` (m) above the table (``z <
+      table_height``) are background; the rest is split into Euclidean clusters.
+
+    In every mode segments of fewer than ``min_points`` points become -1.
+
+    Args:
+        points_world: ``(N, 3)`` points, world frame, m.
+        labels: ``(N,)`` integer label per point, or None.
+        label_classes: class label -> class name.
+        table_height: height (m) below which points are table (mode without labels).
+        tolerance: clustering distance (m).
+        min_points: smallest segment kept.
+    """
+    p = _check_points(points_world, "points_world")
+    if labels is None:
+        if label_classes is not None:
+            raise PerceptionError("label_classes given without labels")
+        return _segment_unlabelled(p, table_height, tolerance, min_points)
+    lab = _check_labels(labels, len(p))
+    if label_classes is None:
+        return _segment_instances(lab, min_points)
+    return _segment_classes(p, lab, label_classes, tolerance, min_points)
+
+
+# ------------------------------------------------------------------------------------------
+# helpers
+
+
+def _check_points(points: np.ndarray, what: str) -> np.ndarray:
+    """``points`` as float64 ``(N, 3)``; PerceptionError otherwise."""
+    p = np.asarray(points, dtype=float)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise PerceptionError(f"{what} must have shape (N, 3), got {p.shape}")
+    return p
+
+
+def _check_labels(labels: np.ndarray, n: int) -> np.ndarray:
+    """``labels`` as int64 ``(n,)``; PerceptionError otherwise."""
+    lab = np.asarray(labels)
+    if lab.shape != (n,):
+        raise PerceptionError(f"labels must have shape ({n},) (one per point), got {lab.shape}")
+    if not np.issubdtype(lab.dtype, np.integer):
+        if not (np.issubdtype(lab.dtype, np.number) and np.array_equal(lab, np.round(lab))):
+            raise PerceptionError(f"labels must be integers, got dtype {lab.dtype}")
+    return lab.astype(np.int64)
+
+
+def _renumber(comp: np.ndarray, min_points: int) -> np.ndarray:
+    """Component ids ``(N,)`` (>= 0) renumbered by descending size, ties by lowest index;
+    components smaller than ``min_points`` become -1."""
+    ids, first, sizes = np.unique(comp, return_index=True, return_counts=True)
+    order = np.lexsort((first, -sizes))  # primary key: size (descending), then first index
+    keep = order[sizes[order] >= int(min_points)]
+    new = np.full(len(ids), -1, dtype=np.int64)
+    new[keep] = np.arange(len(keep))
+    return new[np.searchsorted(ids, comp)]
+
+
+def _segment_unlabelled(
+    p: np.ndarray, table_height: float, tolerance: float, min_points: int
+) -> Segmentation:
+    labels = np.full(len(p), -1, dtype=np.int64)
+    above = np.flatnonzero(p[:, 2] >= float(table_height))  # NaN rows fail the test
+    labels[above] = euclidean_clusters(p[above], tolerance=tolerance, min_points=min_points)
+    n_seg = int(labels.max()) + 1 if len(labels) else 0
+    log.debug("segment_cloud: %d points above the table, %d segments", len(above), n_seg)
+    return Segmentation(labels, {i: None for i in range(n_seg)})
+
+
+def _segment_instances(lab: np.ndarray, min_points: int) -> Segmentation:
+    labels = np.where(lab < 0, -1, lab)
+    ids, counts = np.unique(labels[labels >= 0], return_counts=True)
+    small = ids[counts < int(min_points)]
+    if len(small):
+        log.debug("segment_cloud: dropped %d segments below %d points", len(small), min_points)
+        labels[np.isin(labels, small)] = -1
+    kept = ids[counts >= int(min_points)]
+    return Segmentation(labels, {int(i): None for i in kept})
+
+
+def _segment_classes(
+    p: np.ndarray,
+    lab: np.ndarray,
+    label_classes: Mapping[int, str],
+    tolerance: float,
+    min_points: int,
+) -> Segmentation:
+    classes = {int(k): v for k, v in label_classes.items()}
+    region = np.full(len(p), -1, dtype=np.int64)  # one component id per (class, cluster)
+    region_class: list[str | None] = []
+    for value in np.unique(lab[lab >= 0]):
+        idx = np.flatnonzero(lab == value)
+        sub = euclidean_clusters(p[idx], tolerance=tolerance, min_points=min_points)
+        ok = sub >= 0
+        region[idx[ok]] = sub[ok] + len(region_class)
+        region_class.extend([classes.get(int(value))] * (int(sub.max()) + 1 if ok.any() else 0))
+        if int(value) not in classes:
+            log.warning("segment_cloud: label %d has no class in label_classes", int(value))
+    labels = np.full(len(p), -1, dtype=np.int64)
+    inside = np.flatnonzero(region >= 0)
+    labels[inside] = _renumber(region[inside], 0)
+    ids, first = np.unique(region[inside], return_index=True)
+    out = {int(labels[inside[f]]): region_class[int(r)] for r, f in zip(ids, first, strict=True)}
+    return Segmentation(labels, dict(sorted(out.items())))
