@@ -1,0 +1,490 @@
+"""An input folder of frames for ``ssp run`` (docs/formats.md).
+
+Layout::
+
+    INPUT/
+      scene.json                   # optional, see below
+      frame1.ply                   # one cloud per frame: *.ply or *.pcd directly in INPUT,
+      frame1.hypotheses.json       #   ordered by natural sort of the file name (frame2 < frame10);
+      frame2.pcd                   #   optional hypotheses <stem>.hypotheses.json beside a cloud
+      frame10.ply
+
+Files starting with ``.``, sub-folders and other files are ignored. A frame's ``name`` is its
+cloud's file name without the extension (two clouds with one stem are an error).
+
+``scene.json`` (every key optional; an unknown key is an error naming the closest known one):
+
+``frame``
+    ``"camera"`` (default): clouds are in the sensor frame (OpenCV axes, m); ``"world"``: z up,
+    table top at z = 0.
+``T_world_cam``
+    4x4 camera pose (m). With ``"camera"`` clouds it is used instead of fitting the table; with
+    ``"world"`` clouds it is the camera pose for visibility reasoning.
+``period``
+    seconds between frames (default 0.1): frame ``i`` has stamp ``i * period``. Or:
+``stamps``
+    ``{file name or stem: seconds}`` for every frame, non-decreasing in frame order.
+``labels``
+    ``"instance"`` (default): the cloud's label field holds instance ids; ``"class"``: it holds
+    class ids, named by ``classes``.
+``classes``
+    ``{label value (string): class name}``; required for ``"class"`` labels; with ``"instance"``
+    labels it optionally names the class of some instance labels.
+``colors``
+    ``{"#rrggbb": class name}``: colour-coded classes (exact colour match); a point whose colour
+    is not listed is background. Labels then come from the colours, not from a label field.
+``background_labels``
+    label values that mean table / background (default ``[0]``); negative labels always do.
+"""
+
+from __future__ import annotations
+
+import difflib
+import json
+import logging
+import math
+import os
+import re
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ssp.errors import CloudFormatError, InputError, InvalidPoseError
+from ssp.geometry import validate_pose
+from ssp.io.clouds import CLOUD_SUFFIXES, read_cloud
+from ssp.io.hypotheses import read_hypotheses
+from ssp.scene import MM_CLOUD_MEDIAN, Hypothesis
+
+__all__ = [
+    "HYPOTHESES_SUFFIX",
+    "FolderInput",
+    "FrameFile",
+    "RawFrame",
+    "SceneSpec",
+    "is_bop_scene",
+    "natural_key",
+    "open_folder",
+    "read_scene_json",
+]
+
+log = logging.getLogger(__name__)
+
+#: ``<stem>`` + this is the hypotheses file of cloud ``<stem>.ply`` / ``<stem>.pcd``.
+HYPOTHESES_SUFFIX = ".hypotheses.json"
+SCENE_JSON = "scene.json"
+_SCENE_KEYS = (
+    "frame",
+    "T_world_cam",
+    "period",
+    "stamps",
+    "labels",
+    "classes",
+    "colors",
+    "background_labels",
+)
+_HEX_COLOR = re.compile(r"^#([0-9a-fA-F]{6})$")
+
+
+# ------------------------------------------------------------------------------ scene.json
+@dataclass(frozen=True, eq=False)
+class SceneSpec:
+    """The validated ``scene.json`` of an input folder (defaults when there is none).
+
+    Attributes:
+        frame: ``"camera"`` or ``"world"``: the frame of the clouds.
+        T_world_cam: ``(4, 4)`` camera pose, m, or None.
+        period: s between frames (used when ``stamps`` is None).
+        stamps: ``{file name or stem: s}``, or None.
+        labels: ``"instance"`` or ``"class"``: what the label field holds.
+        classes: ``{label value: class name}``.
+        colors: ``{0xRRGGBB: class name}``.
+        background_labels: label values that mean background (besides negative ones).
+    """
+
+    frame: str = "camera"
+    T_world_cam: np.ndarray | None = None
+    period: float = 0.1
+    stamps: dict[str, float] | None = None
+    labels: str = "instance"
+    classes: dict[int, str] = field(default_factory=dict)
+    colors: dict[int, str] = field(default_factory=dict)
+    background_labels: frozenset[int] = frozenset({0})
+
+    @classmethod
+    def from_dict(cls, doc: Any, where: str = SCENE_JSON) -> SceneSpec:
+        """Validate a decoded ``scene.json``; InputError naming ``where`` and the key."""
+        if not isinstance(doc, Mapping):
+            raise InputError(f"{where}: expected a JSON object")
+        for key in doc:
+            if key not in _SCENE_KEYS:
+                close = difflib.get_close_matches(str(key), _SCENE_KEYS, n=1)
+                hint = f" (did you mean {close[0]!r}?)" if close else ""
+                raise InputError(
+                    f"{where}: unknown key {key!r}{hint}; known keys: {', '.join(_SCENE_KEYS)}"
+                )
+        frame = doc.get("frame", "camera")
+        if frame not in ("camera", "world"):
+            raise InputError(f"{where}: 'frame' must be 'camera' or 'world', got {frame!r}")
+        labels = doc.get("labels", "instance")
+        if labels not in ("instance", "class"):
+            raise InputError(f"{where}: 'labels' must be 'instance' or 'class', got {labels!r}")
+        classes = _classes(doc.get("classes", {}), where)
+        colors = _colors(doc.get("colors", {}), where)
+        background = _background(doc.get("background_labels", [0]), where)
+        if labels == "class" and not classes and not colors:
+            raise InputError(f"{where}: 'labels': 'class' needs 'classes' ({{label: class name}})")
+        if colors and ("classes" in doc or "labels" in doc):
+            raise InputError(
+                f"{where}: give either 'colors' (colour-coded classes) or 'labels'/'classes' "
+                "(a label field), not both"
+            )
+        both = sorted(set(classes) & background)
+        if both:
+            raise InputError(
+                f"{where}: label values {both} are in both 'classes' and 'background_labels'"
+            )
+        if "period" in doc and "stamps" in doc:
+            raise InputError(f"{where}: give either 'period' or 'stamps', not both")
+        return cls(
+            frame=frame,
+            T_world_cam=_pose(doc.get("T_world_cam"), where),
+            period=_period(doc.get("period", 0.1), where),
+            stamps=_stamps(doc["stamps"], where) if "stamps" in doc else None,
+            labels=labels,
+            classes=classes,
+            colors=colors,
+            background_labels=background,
+        )
+
+
+def read_scene_json(path: str | os.PathLike) -> SceneSpec:
+    """Read and validate a ``scene.json`` (InputError if unreadable or invalid)."""
+    p = Path(path)
+    try:
+        doc = json.loads(p.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{p}: cannot read: {exc}") from exc
+    except json.JSONDecodeError as exc:
+        raise InputError(f"{p}: invalid JSON: {exc}") from exc
+    return SceneSpec.from_dict(doc, str(p))
+
+
+def _int_key(key: Any, what: str) -> int:
+    try:
+        return int(str(key).strip())
+    except ValueError as exc:
+        raise InputError(f"{what}: label value {key!r} is not an integer") from exc
+
+
+def _class_name(name: Any, what: str) -> str:
+    if not isinstance(name, str) or not name.strip():
+        raise InputError(f"{what}: class name must be a non-empty string, got {name!r}")
+    return name
+
+
+def _classes(raw: Any, where: str) -> dict[int, str]:
+    if not isinstance(raw, Mapping):
+        raise InputError(f"{where}: 'classes' must be an object {{label value: class name}}")
+    return {
+        _int_key(k, f"{where}: classes"): _class_name(v, f"{where}: classes[{k!r}]")
+        for k, v in raw.items()
+    }
+
+
+def _colors(raw: Any, where: str) -> dict[int, str]:
+    if not isinstance(raw, Mapping):
+        raise InputError(f"{where}: 'colors' must be an object {{\"#rrggbb\": class name}}")
+    out = {}
+    for k, v in raw.items():
+        m = _HEX_COLOR.match(str(k).strip())
+        if m is None:
+            raise InputError(f"{where}: colour {k!r} is not of the form '#rrggbb'")
+        packed = int(m.group(1), 16)
+        if packed in out:
+            raise InputError(f"{where}: colour {k!r} is listed twice")
+        out[packed] = _class_name(v, f"{where}: colors[{k!r}]")
+    return out
+
+
+def _background(raw: Any, where: str) -> frozenset[int]:
+    if not isinstance(raw, list):
+        raise InputError(f"{where}: 'background_labels' must be a list of integers")
+    out = set()
+    for v in raw:
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or int(v) != v:
+            raise InputError(f"{where}: background label {v!r} is not an integer")
+        out.add(int(v))
+    return frozenset(out)
+
+
+def _pose(raw: Any, where: str) -> np.ndarray | None:
+    if raw is None:
+        return None
+    try:
+        return validate_pose(raw, f"{where}: T_world_cam")
+    except InvalidPoseError as exc:
+        raise InputError(str(exc)) from exc
+
+
+def _seconds(v: Any, what: str) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise InputError(f"{what} must be a finite number of seconds, got {v!r}")
+    return float(v)
+
+
+def _period(raw: Any, where: str) -> float:
+    p = _seconds(raw, f"{where}: 'period'")
+    if p <= 0:
+        raise InputError(f"{where}: 'period' must be > 0 s, got {p}")
+    return p
+
+
+def _stamps(raw: Any, where: str) -> dict[str, float]:
+    if not isinstance(raw, Mapping):
+        raise InputError(f"{where}: 'stamps' must be an object {{file name: seconds}}")
+    return {str(k): _seconds(v, f"{where}: stamps[{k!r}]") for k, v in raw.items()}
+
+
+# ------------------------------------------------------------------------------ frames
+@dataclass(frozen=True)
+class FrameFile:
+    """One frame of an input folder: ``index`` (0-based, natural-sort order), ``name`` (the
+    cloud's stem), its cloud, its hypotheses file or None, and ``stamp`` (s)."""
+
+    index: int
+    name: str
+    cloud_path: Path
+    hypotheses_path: Path | None
+    stamp: float
+
+
+@dataclass
+class RawFrame:
+    """One frame as read from disk, before perception.
+
+    Attributes:
+        name, index, stamp: as in :class:`FrameFile` (stamp in s).
+        cloud_path: the cloud file.
+        points: ``(N, 3)`` float64, m, in ``frame`` (the scene's ``frame``); may hold NaN rows.
+        labels: ``(N,)`` int64, -1 = background, ``>= 0`` = segment label (the file's values,
+            or class indices for colour-coded classes); None without labels.
+        label_kind: ``"instance"`` (a label is one object), ``"class"`` (a label is a class;
+            several objects may share it), or None.
+        label_classes: class name of label values when known (``"class"`` labels, colours, or
+            ``classes`` given for instance labels), else None.
+        colors: ``(N, 3)`` uint8 or None.
+        viewpoint: ``(4, 4)`` sensor pose from a PCD ``VIEWPOINT``, or None.
+        hypotheses: hypotheses from ``<name>.hypotheses.json`` (m) or None when there is none.
+        hypotheses_frame: ``"world"`` or ``"camera"`` (then each ``T_world_obj`` holds
+            ``T_cam_obj``; see :func:`ssp.io.hypotheses.to_world`), None without hypotheses.
+        frame: ``"camera"`` or ``"world"``: the frame of ``points``.
+    """
+
+    name: str
+    index: int
+    stamp: float
+    cloud_path: Path
+    points: np.ndarray
+    labels: np.ndarray | None
+    label_kind: str | None
+    label_classes: dict[int, str] | None
+    colors: np.ndarray | None
+    viewpoint: np.ndarray | None
+    hypotheses: list[Hypothesis] | None
+    hypotheses_frame: str | None
+    frame: str
+
+
+def natural_key(name: str) -> tuple:
+    """Sort key: digit runs compare as numbers, the rest case-insensitively
+    (``frame2 < frame10``); the name itself breaks ties."""
+    parts = re.split(r"([0-9]+)", name)
+    key = tuple((0, int(p)) if p[:1].isdigit() else (1, p.lower()) for p in parts if p)
+    return (key, name)
+
+
+def is_bop_scene(path: str | os.PathLike) -> bool:
+    """Whether ``path`` looks like a BOP scene folder (``scene_gt.json`` and
+    ``scene_camera.json``), such as ``ssp simulate`` writes (read it with
+    :func:`ssp.sim.bop.read_bop`)."""
+    p = Path(path)
+    return (p / "scene_gt.json").is_file() and (p / "scene_camera.json").is_file()
+
+
+@dataclass
+class FolderInput:
+    """An opened input folder: its :class:`SceneSpec` and frames (see :func:`open_folder`)."""
+
+    path: Path
+    spec: SceneSpec
+    frames: list[FrameFile]
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __iter__(self) -> Iterator[FrameFile]:
+        return iter(self.frames)
+
+    def load(self, frame: FrameFile | int) -> RawFrame:
+        """Read one frame's cloud and hypotheses.
+
+        Raises:
+            CloudFormatError: the cloud cannot be read, has no finite point, or looks like
+                millimetres.
+            InputError: bad hypotheses file, label values not in ``classes``, or colours
+                required but missing. Every message names the file; other frames are unaffected.
+        """
+        ff = self.frames[frame] if isinstance(frame, int) else frame
+        cloud = read_cloud(ff.cloud_path)
+        _check_metres(ff.cloud_path, cloud.points)
+        labels, kind, label_classes = _labels(self.spec, ff.cloud_path, cloud)
+        hyps, hframe = None, None
+        if ff.hypotheses_path is not None:
+            hf = read_hypotheses(ff.hypotheses_path)
+            hyps, hframe = hf.hypotheses, hf.frame
+        return RawFrame(
+            name=ff.name,
+            index=ff.index,
+            stamp=ff.stamp,
+            cloud_path=ff.cloud_path,
+            points=cloud.points,
+            labels=labels,
+            label_kind=kind,
+            label_classes=label_classes,
+            colors=cloud.colors,
+            viewpoint=cloud.viewpoint,
+            hypotheses=hyps,
+            hypotheses_frame=hframe,
+            frame=self.spec.frame,
+        )
+
+
+def open_folder(path: str | os.PathLike) -> FolderInput:
+    """List the frames of an input folder and read its ``scene.json`` (layout: module doc).
+
+    Raises:
+        InputError: not a folder, no frame files, two clouds with one stem, invalid
+            ``scene.json``, or ``stamps`` that miss a frame, name no frame, or decrease.
+    """
+    root = Path(path)
+    if not root.is_dir():
+        raise InputError(f"{root}: {'not a folder' if root.exists() else 'no such folder'}")
+    spec = read_scene_json(root / SCENE_JSON) if (root / SCENE_JSON).is_file() else SceneSpec()
+    clouds = sorted(
+        (
+            p
+            for p in root.iterdir()
+            if p.suffix.lower() in CLOUD_SUFFIXES and not p.name.startswith(".") and p.is_file()
+        ),
+        key=lambda p: natural_key(p.name),
+    )
+    if not clouds:
+        hint = (
+            " (it looks like a BOP scene folder: read it as a BOP sequence)"
+            if is_bop_scene(root)
+            else ""
+        )
+        raise InputError(f"{root}: no frames: no .ply or .pcd files in the folder{hint}")
+    stems: dict[str, Path] = {}
+    for p in clouds:
+        if p.stem in stems:
+            raise InputError(f"{root}: {stems[p.stem].name} and {p.name} are one frame name")
+        stems[p.stem] = p
+    stamps = _frame_stamps(root, spec, clouds)
+    frames = []
+    for i, (p, stamp) in enumerate(zip(clouds, stamps, strict=True)):
+        hyp = root / f"{p.stem}{HYPOTHESES_SUFFIX}"
+        frames.append(FrameFile(i, p.stem, p, hyp if hyp.is_file() else None, stamp))
+    for h in root.glob(f"*{HYPOTHESES_SUFFIX}"):
+        if h.name[: -len(HYPOTHESES_SUFFIX)] not in stems:
+            log.warning(
+                "%s: no cloud %s.ply / .pcd for it; ignored", h, h.name[: -len(HYPOTHESES_SUFFIX)]
+            )
+    log.debug("%s: %d frames", root, len(frames))
+    return FolderInput(path=root, spec=spec, frames=frames)
+
+
+def _frame_stamps(root: Path, spec: SceneSpec, clouds: list[Path]) -> list[float]:
+    """Stamps (s) of the frames in order, from ``period`` or ``stamps``."""
+    if spec.stamps is None:
+        return [i * spec.period for i in range(len(clouds))]
+    where = f"{root / SCENE_JSON}: stamps"
+    names = {p.name for p in clouds} | {p.stem for p in clouds}
+    stray = sorted(k for k in spec.stamps if k not in names)
+    if stray:
+        raise InputError(f"{where}: no frame file for {', '.join(map(repr, stray))}")
+    out, missing = [], []
+    for p in clouds:
+        s = spec.stamps.get(p.name, spec.stamps.get(p.stem))
+        if s is None:
+            missing.append(p.name)
+        out.append(s)
+    if missing:
+        raise InputError(f"{where}: no stamp for {', '.join(missing)}")
+    for k in range(1, len(out)):
+        a, b, pa, pb = out[k - 1], out[k], clouds[k - 1], clouds[k]
+        if b < a:
+            raise InputError(
+                f"{where}: {pb.name} ({b} s) is earlier than {pa.name} ({a} s); frames are "
+                "processed in natural-sort order of their names"
+            )
+    return out
+
+
+# ------------------------------------------------------------------------------ per frame
+def _check_metres(path: Path, points: np.ndarray) -> None:
+    finite = np.isfinite(points).all(axis=1)
+    if not finite.any():
+        raise CloudFormatError(f"{path}: no finite points (all {len(points)} are NaN or infinite)")
+    median = float(np.median(np.linalg.norm(points[finite], axis=1)))
+    if median > MM_CLOUD_MEDIAN:
+        raise CloudFormatError(
+            f"{path}: median distance from the origin is {median:.1f} m; the cloud looks like "
+            "millimetres (ssp reads metres): divide the coordinates by 1000"
+        )
+
+
+def _labels(
+    spec: SceneSpec, path: Path, cloud
+) -> tuple[np.ndarray | None, str | None, dict[int, str] | None]:
+    """``(labels with -1 background, label kind, label classes)`` of one cloud."""
+    if spec.colors:
+        return _color_labels(spec, path, cloud)
+    if cloud.labels is None:
+        return None, None, None
+    raw = cloud.labels
+    bg = (raw < 0) | np.isin(raw, np.fromiter(spec.background_labels, dtype=np.int64))
+    labels = np.where(bg, -1, raw).astype(np.int64)
+    values = [int(v) for v in np.unique(labels[labels >= 0])]
+    if spec.labels == "class":
+        unknown = [v for v in values if v not in spec.classes]
+        if unknown:
+            raise InputError(
+                f"{path}: label values {unknown} (field {cloud.label_field!r}) are in neither "
+                "'classes' nor 'background_labels' of scene.json"
+            )
+        return labels, "class", {v: spec.classes[v] for v in values}
+    named = {v: spec.classes[v] for v in values if v in spec.classes} if spec.classes else None
+    return labels, "instance", named
+
+
+def _color_labels(spec: SceneSpec, path: Path, cloud) -> tuple[np.ndarray, str, dict[int, str]]:
+    """Class labels from colour-coded points: label = index of the class in the sorted names."""
+    if cloud.colors is None:
+        raise InputError(f"{path}: scene.json lists 'colors' but the cloud has no colour fields")
+    if cloud.labels is not None:
+        log.info("%s: labels come from colours; field %r ignored", path, cloud.label_field)
+    names = sorted(set(spec.colors.values()))
+    index = {c: i for i, c in enumerate(names)}
+    keys = np.array(sorted(spec.colors), dtype=np.int64)
+    vals = np.array([index[spec.colors[int(k)]] for k in keys], dtype=np.int64)
+    c = cloud.colors.astype(np.int64)
+    packed = (c[:, 0] << 16) | (c[:, 1] << 8) | c[:, 2]
+    pos = np.clip(np.searchsorted(keys, packed), 0, len(keys) - 1)
+    hit = keys[pos] == packed
+    labels = np.where(hit, vals[pos], -1)
+    present = sorted({int(v) for v in np.unique(labels[labels >= 0])})
+    return labels, "class", {v: names[v] for v in present}

@@ -1,0 +1,337 @@
+"""Result files of ``ssp run``: per-frame JSON records, the BOP19 results CSV, object ids.
+
+* :func:`frame_record` / :func:`write_json`: ``OUT/frames/<name>.json``.
+* :class:`BopCsvWriter`: ``OUT/<method>_<dataset>-<split>.csv`` in the BOP19 format
+  (bop_toolkit ``docs/bop_challenge_2019.md``): header ``scene_id,im_id,obj_id,score,R,t,time``,
+  ``R`` the 9 row-major entries of the model-to-camera rotation and ``t`` the model-to-camera
+  translation in **mm**, space-separated; ``time`` the seconds spent on the whole image (the
+  same on every row of the image), -1 if unknown.
+* :class:`ObjectIds`: class name -> BOP ``obj_id``, written as ``OUT/obj_ids.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import re
+from collections.abc import Iterable, Iterator, Mapping
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from ssp.errors import InputError, InvalidPoseError, UnknownObjectError
+from ssp.geometry import validate_pose
+from ssp.io._files import to_jsonable, write_json
+from ssp.io.hypotheses import matrix_to_quat_xyzw
+
+if TYPE_CHECKING:
+    from ssp.parser import SceneEstimate
+
+__all__ = [
+    "BOP_CSV_HEADER",
+    "BopCsvWriter",
+    "ObjectIds",
+    "bop_csv_name",
+    "frame_record",
+    "read_bop_csv",
+    "to_jsonable",
+    "write_json",
+]
+
+log = logging.getLogger(__name__)
+
+BOP_CSV_HEADER = "scene_id,im_id,obj_id,score,R,t,time"
+_BOP_NAME = re.compile(r"^(?P<method>[^_]+)_(?P<dataset>[^_-]+)-(?P<split>[^_]+)\.csv$")
+
+
+# ------------------------------------------------------------------------------ frame records
+def frame_record(
+    estimate: SceneEstimate, *, name: str, index: int, extra: Mapping[str, Any] | None = None
+) -> dict[str, Any]:
+    """JSON-ready record of one frame's estimate.
+
+    Everything in ``estimate.to_dict()``, plus ``name`` (the frame's name) and ``index`` (its
+    0-based position in the input), plus for each object (also the removed ones) ``R`` (3x3),
+    ``t`` (m) and ``quat_xyzw`` of ``T_world_obj``. ``extra`` keys are added at the top level.
+
+    Raises:
+        ValueError: an ``extra`` key that the record already has.
+    """
+    rec: dict[str, Any] = {"name": str(name), "index": int(index)}
+    rec.update(estimate.to_dict())
+    for key in ("objects", "removed"):
+        rec[key] = [_with_pose_parts(o) for o in rec[key]]
+    for key, value in (extra or {}).items():
+        if key in rec:
+            raise ValueError(f"extra key {key!r} would overwrite the record's own {key!r}")
+        rec[key] = value
+    return rec
+
+
+def _with_pose_parts(obj: dict[str, Any]) -> dict[str, Any]:
+    T = np.asarray(obj["T_world_obj"], dtype=np.float64)
+    out = dict(obj)
+    out["R"] = T[:3, :3].tolist()
+    out["t"] = T[:3, 3].tolist()
+    out["quat_xyzw"] = matrix_to_quat_xyzw(T[:3, :3])
+    return out
+
+
+# ------------------------------------------------------------------------------ BOP CSV
+def bop_csv_name(dataset: str, method: str = "ssp", split: str = "test") -> str:
+    """``METHOD_DATASET-SPLIT.csv``, the name the BOP toolkit parses; ``_`` and ``-`` are
+    removed from ``dataset`` (the toolkit splits the name on them)."""
+    _check_method(method)
+    clean = re.sub(r"[_\-\s]", "", dataset)
+    if not clean:
+        raise ValueError(f"dataset name {dataset!r} is empty once '_' and '-' are removed")
+    if not split or "_" in split:
+        raise ValueError(f"split must be non-empty without '_', got {split!r}")
+    return f"{method}_{clean}-{split}.csv"
+
+
+def _check_method(method: str) -> None:
+    if not isinstance(method, str) or not method:
+        raise ValueError("BOP method name must be a non-empty string")
+    if "_" in method:
+        raise ValueError(
+            f"BOP method name {method!r} must not contain '_' (files are METHOD_DATASET-SPLIT.csv)"
+        )
+    if re.search(r"[\s,/\\]", method):
+        raise ValueError(f"BOP method name {method!r} must not contain spaces, ',' or slashes")
+
+
+class BopCsvWriter:
+    """Stream rows of a BOP19 results CSV (format in the module docstring).
+
+    The header is written on opening; rows are line-buffered, so every row added is on disk
+    even if the run dies later. Use as a context manager or call :meth:`close`.
+    """
+
+    def __init__(self, path: str | os.PathLike, method: str) -> None:
+        _check_method(method)
+        self.path = Path(path)
+        self.method = method
+        m = _BOP_NAME.match(self.path.name)
+        if m is None or m["method"] != method:
+            log.warning(
+                "%s: the BOP toolkit expects a file named %s_DATASET-SPLIT.csv", self.path, method
+            )
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._f = open(self.path, "w", encoding="ascii", newline="\n", buffering=1)  # noqa: SIM115
+        self._f.write(BOP_CSV_HEADER + "\n")
+        self._times: dict[tuple[int, int], float] = {}
+        self.rows = 0
+
+    def add(
+        self,
+        scene_id: int,
+        im_id: int,
+        obj_id: int,
+        score: float,
+        T_cam_obj: np.ndarray,
+        time: float | None = None,
+    ) -> None:
+        """Add one estimate: ``T_cam_obj`` (4x4, m) is the model-to-camera pose.
+
+        ``time`` (s) is the whole image's processing time, None or negative for unknown (-1);
+        every row of one ``(scene_id, im_id)`` must carry the same time.
+
+        Raises:
+            ValueError: closed writer, a bad id, score, pose or time.
+        """
+        if self._f.closed:
+            raise ValueError(f"{self.path}: writer is closed")
+        ids = [_nonneg_int(v, k) for v, k in ((scene_id, "scene_id"), (im_id, "im_id"))]
+        oid = _nonneg_int(obj_id, "obj_id")
+        if oid < 1:
+            raise ValueError(f"obj_id must be >= 1, got {obj_id}")
+        s = float(score)
+        if not math.isfinite(s):
+            raise ValueError(f"score must be finite, got {score}")
+        t_img = -1.0 if time is None or float(time) < 0 else float(time)
+        if not math.isfinite(t_img):
+            raise ValueError(f"time must be finite, got {time}")
+        try:
+            T = validate_pose(T_cam_obj, "T_cam_obj")
+        except InvalidPoseError as exc:
+            raise ValueError(str(exc)) from exc
+        key = (ids[0], ids[1])
+        if self._times.setdefault(key, t_img) != t_img:
+            raise ValueError(
+                f"scene {key[0]} image {key[1]}: time {t_img} differs from the {self._times[key]} "
+                "of its earlier rows (BOP wants the whole image's time on every row)"
+            )
+        R = " ".join(repr(float(v)) for v in T[:3, :3].reshape(-1))
+        t = " ".join(repr(float(v)) for v in T[:3, 3] * 1000.0)
+        self._f.write(f"{ids[0]},{ids[1]},{oid},{s!r},{R},{t},{t_img!r}\n")
+        self.rows += 1
+
+    def flush(self) -> None:
+        """Flush buffered rows to the operating system (rows are line-buffered anyway)."""
+        if not self._f.closed:
+            self._f.flush()
+
+    def close(self) -> None:
+        """Flush and close; further :meth:`add` calls raise. Closing twice is harmless."""
+        if not self._f.closed:
+            self._f.close()
+
+    @property
+    def closed(self) -> bool:
+        return self._f.closed
+
+    def __enter__(self) -> BopCsvWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _nonneg_int(value: Any, what: str) -> int:
+    if isinstance(value, bool) or int(value) != value or int(value) < 0:
+        raise ValueError(f"{what} must be a non-negative integer, got {value!r}")
+    return int(value)
+
+
+def read_bop_csv(path: str | os.PathLike) -> list[dict[str, Any]]:
+    """Rows of a BOP19 results CSV: ``scene_id, im_id, obj_id`` (int), ``score, time`` (float),
+    ``R`` (3x3 ndarray), ``t`` ((3,) ndarray, **mm** as in the file)."""
+    p = Path(path)
+    lines = p.read_text(encoding="ascii").splitlines()
+    if not lines or lines[0].strip() != BOP_CSV_HEADER:
+        raise InputError(f"{p}: not a BOP19 results CSV (header must be {BOP_CSV_HEADER!r})")
+    rows = []
+    for n, line in enumerate(lines[1:], start=2):
+        if not line.strip():
+            continue
+        parts = line.split(",")
+        if len(parts) != 7:
+            raise InputError(f"{p}:{n}: expected 7 columns, got {len(parts)}")
+        try:
+            rows.append(
+                {
+                    "scene_id": int(parts[0]),
+                    "im_id": int(parts[1]),
+                    "obj_id": int(parts[2]),
+                    "score": float(parts[3]),
+                    "R": np.array(parts[4].split(), dtype=float).reshape(3, 3),
+                    "t": np.array(parts[5].split(), dtype=float).reshape(3),
+                    "time": float(parts[6]),
+                }
+            )
+        except ValueError as exc:
+            raise InputError(f"{p}:{n}: malformed row ({exc})") from exc
+    return rows
+
+
+# ------------------------------------------------------------------------------ object ids
+class ObjectIds:
+    """A stable class name -> BOP ``obj_id`` (int >= 1) mapping.
+
+    Build it with :meth:`from_classes` (1-based order of the sorted names),
+    :meth:`from_models_json` (a BOP ``models.json`` ``obj_ids`` map, as written by
+    ``ssp simulate``), or :meth:`for_input` (the latter when the input folder has one).
+    """
+
+    def __init__(self, ids: Mapping[str, int]) -> None:
+        seen: dict[int, str] = {}
+        for cls, oid in ids.items():
+            if not isinstance(cls, str) or not cls:
+                raise ValueError(f"class names must be non-empty strings, got {cls!r}")
+            if isinstance(oid, bool) or not isinstance(oid, (int, np.integer)) or oid < 1:
+                raise ValueError(f"obj_id of {cls!r} must be an integer >= 1, got {oid!r}")
+            if int(oid) in seen:
+                raise ValueError(f"obj_id {oid} is given to both {seen[int(oid)]!r} and {cls!r}")
+            seen[int(oid)] = cls
+        self._ids = {cls: seen_id for seen_id, cls in sorted(seen.items())}
+
+    @classmethod
+    def from_classes(cls, classes: Iterable[str]) -> ObjectIds:
+        """``obj_id`` = 1-based position of the class in the sorted unique names."""
+        return cls({c: i + 1 for i, c in enumerate(sorted(set(classes)))})
+
+    @classmethod
+    def from_models_json(cls, path: str | os.PathLike, classes: Iterable[str] = ()) -> ObjectIds:
+        """The ``obj_ids`` map (``{"1": "cube", ...}``) of a BOP ``models.json``.
+
+        ``classes`` missing from it get new ids after the largest, in sorted order.
+
+        Raises:
+            InputError: unreadable file, no ``obj_ids``, or ids that are not integers >= 1,
+                or one class under two ids.
+        """
+        p = Path(path)
+        try:
+            doc = json.loads(p.read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise InputError(f"{p}: cannot read: {exc}") from exc
+        raw = doc.get("obj_ids") if isinstance(doc, Mapping) else None
+        if not isinstance(raw, Mapping):
+            raise InputError(f'{p}: no \'obj_ids\' object ({{"1": "class", ...}})')
+        ids: dict[str, int] = {}
+        for key, name in raw.items():
+            try:
+                oid = int(key)
+            except ValueError as exc:
+                raise InputError(f"{p}: obj_id {key!r} is not an integer") from exc
+            if not isinstance(name, str) or not name:
+                raise InputError(f"{p}: obj_id {key}: class must be a non-empty string")
+            if name in ids:
+                raise InputError(f"{p}: class {name!r} has two obj_ids ({ids[name]}, {oid})")
+            ids[name] = oid
+        next_id = max(ids.values(), default=0) + 1
+        for c in sorted(set(classes) - set(ids)):
+            log.info("%s: class %r has no obj_id; giving it %d", p, c, next_id)
+            ids[c] = next_id
+            next_id += 1
+        try:
+            return cls(ids)
+        except ValueError as exc:
+            raise InputError(f"{p}: {exc}") from exc
+
+    @classmethod
+    def for_input(cls, folder: str | os.PathLike, classes: Iterable[str]) -> ObjectIds:
+        """:meth:`from_models_json` of ``folder/models.json`` if it exists, else
+        :meth:`from_classes`."""
+        mj = Path(folder) / "models.json"
+        return cls.from_models_json(mj, classes) if mj.is_file() else cls.from_classes(classes)
+
+    def __getitem__(self, class_name: str) -> int:
+        try:
+            return self._ids[class_name]
+        except KeyError:
+            raise UnknownObjectError(
+                f"class {class_name!r} has no BOP obj_id (known: {', '.join(self._ids) or 'none'})"
+            ) from None
+
+    def __contains__(self, class_name: object) -> bool:
+        return class_name in self._ids
+
+    def __len__(self) -> int:
+        return len(self._ids)
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._ids)
+
+    def __repr__(self) -> str:
+        return f"ObjectIds({self._ids!r})"
+
+    def class_of(self, obj_id: int) -> str:
+        """The class of ``obj_id`` (UnknownObjectError if none)."""
+        for c, i in self._ids.items():
+            if i == obj_id:
+                return c
+        raise UnknownObjectError(f"no class has obj_id {obj_id}")
+
+    def as_dict(self) -> dict[str, int]:
+        """``class -> obj_id``, by increasing id."""
+        return dict(self._ids)
+
+    def to_json(self) -> dict[str, Any]:
+        """``{"obj_ids": {"1": "cube", ...}}``, the shape of a BOP ``models.json`` (readable by
+        :meth:`from_models_json`)."""
+        return {"obj_ids": {str(i): c for c, i in self._ids.items()}}
