@@ -366,6 +366,62 @@ class SearchConfig(_Section):
     )
 
 
+class PerceptionConfig(_Section):
+    """The perception front end (``ssp.perception``): table, segments, pose hypotheses.
+
+    The hypothesis generator plays ObjRecRANSAC's role (paper section VI): oriented point pairs
+    of a segment are matched to model pairs with the same point-pair feature (Drost et al.
+    2010), each match gives a pose, the poses are scored on a voxel occupancy grid of the
+    segment, and the best distinct ones are refined by ICP. Lengths relative to a model are
+    fractions of its diameter.
+    """
+
+    table_distance: float = Field(
+        0.006, gt=0, description="RANSAC inlier distance of the table plane, m."
+    )
+    table_height: float = Field(
+        0.004, ge=0, description="Points lower than this above the table are table, m."
+    )
+    cluster_tolerance: float = Field(
+        0.006, gt=0, description="Euclidean clustering distance of segments, m."
+    )
+    min_segment_points: int = Field(30, ge=3, description="Smaller segments are ignored.")
+    normal_neighbours: int = Field(16, ge=3, description="k of the PCA normals.")
+    hypotheses_per_object: int = Field(5, ge=1, description="k: hypotheses per object found.")
+    sampling: float = Field(
+        0.05, gt=0, le=0.5, description="Voxel of the model and segment samples (x diameter)."
+    )
+    max_model_points: int = Field(
+        450, ge=50, description="Cap of model samples in the pair table (coarser voxel)."
+    )
+    pair_samples: int = Field(600, ge=10, description="Scene point pairs drawn per model.")
+    matches_per_pair: int = Field(6, ge=1, description="Model pairs tried per scene pair.")
+    angle_step_deg: float = Field(12.0, gt=0, le=90, description="Feature angle bin, deg.")
+    score_voxel: float = Field(
+        0.004, gt=0, description="Occupancy grid voxel of the coarse pose scoring, m."
+    )
+    inlier_distance: float = Field(
+        0.005, gt=0, description="A model sample within this of the segment is explained, m."
+    )
+    class_screen: float = Field(
+        0.85,
+        gt=0,
+        le=1,
+        description=(
+            "Classes whose coarse score is below this fraction of the best class's are not "
+            "refined (class screening)."
+        ),
+    )
+    max_classes: int = Field(2, ge=1, description="Classes refined per object at most.")
+    refine: int = Field(5, ge=1, description="Distinct candidates refined by ICP per object.")
+    min_score: float = Field(
+        0.3, ge=0, le=1, description="Objects whose best score is lower are not reported."
+    )
+    max_objects_per_segment: int = Field(
+        12, ge=1, description="Objects explained one after another in a single segment."
+    )
+
+
 class SSPConfig(_Section):
     """Every setting of ssp. Construct with defaults, from a dict, or from YAML."""
 
@@ -379,6 +435,7 @@ class SSPConfig(_Section):
     transition: TransitionConfig = Field(default_factory=TransitionConfig)
     temporal: TemporalConfig = Field(default_factory=TemporalConfig)
     search: SearchConfig = Field(default_factory=SearchConfig)
+    perception: PerceptionConfig = Field(default_factory=PerceptionConfig)
     seed: int = Field(0, description="Seed for everything random in ssp.")
 
     @classmethod

@@ -1,0 +1,501 @@
+"""Pose hypotheses for a segment from oriented point pairs, in ObjRecRANSAC's role.
+
+The paper's pipeline gets several poses per object from ObjRecRANSAC (Papazov & Burschka
+2010): RANSAC over oriented point pairs. This module does the same on a CPU in numpy:
+
+1. **Model pair table** (once per model, cached): the model's surface samples thinned to a
+   voxel of ``sampling x diameter`` (at most ``max_model_points``), every ordered pair's
+   point-pair feature ``F = (|d|, angle(n1, d), angle(n2, d), angle(n1, n2))`` (Drost et al.
+   2010) quantised and sorted into a hash table. Coplanar pairs (both normals perpendicular to
+   ``d`` and parallel to each other) are flagged: a box has thousands of them, all alike, and
+   they fix only a plane.
+2. **Scene pairs**: ``pair_samples`` random non-coplanar pairs of the thinned segment; each is
+   looked up, and up to ``matches_per_pair`` model pairs with the same feature give a pose each
+   (the frame of ``(p1, n1, p2)`` of the model pair mapped onto the scene pair's).
+3. **Scoring** every candidate on a dilated occupancy grid of the segment (voxel
+   ``score_voxel``): the number of camera-facing model samples in occupied voxels. This is
+   ObjRecRANSAC's acceptance test and costs a gather per sample.
+4. **Refinement**: the best candidates that differ (symmetry-aware) are refined by
+   point-to-plane ICP (:func:`ssp.registration.icp_refine`) on the segment points near them and
+   scored by the F1 of *fit* (facing samples with a segment point within ``inlier_distance``)
+   and *coverage* (segment points within that distance of the model). The class with the best
+   score wins; its ``k`` best distinct poses are the hypotheses.
+5. **Several objects per segment**: the points the winner explains are removed and the rest is
+   searched again (touching blocks form one segment when no labels are given).
+
+Why written here rather than taken from a library: OpenCV's PPF detector trains for minutes per
+model and matches in about a minute (measured, ``notes/anchors.md``); PCL's needs C++; Open3D's
+FPFH + RANSAC registration aligns one object and brings a large binary dependency.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+from scipy.spatial import cKDTree
+
+from ssp.config import PerceptionConfig
+from ssp.errors import PerceptionError, UnknownObjectError
+from ssp.library.model import ObjectModel
+from ssp.registration import even_rows, facing_mask, icp_refine
+from ssp.scene import Hypothesis
+
+__all__ = ["HypothesisEstimator", "ModelPairs", "SegmentResult", "voxel_thin"]
+
+log = logging.getLogger(__name__)
+
+
+#: Occupied voxels of side v per v^2 of surface, averaged over orientations (about 1.3).
+_VOXEL_AREA_FACTOR = 1.3
+
+
+def voxel_thin(points: np.ndarray, voxel: float) -> np.ndarray:
+    """Indices of one point per occupied voxel of side ``voxel`` (m): the first, in order."""
+    if len(points) == 0:
+        return np.zeros(0, dtype=np.int64)
+    ijk = np.floor(np.asarray(points) / voxel).astype(np.int64)
+    ijk -= ijk.min(0)
+    span = ijk.max(0) + 1
+    keys = (ijk[:, 0] * span[1] + ijk[:, 1]) * span[2] + ijk[:, 2]
+    _, first = np.unique(keys, return_index=True)
+    return np.sort(first)
+
+
+def _features(p1, n1, p2, n2, dist_step: float, angle_step: float):
+    """Quantised point-pair features of oriented pairs.
+
+    Args: ``(M, 3)`` arrays of points (m) and unit normals. Returns ``(keys (M,) int64,
+    coplanar (M,) bool, dist (M,) m)``; the coplanar flag is the key's lowest bit, so coplanar
+    and non-coplanar pairs never match each other.
+    """
+    d = p2 - p1
+    dist = np.linalg.norm(d, axis=1)
+    u = d / np.maximum(dist, 1e-12)[:, None]
+    a1 = np.arccos(np.clip((n1 * u).sum(1), -1, 1))
+    a2 = np.arccos(np.clip((n2 * u).sum(1), -1, 1))
+    a3 = np.arccos(np.clip((n1 * n2).sum(1), -1, 1))
+    coplanar = (a3 < np.radians(20)) & (np.abs(a1 - np.pi / 2) < np.radians(20))
+    nb = int(np.ceil(np.pi / angle_step)) + 1
+    q = [np.floor(a / angle_step).astype(np.int64) for a in (a1, a2, a3)]
+    qd = np.floor(dist / dist_step).astype(np.int64)
+    keys = (((qd * nb + q[0]) * nb + q[1]) * nb + q[2]) * 2 + coplanar
+    return keys, coplanar, dist
+
+
+def _rotate_all(R: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """``(M, P, 3)``: the ``P`` vectors ``v (P, 3)`` rotated by each of ``R (M, 3, 3)`` (one
+    matrix product, much faster than an einsum over the batch)."""
+    return (R.reshape(-1, 3) @ v.T).reshape(len(R), 3, len(v)).transpose(0, 2, 1)
+
+
+def _pair_frames(p1, n1, p2) -> np.ndarray:
+    """Rigid frames ``(M, 4, 4)`` of oriented pairs: origin ``p1``, x = ``n1``, y toward ``p2``."""
+    x = n1 / np.linalg.norm(n1, axis=1, keepdims=True)
+    d = p2 - p1
+    y = d - (d * x).sum(1, keepdims=True) * x
+    y /= np.maximum(np.linalg.norm(y, axis=1, keepdims=True), 1e-12)
+    z = np.cross(x, y)
+    F = np.zeros((len(p1), 4, 4))
+    F[:, :3, 0], F[:, :3, 1], F[:, :3, 2], F[:, :3, 3] = x, y, z, p1
+    F[:, 3, 3] = 1.0
+    return F
+
+
+@dataclass
+class ModelPairs:
+    """A model's point-pair table (step 1 of the module docstring).
+
+    Attributes:
+        name: class name. diameter: m. area: surface area, m^2. voxel: sample spacing, m.
+        points, normals: ``(P, 3)`` thinned model samples and unit normals (model frame).
+        keys: ``(Q,)`` sorted quantised features; ``first``, ``second``: ``(Q,)`` indices of the
+            pair's points. symmetries: ``(S, 3, 3)`` symmetry rotations (identity first).
+    """
+
+    name: str
+    diameter: float
+    area: float
+    voxel: float
+    points: np.ndarray
+    normals: np.ndarray
+    dense_points: np.ndarray
+    dense_normals: np.ndarray
+    keys: np.ndarray
+    first: np.ndarray
+    second: np.ndarray
+    symmetries: np.ndarray
+    dist_step: float
+    angle_step: float
+    min_dist: float
+    max_dist: float
+
+    @classmethod
+    def build(cls, model: ObjectModel, cfg: PerceptionConfig) -> ModelPairs:
+        diameter = float(model.diameter)
+        pts = np.asarray(model.surface_points, dtype=float)
+        nrm = np.asarray(model.surface_normals, dtype=float)
+        dense_p, dense_n = even_rows(1500, pts, nrm)
+        voxel = cfg.sampling * diameter
+        sel = voxel_thin(pts, voxel)
+        while len(sel) > cfg.max_model_points:
+            voxel *= 1.15
+            sel = voxel_thin(pts, voxel)
+        pts, nrm = pts[sel], nrm[sel]
+        n = len(pts)
+        i, j = np.nonzero(~np.eye(n, dtype=bool))
+        angle_step = np.radians(cfg.angle_step_deg)
+        dist_step = voxel
+        keys, _, dist = _features(pts[i], nrm[i], pts[j], nrm[j], dist_step, angle_step)
+        min_dist, max_dist = 0.15 * diameter, 0.9 * diameter
+        ok = (dist >= min_dist) & (dist <= max_dist)
+        keys, i, j = keys[ok], i[ok], j[ok]
+        order = np.argsort(keys, kind="stable")
+        sym = model.symmetry.transforms(np.radians(10.0))[:, :3, :3]
+        return cls(
+            model.name,
+            diameter,
+            float(model.mesh.area),
+            voxel,
+            pts,
+            nrm,
+            dense_p,
+            dense_n,
+            keys[order],
+            i[order].astype(np.int32),
+            j[order].astype(np.int32),
+            sym,
+            dist_step,
+            angle_step,
+            min_dist,
+            max_dist,
+        )
+
+
+class _Occupancy:
+    """Dilated boolean voxel grid of a point set: a fast "is there a point near here" test."""
+
+    def __init__(self, points: np.ndarray, voxel: float, dilate: int = 1) -> None:
+        self.voxel = voxel
+        self.lo = points.min(0) - (dilate + 1) * voxel
+        idx = np.floor((points - self.lo) / voxel).astype(np.int64)
+        self.shape = idx.max(0) + dilate + 2
+        grid = np.zeros(tuple(self.shape), dtype=bool)
+        grid[idx[:, 0], idx[:, 1], idx[:, 2]] = True
+        if dilate:
+            grid = ndimage.binary_dilation(grid, np.ones((3, 3, 3), bool), iterations=dilate)
+        self.grid = grid
+
+    def __call__(self, q: np.ndarray) -> np.ndarray:
+        """``q (..., 3)`` -> bool ``(...)``: the voxel of each query is occupied."""
+        # out-of-grid queries are clipped onto the border voxels, which are always empty
+        ix, iy, iz = (
+            np.clip(((q[..., a] - self.lo[a]) * (1.0 / self.voxel)).astype(np.int64), 0, n - 1)
+            for a, n in enumerate(self.shape)
+        )
+        return self.grid.ravel()[(ix * int(self.shape[1]) + iy) * int(self.shape[2]) + iz]
+
+
+@dataclass
+class _Pool:
+    """Candidate poses of one class for one segment: rotations ``R (M, 3, 3)``, translations
+    ``t (M, 3)``, coarse scores ``(M,)`` and the best coarse fraction (``quality``, 0..1)."""
+
+    table: ModelPairs
+    R: np.ndarray
+    t: np.ndarray
+    coarse: np.ndarray
+    quality: float
+
+
+@dataclass
+class SegmentResult:
+    """Hypotheses found in one segment: per object found, its ``k`` ranked hypotheses."""
+
+    objects: list[list[Hypothesis]] = field(default_factory=list)
+    seconds: float = 0.0
+    candidates: int = 0
+
+    @property
+    def hypotheses(self) -> list[Hypothesis]:
+        return [h for obj in self.objects for h in obj]
+
+
+def _rotation_distance(R_a: np.ndarray, R_b: np.ndarray, sym: np.ndarray) -> float:
+    """Smallest angle (rad) between ``R_a`` and ``R_b S`` over symmetry rotations ``S``."""
+    M = np.einsum("ji,jk,skl->sil", R_a, R_b, sym)
+    tr = np.trace(M, axis1=1, axis2=2)
+    return float(np.arccos(np.clip((tr.max() - 1) / 2, -1, 1)))
+
+
+class HypothesisEstimator:
+    """ObjRecRANSAC-style pose hypotheses for segments of a cloud (module docstring).
+
+    Args:
+        library: class name -> :class:`ObjectModel`.
+        config: :class:`PerceptionConfig`.
+        seed: seed of the pair sampling (the same segment and seed give the same output).
+    """
+
+    def __init__(
+        self, library: Mapping[str, ObjectModel], config: PerceptionConfig | None = None, seed=0
+    ) -> None:
+        self.library = library
+        self.cfg = config if config is not None else PerceptionConfig()
+        self.seed = int(seed)
+        self._tables: dict[str, ModelPairs] = {}
+
+    def table(self, name: str) -> ModelPairs:
+        """The (cached) pair table of class ``name``."""
+        if name not in self._tables:
+            if name not in self.library:
+                raise UnknownObjectError(name)
+            self._tables[name] = ModelPairs.build(self.library[name], self.cfg)
+        return self._tables[name]
+
+    # ------------------------------------------------------------------ one segment
+    def estimate(
+        self,
+        points: np.ndarray,
+        normals: np.ndarray,
+        classes: Iterable[str],
+        camera_position: np.ndarray | None = None,
+        *,
+        single_object: bool = False,
+        seed: int | None = None,
+    ) -> SegmentResult:
+        """Hypotheses for the objects in one segment.
+
+        Args:
+            points: ``(N, 3)`` segment points, world frame, m. normals: ``(N, 3)`` unit
+                normals (facing the camera).
+            classes: candidate class names.
+            camera_position: ``(3,)`` camera centre (world) for the facing tests; None: all
+                samples count.
+            single_object: the segment is one object (an instance label): stop after one,
+                and skip classes smaller than the segment.
+            seed: overrides the estimator's seed for this call.
+        """
+        t0 = time.perf_counter()
+        pts = np.asarray(points, dtype=float).reshape(-1, 3)
+        nrm = np.asarray(normals, dtype=float).reshape(-1, 3)
+        if len(pts) != len(nrm):
+            raise PerceptionError(f"{len(pts)} points but {len(nrm)} normals")
+        names = list(dict.fromkeys(classes))
+        if not names:
+            raise PerceptionError("no candidate classes for the segment")
+        cfg = self.cfg
+        rng = np.random.default_rng(self.seed if seed is None else seed)
+        cam = None if camera_position is None else np.asarray(camera_position, dtype=float)
+        result = SegmentResult()
+        remaining = np.ones(len(pts), dtype=bool)
+        limit = 1 if single_object else cfg.max_objects_per_segment
+        for _ in range(limit):
+            if remaining.sum() < cfg.min_segment_points:
+                break
+            p, n = pts[remaining], nrm[remaining]
+            extent = _extent(p)
+            pools = []
+            for name in names:
+                table = self.table(name)
+                if single_object and extent > 1.3 * table.diameter:
+                    continue  # the segment is larger than this class
+                pool = self._candidates(table, p, n, cam, rng)
+                if pool is not None:
+                    result.candidates += len(pool.R)
+                    pools.append(pool)
+            if not pools:
+                break
+            # class screening: only classes whose coarse score is near the best are refined
+            top = max(pool.quality for pool in pools)
+            pools = [pool for pool in pools if pool.quality >= cfg.class_screen * top]
+            pools = sorted(pools, key=lambda pool: -pool.quality)[: cfg.max_classes]
+            best: tuple[list, str] | None = None
+            thin = p[voxel_thin(p, 0.003)]
+            for pool in pools:
+                found = self._refine(pool, thin, cam)
+                if found and (best is None or found[0][0] > best[0][0][0]):
+                    best = (found, pool.table.name)
+            if best is None or best[0][0][0] < cfg.min_score:
+                break
+            found, name = best
+            k = cfg.hypotheses_per_object
+            result.objects.append([Hypothesis(name, T, score=float(s)) for s, T in found[:k]])
+            explained = self._explained(self.table(name), found[0][1], pts)
+            if (remaining & explained).sum() < cfg.min_segment_points:
+                break
+            remaining &= ~explained
+        result.seconds = time.perf_counter() - t0
+        return result
+
+    def _candidates(self, table: ModelPairs, p, n, cam, rng) -> _Pool | None:
+        """Poses from matched point pairs with their coarse scores (steps 2-3), or None."""
+        cfg = self.cfg
+        sel = voxel_thin(p, table.voxel)
+        if len(sel) < 4:
+            return None
+        sp, sn = p[sel], n[sel]
+        m = cfg.pair_samples
+        a = rng.integers(0, len(sp), 6 * m)
+        b = rng.integers(0, len(sp), 6 * m)
+        keys, coplanar, dist = _features(
+            sp[a], sn[a], sp[b], sn[b], table.dist_step, table.angle_step
+        )
+        ok = np.flatnonzero((dist >= table.min_dist) & (dist <= table.max_dist))
+        lo = np.searchsorted(table.keys, keys[ok], side="left")
+        count = np.searchsorted(table.keys, keys[ok], side="right") - lo
+        # matched pairs only; non-coplanar first (they fix a pose), coplanar ones fill up (a
+        # single visible face)
+        has = np.flatnonzero(count > 0)
+        has = has[np.argsort(coplanar[ok[has]], kind="stable")][:m]
+        if len(has) == 0:
+            return None
+        a, b, lo, count = a[ok[has]], b[ok[has]], lo[has], count[has]
+        c = cfg.matches_per_pair
+        draw = np.minimum(
+            (rng.random((len(a), c)) * count[:, None]).astype(np.int64), count[:, None] - 1
+        )
+        use = (np.arange(c)[None, :] < count[:, None]).ravel()  # no repeats in small bins
+        mp = (lo[:, None] + draw).ravel()[use]
+        sa, sb = np.repeat(a, c)[use], np.repeat(b, c)[use]
+        mi, mj = table.first[mp], table.second[mp]
+        F_s = _pair_frames(sp[sa], sn[sa], sp[sb])
+        F_m = _pair_frames(table.points[mi], table.normals[mi], table.points[mj])
+        R = F_s[:, :3, :3] @ np.swapaxes(F_m[:, :3, :3], 1, 2)
+        t = F_s[:, :3, 3] - np.einsum("nij,nj->ni", R, F_m[:, :3, 3])
+        # coarse score: facing samples in occupied voxels of the segment
+        occ = _Occupancy(p, cfg.score_voxel)
+        step = max(1, len(table.points) // 96)
+        cp, cn = table.points[::step], table.normals[::step]
+        wp = _rotate_all(R, cp) + t[:, None, :]
+        hit = occ(wp)
+        facing = np.ones_like(hit)
+        if cam is not None:  # (R n).(cam - R p - t) = n.(R^T (cam - t)) - n.p
+            local_cam = np.einsum("nji,nj->ni", R, cam - t)
+            facing = local_cam @ cn.T > (cn * cp).sum(1)[None, :]
+            hit &= facing
+        coarse = hit.sum(1)
+        # quality for class screening: F1 of the fraction of facing samples explained and an
+        # estimate of the fraction of the segment's surface explained (hit samples x area per
+        # sample / segment area); the second keeps small classes from winning inside large
+        # segments
+        fit = coarse / np.maximum(facing.sum(1), 8)
+        seg_area = len(voxel_thin(p, cfg.score_voxel)) * cfg.score_voxel**2 / _VOXEL_AREA_FACTOR
+        cover = np.minimum(1.0, coarse * (table.area / len(cp)) / max(seg_area, 1e-12))
+        f1 = 2 * fit * cover / np.maximum(fit + cover, 1e-12)
+        return _Pool(table, R, t, coarse, float(f1.max()))
+
+    def _refine(self, pool: _Pool, p: np.ndarray, cam) -> list[tuple[float, np.ndarray]]:
+        """Ranked ``[(score, T_world_obj)]`` of distinct ICP-refined poses (step 4)."""
+        cfg, table = self.cfg, pool.table
+        R, t, coarse = pool.R, pool.t, pool.coarse
+        chosen: list[int] = []  # distinct candidates, best coarse score first
+        for idx in np.argsort(-coarse, kind="stable")[: 40 * cfg.refine]:
+            if coarse[idx] == 0:
+                break
+            if all(
+                np.linalg.norm(t[idx] - t[o]) > 0.1 * table.diameter
+                or _rotation_distance(R[o], R[idx], table.symmetries) > np.radians(15)
+                for o in chosen
+            ):
+                chosen.append(int(idx))
+                if len(chosen) >= cfg.refine:
+                    break
+        model = self.library[table.name]
+        poses: list[np.ndarray] = []
+        for idx in chosen:  # coarse ICP, then drop the candidates that met
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = R[idx], t[idx]
+            near = self._near(table, T, p, 0.012)
+            T = icp_refine(
+                model,
+                T,
+                p[near],
+                cam,
+                max_distance=0.012,
+                iterations=8,
+                n_samples=400,
+                n_points=500,
+            )
+            if not any(_same_pose(T, U, table.symmetries) for U in poses):
+                poses.append(T)
+        tree = cKDTree(p)
+        refined = []
+        for T in poses:  # fine ICP
+            near = self._near(table, T, p, 0.008)
+            T = icp_refine(
+                model,
+                T,
+                p[near],
+                cam,
+                max_distance=0.005,
+                iterations=10,
+                n_samples=800,
+                n_points=1000,
+            )
+            refined.append((self._score(table, T, p, tree, cam), T))
+        refined.sort(key=lambda st: -st[0])
+        out: list[tuple[float, np.ndarray]] = []
+        for s, T in refined:
+            if not any(_same_pose(T, U, table.symmetries) for _, U in out):
+                out.append((s, T))
+        return out
+
+    def _near(self, table: ModelPairs, T, p, radius: float) -> np.ndarray:
+        """Mask of segment points within ``radius`` of the model samples at ``T``."""
+        wp = table.dense_points @ T[:3, :3].T + T[:3, 3]
+        d, _ = cKDTree(wp).query(p, distance_upper_bound=radius)
+        return np.isfinite(d)
+
+    def _score(self, table: ModelPairs, T, p, tree: cKDTree, cam) -> float:
+        """F1 of fit (facing samples with a segment point within ``inlier_distance``) and
+        coverage (segment points within that distance of the model surface)."""
+        r = self.cfg.inlier_distance
+        wp = table.dense_points @ T[:3, :3].T + T[:3, 3]
+        face = facing_mask(wp, table.dense_normals @ T[:3, :3].T, cam)
+        if not face.any():
+            return 0.0
+        d, _ = tree.query(wp[face], distance_upper_bound=r)
+        fit = float(np.mean(np.isfinite(d)))
+        cover = float(self._explained(table, T, p).mean())
+        return 0.0 if fit + cover == 0 else 2 * fit * cover / (fit + cover)
+
+    def _explained(self, table: ModelPairs, T, p) -> np.ndarray:
+        """Mask of points ``p`` within ``inlier_distance`` of the model surface at ``T``."""
+        wp = table.dense_points @ T[:3, :3].T + T[:3, 3]
+        d, _ = cKDTree(wp).query(p, distance_upper_bound=self.cfg.inlier_distance)
+        return np.isfinite(d)
+
+
+def _same_pose(T: np.ndarray, U: np.ndarray, sym: np.ndarray) -> bool:
+    """Poses within 2 mm and 3 deg of each other (symmetry-aware)."""
+    return bool(
+        np.linalg.norm(T[:3, 3] - U[:3, 3]) <= 0.002
+        and _rotation_distance(U[:3, :3], T[:3, :3], sym) <= np.radians(3)
+    )
+
+
+def _extent(points: np.ndarray) -> float:
+    """Largest extent (m) of a point set along its principal axes."""
+    c = points - points.mean(0)
+    _, _, vt = np.linalg.svd(c[:: max(1, len(c) // 500)], full_matrices=False)
+    proj = c @ vt.T
+    return float((proj.max(0) - proj.min(0)).max())
+
+
+def estimate_all(
+    estimator: HypothesisEstimator,
+    segments: Sequence[tuple[np.ndarray, np.ndarray]],
+    classes: Iterable[str],
+    camera_position=None,
+) -> list[SegmentResult]:
+    """:meth:`HypothesisEstimator.estimate` on each ``(points, normals)`` segment."""
+    names = list(classes)
+    return [
+        estimator.estimate(p, n, names, camera_position, seed=estimator.seed + i)
+        for i, (p, n) in enumerate(segments)
+    ]
