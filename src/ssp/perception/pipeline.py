@@ -1,0 +1,228 @@
+"""From a sensor frame to the scene parser's input: table, segments, pose hypotheses.
+
+The paper's front end (section VI): the table plane gives gravity and the world frame, the
+cloud above it is segmented, and a pose estimator proposes several poses per object (here
+:class:`ssp.perception.estimator.HypothesisEstimator`). :class:`Perception` chains these and
+returns a :class:`ssp.scene.Frame` ready for :meth:`ssp.parser.SceneParser.update`.
+
+Segments and candidate classes:
+
+* instance labels (a label is one object): each segment is searched for one object of any
+  class (of its class when the input names it);
+* class labels or colour classes (a label is a class, several objects may share it): each
+  region is split into Euclidean clusters, and each cluster is searched for as many objects of
+  that class as it holds;
+* no labels: the cloud above the table is clustered, and each cluster is searched for as many
+  objects of any class as it holds (touching objects form one cluster).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ssp.camera import Camera
+from ssp.config import PerceptionConfig, SSPConfig
+from ssp.errors import PerceptionError, UnknownObjectError
+from ssp.geometry import transform_points
+from ssp.library.model import ObjectModel
+from ssp.perception.depth import cloud_from_depth
+from ssp.perception.estimator import HypothesisEstimator, SegmentResult
+from ssp.perception.normals import estimate_normals
+from ssp.perception.segmentation import Segmentation, segment_cloud
+from ssp.perception.table import table_frame
+from ssp.scene import Frame, Hypothesis
+
+__all__ = ["Perception", "PerceptionResult"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class PerceptionResult:
+    """What the front end made of one frame.
+
+    Attributes:
+        frame: the parser's input (world-frame points, segment labels, hypotheses, camera).
+        segmentation: segment labels of ``frame.points`` and their classes when known.
+        segments: per segment label, the estimator's result (empty when hypotheses were given).
+        timings: wall seconds per stage (``table``, ``segmentation``, ``normals``,
+            ``hypotheses``, ``total``).
+    """
+
+    frame: Frame
+    segmentation: Segmentation
+    segments: dict[int, SegmentResult] = field(default_factory=dict)
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def seconds_per_segment(self) -> float | None:
+        """Mean estimator time per segment, s (None without segments searched)."""
+        if not self.segments:
+            return None
+        return float(np.mean([r.seconds for r in self.segments.values()]))
+
+
+class Perception:
+    """The perception front end (module docstring).
+
+    Args:
+        library: class name -> :class:`ObjectModel` (the candidate classes).
+        config: :class:`SSPConfig` (its ``perception`` section and ``seed``) or a
+            :class:`PerceptionConfig`.
+        classes: candidate classes (default: every class of ``library``).
+    """
+
+    def __init__(
+        self,
+        library: Mapping[str, ObjectModel],
+        config: SSPConfig | PerceptionConfig | None = None,
+        classes: Sequence[str] | None = None,
+    ) -> None:
+        if isinstance(config, SSPConfig):
+            cfg, seed = config.perception, config.seed
+        else:
+            cfg, seed = (config if config is not None else PerceptionConfig()), 0
+        self.cfg = cfg
+        self.library = library
+        names = list(classes) if classes is not None else list(library)
+        unknown = [c for c in names if c not in library]
+        if unknown:
+            raise UnknownObjectError(f"candidate classes not in the library: {unknown}")
+        if not names:
+            raise PerceptionError("no candidate classes")
+        self.classes = tuple(names)
+        self.estimator = HypothesisEstimator(library, cfg, seed=seed)
+
+    # ------------------------------------------------------------------ inputs
+    def from_depth(
+        self,
+        depth: np.ndarray,
+        camera: Camera,
+        *,
+        stamp: float = 0.0,
+        T_world_cam: np.ndarray | None = None,
+        mask: np.ndarray | None = None,
+        depth_scale: float | None = None,
+        hypotheses: list[Hypothesis] | None = None,
+    ) -> PerceptionResult:
+        """Perceive a depth image ``(H, W)`` (m, 0 = no return) seen by ``camera``.
+
+        ``mask`` ``(H, W)`` holds instance labels (negative = table/background); without it
+        the cloud above the table is clustered. ``T_world_cam`` None: fitted to the table.
+        """
+        cloud = cloud_from_depth(depth, camera, mask=mask, depth_scale=depth_scale)
+        return self.from_points(
+            cloud.points,
+            frame="camera",
+            stamp=stamp,
+            T_world_cam=T_world_cam,
+            labels=cloud.labels,
+            hypotheses=hypotheses,
+        )
+
+    def from_points(
+        self,
+        points: np.ndarray,
+        *,
+        frame: str = "camera",
+        stamp: float = 0.0,
+        T_world_cam: np.ndarray | None = None,
+        labels: np.ndarray | None = None,
+        label_kind: str | None = "instance",
+        label_classes: Mapping[int, str] | None = None,
+        hypotheses: list[Hypothesis] | None = None,
+    ) -> PerceptionResult:
+        """Perceive a cloud ``(N, 3)`` (m).
+
+        Args:
+            frame: ``"camera"``: points in the sensor frame (OpenCV axes); the world frame comes
+                from ``T_world_cam``, else from the table plane. ``"world"``: z up, table top
+                at z = 0; ``T_world_cam`` (optional) enables the camera-facing tests.
+            labels: ``(N,)`` segment labels (negative = background) or None.
+            label_kind: ``"instance"`` (a label is one object) or ``"class"`` (a label is a
+                class region; ``label_classes`` names them).
+            label_classes: label -> class name (for instance labels: the known classes).
+            hypotheses: given pose hypotheses (world frame): used instead of the estimator.
+        """
+        t_start = time.perf_counter()
+        timings: dict[str, float] = {}
+        pts = np.asarray(points, dtype=float)
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            raise PerceptionError(f"points must have shape (N, 3), got {pts.shape}")
+        finite = np.all(np.isfinite(pts), axis=1)
+        if not finite.any():
+            raise PerceptionError("empty cloud: no finite points")
+        pts = pts[finite]
+        lab = None if labels is None else np.asarray(labels).reshape(-1)[finite]
+        if frame not in ("camera", "world"):
+            raise PerceptionError(f"frame must be 'camera' or 'world', got {frame!r}")
+
+        t0 = time.perf_counter()
+        if frame == "camera":
+            if T_world_cam is None:
+                T_world_cam, _ = table_frame(pts, distance=self.cfg.table_distance)
+            pts = transform_points(np.asarray(T_world_cam, dtype=float), pts)
+        timings["table"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        instance = lab is not None and label_kind != "class"
+        segmentation = segment_cloud(
+            pts,
+            lab,
+            None if instance else label_classes,
+            table_height=self.cfg.table_height,
+            tolerance=self.cfg.cluster_tolerance,
+            min_points=self.cfg.min_segment_points,
+        )
+        if instance and label_classes:
+            segmentation.classes.update(
+                {k: v for k, v in label_classes.items() if k in segmentation.classes}
+            )
+        timings["segmentation"] = time.perf_counter() - t0
+
+        segments: dict[int, SegmentResult] = {}
+        if hypotheses is None:
+            hypotheses = []
+            cam = None if T_world_cam is None else np.asarray(T_world_cam)[:3, 3]
+            t_normals = 0.0
+            for label in segmentation.segment_ids:
+                seg = pts[segmentation.labels == label]
+                t0 = time.perf_counter()
+                nrm = estimate_normals(seg, k=self.cfg.normal_neighbours, viewpoint=cam)
+                t_normals += time.perf_counter() - t0
+                cls = segmentation.classes.get(label)
+                if cls is not None and cls not in self.library:
+                    raise UnknownObjectError(f"segment {label}: class {cls!r} not in the library")
+                res = self.estimator.estimate(
+                    seg,
+                    nrm,
+                    [cls] if cls is not None else self.classes,
+                    cam,
+                    single_object=instance,
+                    seed=self.estimator.seed + int(label),
+                )
+                segments[int(label)] = res
+                hypotheses.extend(res.hypotheses)
+            timings["normals"] = t_normals
+            timings["hypotheses"] = sum(r.seconds for r in segments.values())
+        timings["total"] = time.perf_counter() - t_start
+        out_frame = Frame(
+            stamp=stamp,
+            points=pts,
+            hypotheses=list(hypotheses),
+            labels=segmentation.labels,
+            T_world_cam=None if T_world_cam is None else np.asarray(T_world_cam, dtype=float),
+        )
+        log.debug(
+            "perceived %d points, %d segments, %d hypotheses in %.2f s",
+            len(pts),
+            len(segmentation.segment_ids),
+            len(out_frame.hypotheses),
+            timings["total"],
+        )
+        return PerceptionResult(out_frame, segmentation, segments, timings)
