@@ -589,6 +589,82 @@ def bench_table1(
         console.print(f"wrote [bold]{f}[/]")
 
 
+@app.command("run")
+@_friendly
+def run_cmd(
+    input_path: Path = typer.Argument(
+        ..., help="A folder of PLY/PCD frames, or a BOP scene folder written by ssp simulate."
+    ),
+    models: Path | None = ModelsOption,
+    out: Path = typer.Option(Path("ssp-out"), "--out", "-o", help="Output folder."),
+    hypotheses: str = typer.Option(
+        "auto",
+        "--hypotheses",
+        help=(
+            "auto: the input's hypotheses when present, else the built-in estimator; given: "
+            "only the input's; estimated: always the built-in estimator."
+        ),
+    ),
+    classes: str | None = typer.Option(
+        None,
+        help=(
+            "Comma-separated candidate classes of the estimator (default: those a BOP scene "
+            "lists, else every model)."
+        ),
+    ),
+    method: str = typer.Option("ssp", help="BOP method name in the CSV file name (no '_')."),
+    config: Path | None = ConfigOption,
+) -> None:
+    """Perception and scene parsing over recorded frames: per-frame JSON, a BOP19 CSV and a
+    summary (formats: docs/formats.md)."""
+    from ssp.runner import HYPOTHESES_MODES, run
+
+    if hypotheses not in HYPOTHESES_MODES:
+        raise typer.BadParameter(f"--hypotheses must be one of {', '.join(HYPOTHESES_MODES)}")
+    cfg = _config(config)
+    lib = _library(models, config)
+    with _bar() as progress:
+        task = progress.add_task("frames", total=None)
+
+        def report(done: int, total: int, message: str) -> None:
+            progress.update(task, completed=done, total=total, description=message[:60])
+
+        names = [c.strip() for c in classes.split(",") if c.strip()] if classes else None
+        summary = run(
+            input_path,
+            lib,
+            out,
+            cfg,
+            hypotheses=hypotheses,
+            classes=names,
+            method=method,
+            progress=report,
+        )
+    info = summary.to_dict()
+    table = Table(title=f"ssp run: {input_path} ({summary.kind})")
+    for col in ("frame", "objects", "hypotheses", "perception s", "parser s"):
+        table.add_column(col, justify="left" if col == "frame" else "right")
+    for d in summary.done:
+        table.add_row(
+            d["frame"],
+            str(d["objects"]),
+            str(d["hypotheses"]),
+            f"{d['perception_s']:.2f}",
+            f"{d['parser_s']:.2f}",
+        )
+    console.print(table)
+    console.print(
+        f"{info['done']} of {info['frames']} frames done"
+        + (f", {info['sec_per_frame']:.2f} s per frame" if info["sec_per_frame"] else "")
+    )
+    for f in summary.failed:
+        console.print(f"[red]skipped[/] {f['frame']}: {f['error']}")
+    for f in summary.files:
+        console.print(f"wrote [bold]{f}[/]")
+    if not summary.done:
+        raise typer.Exit(1)
+
+
 @app.command()
 @_friendly
 def demo(

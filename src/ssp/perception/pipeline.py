@@ -21,7 +21,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -109,11 +109,13 @@ class Perception:
         mask: np.ndarray | None = None,
         depth_scale: float | None = None,
         hypotheses: list[Hypothesis] | None = None,
+        hypotheses_frame: str = "world",
     ) -> PerceptionResult:
         """Perceive a depth image ``(H, W)`` (m, 0 = no return) seen by ``camera``.
 
         ``mask`` ``(H, W)`` holds instance labels (negative = table/background); without it
         the cloud above the table is clustered. ``T_world_cam`` None: fitted to the table.
+        The other arguments as for :meth:`from_points`.
         """
         cloud = cloud_from_depth(depth, camera, mask=mask, depth_scale=depth_scale)
         return self.from_points(
@@ -123,6 +125,7 @@ class Perception:
             T_world_cam=T_world_cam,
             labels=cloud.labels,
             hypotheses=hypotheses,
+            hypotheses_frame=hypotheses_frame,
         )
 
     def from_points(
@@ -136,6 +139,7 @@ class Perception:
         label_kind: str | None = "instance",
         label_classes: Mapping[int, str] | None = None,
         hypotheses: list[Hypothesis] | None = None,
+        hypotheses_frame: str = "world",
     ) -> PerceptionResult:
         """Perceive a cloud ``(N, 3)`` (m).
 
@@ -147,7 +151,9 @@ class Perception:
             label_kind: ``"instance"`` (a label is one object) or ``"class"`` (a label is a
                 class region; ``label_classes`` names them).
             label_classes: label -> class name (for instance labels: the known classes).
-            hypotheses: given pose hypotheses (world frame): used instead of the estimator.
+            hypotheses: given pose hypotheses, used instead of the estimator.
+            hypotheses_frame: ``"world"``, or ``"camera"`` (each ``T_world_obj`` then holds
+                ``T_cam_obj``; moved to the world once ``T_world_cam`` is known).
         """
         t_start = time.perf_counter()
         timings: dict[str, float] = {}
@@ -186,6 +192,11 @@ class Perception:
         timings["segmentation"] = time.perf_counter() - t0
 
         segments: dict[int, SegmentResult] = {}
+        if hypotheses is not None and hypotheses_frame == "camera":
+            if T_world_cam is None:
+                raise PerceptionError("camera-frame hypotheses need the camera pose")
+            T_wc = np.asarray(T_world_cam, dtype=float)
+            hypotheses = [replace(h, T_world_obj=T_wc @ h.T_world_obj) for h in hypotheses]
         if hypotheses is None:
             hypotheses = []
             cam = None if T_world_cam is None else np.asarray(T_world_cam)[:3, 3]
