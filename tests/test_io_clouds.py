@@ -6,12 +6,11 @@ import struct
 
 import lzf
 import numpy as np
-import plyfile
 import pytest
 from scipy.spatial.transform import Rotation
 
 from ssp.errors import CloudFormatError
-from ssp.io.clouds import read_cloud, write_cloud
+from ssp.io.clouds import _read_ply, read_cloud, write_cloud
 
 RNG = np.random.default_rng(7)
 N = 50
@@ -34,10 +33,52 @@ def _packed(rgb: np.ndarray, alpha: int = 0) -> np.ndarray:
     return (np.uint32(alpha) << 24) | (c[:, 0] << 16) | (c[:, 1] << 8) | c[:, 2]
 
 
-def _ply(path, data: np.ndarray, text=False, byte_order="<", extra=()):
-    elements = [plyfile.PlyElement.describe(data, "vertex"), *extra]
-    plyfile.PlyData(elements, text=text, byte_order=byte_order).write(str(path))
+_PLY_TYPE = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": "int",
+             "u4": "uint", "f4": "float", "f8": "double"}  # fmt: skip
+_PLY_ALIAS = {"i1": "int8", "u1": "uint8", "i2": "int16", "u2": "uint16", "i4": "int32",
+              "u4": "uint32", "f4": "float32", "f8": "float64"}  # fmt: skip
+FACES = ("face", [("vertex_indices", [np.array([0, 1, 2], "i4"), np.array([2, 1, 0, 3], "i4")])])
+
+
+def _ply(path, data: np.ndarray, text=False, byte_order="<", before=(), after=(), aliases=False):
+    """Write a PLY file by hand, independently of ``write_cloud``: ``data`` (a structured array)
+    is the ``vertex`` element; ``before`` / ``after`` are other elements as ``(name, [(property,
+    values)])``, values an array (a scalar property) or a list of arrays (a list property with
+    uchar lengths)."""
+    names = _PLY_ALIAS if aliases else _PLY_TYPE
+    fmt = "ascii" if text else {"<": "binary_little_endian", ">": "binary_big_endian"}[byte_order]
+    elements = [*before, ("vertex", [(n, data[n]) for n in data.dtype.names]), *after]
+    head = ["ply", f"format {fmt} 1.0", "comment hand-made test file", "obj_info test"]
+    body = []
+    for name, props in elements:
+        n = len(props[0][1])
+        head.append(f"element {name} {n}")
+        for prop, vals in props:
+            if isinstance(vals, np.ndarray):
+                head.append(f"property {names[vals.dtype.str[1:]]} {prop}")
+            else:
+                head.append(f"property list uchar {names[vals[0].dtype.str[1:]]} {prop}")
+        for i in range(n):
+            row = [v[i : i + 1] if isinstance(v, np.ndarray) else v[i] for _, v in props]
+            row = [r if isinstance(v, np.ndarray) else (np.array([len(r)], "u1"), r)
+                   for r, (_, v) in zip(row, props, strict=True)]  # fmt: skip
+            cells = [c for r in row for c in (r if isinstance(r, tuple) else (r,))]
+            if text:
+                body.append(" ".join(repr(x) for c in cells for x in c.tolist()).encode() + b"\n")
+            else:
+                body += [c.astype(byte_order + c.dtype.str[1:]).tobytes() for c in cells]
+    path.write_bytes(("\n".join(head) + "\nend_header\n").encode() + b"".join(body))
     return path
+
+
+def _vertices(n=N, xyz="f8", **extra) -> np.ndarray:
+    """``POINTS[:n]`` as ``x y z`` of type ``xyz`` plus ``extra`` fields (name=(type, values))."""
+    dt = [(k, xyz) for k in "xyz"] + [(k, t) for k, (t, _) in extra.items()]
+    data = np.empty(n, dtype=dt)
+    data["x"], data["y"], data["z"] = POINTS[:n].T
+    for k, (_, v) in extra.items():
+        data[k] = v[:n]
+    return data
 
 
 # ------------------------------------------------------------------------------ round trips
@@ -89,33 +130,181 @@ def test_ply_rgb_short_names_float_colors_and_mesh(tmp_path):
     data = np.empty(2, dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")] + [(k, "f4") for k in "rgb"])
     data["x"], data["y"], data["z"] = 0.0, 0.5, 1.0
     data["r"], data["g"], data["b"] = [0.0, 1.0], [0.5, 0.2], [1.0, 0.0]
-    faces = np.array([([0, 1, 1],)], dtype=[("vertex_indices", "i4", (3,))])
-    c = read_cloud(
-        _ply(tmp_path / "m.ply", data, extra=[plyfile.PlyElement.describe(faces, "face")])
-    )
+    c = read_cloud(_ply(tmp_path / "m.ply", data, after=[FACES]))
     np.testing.assert_array_equal(c.colors, [[0, 128, 255], [255, 51, 0]])
 
 
 @pytest.mark.parametrize("first", ["vertex", "camera"])
 def test_ply_ascii_layouts_agree(tmp_path, first):
-    """The numpy fast path (vertex first) and plyfile (another element first) agree."""
-    data = np.empty(N, dtype=[("x", "f8"), ("y", "f8"), ("z", "f8"), ("red", "u1"), ("green", "u1"),
-                              ("blue", "u1"), ("label", "i4")])  # fmt: skip
-    data["x"], data["y"], data["z"] = POINTS.T
-    data["red"], data["green"], data["blue"] = COLORS.T
-    data["label"] = LABELS
-    faces = plyfile.PlyElement.describe(
-        np.array([([0, 1, 2],)], dtype=[("vertex_indices", "i4", (3,))]), "face"
-    )
-    cam = plyfile.PlyElement.describe(np.array([(1.5,)], dtype=[("f", "f4")]), "camera")
-    elements = [plyfile.PlyElement.describe(data, "vertex"), faces]
-    if first == "camera":
-        elements.insert(0, cam)
-    plyfile.PlyData(elements, text=True).write(str(tmp_path / "a.ply"))
-    c = read_cloud(tmp_path / "a.ply")
+    """Vertex first, or after another element (whose lines are skipped): the same cloud."""
+    data = _vertices(red=("u1", COLORS[:, 0]), green=("u1", COLORS[:, 1]),
+                     blue=("u1", COLORS[:, 2]), label=("i4", LABELS))  # fmt: skip
+    cam = ("camera", [("f", np.array([1.5], "f4")), ("k", [np.array([1, 2], "i2")])])
+    before = [cam] if first == "camera" else []
+    c = read_cloud(_ply(tmp_path / "a.ply", data, text=True, before=before, after=[FACES]))
     np.testing.assert_allclose(c.points, POINTS, rtol=1e-15)
     np.testing.assert_array_equal(c.colors, COLORS)
     np.testing.assert_array_equal(c.labels, LABELS)
+
+
+@pytest.mark.parametrize("fmt", ["<", ">", "ascii"])
+@pytest.mark.parametrize("aliases", [False, True], ids=["names", "aliases"])
+def test_ply_every_scalar_type(tmp_path, fmt, aliases):
+    """Every PLY type, by its name or its alias, reads with its own numpy type and exact values."""
+    rng = np.random.default_rng(1)
+    extra = {}
+    for code in _PLY_TYPE:
+        if code[0] == "f":
+            vals = rng.normal(size=N).astype(code) * 1000
+        else:
+            info = np.iinfo(code)
+            vals = rng.integers(info.min, int(info.max) + 1, N, dtype=np.int64).astype(code)
+            vals[:2] = info.min, info.max
+        extra[f"p_{code}"] = (code, vals)
+    data = _vertices(**extra)
+    path = _ply(tmp_path / "t.ply", data, text=fmt == "ascii", byte_order=fmt[0], aliases=aliases)
+    assert read_cloud(path).fields == data.dtype.names
+    columns = _read_ply(path, path.read_bytes())  # the columns themselves, not only the Cloud
+    for code in _PLY_TYPE:
+        col = columns[f"p_{code}"]
+        assert col.dtype == np.dtype(code) and col.dtype.isnative
+        np.testing.assert_array_equal(col, extra[f"p_{code}"][1])
+
+
+@pytest.mark.parametrize("fmt", ["<", ">", "ascii"])
+def test_ply_double_coordinates_exact(tmp_path, fmt):
+    pts = POINTS.copy()
+    pts[0] = [1e-300, -1e300, np.pi]
+    pts[1] = np.nan
+    data = np.empty(N, dtype=[(k, "f8") for k in "xyz"])
+    data["x"], data["y"], data["z"] = pts.T
+    c = read_cloud(_ply(tmp_path / "d.ply", data, text=fmt == "ascii", byte_order=fmt[0]))
+    assert c.points.dtype == np.float64
+    np.testing.assert_array_equal(c.points, pts)  # float64 in the file: bit for bit
+
+
+@pytest.mark.parametrize("fmt", ["<", ">", "ascii"])
+def test_ply_scalar_element_before_and_faces_after(tmp_path, fmt):
+    data = _vertices(xyz="f4", nx=("f4", NORMALS[:, 0]), ny=("f4", NORMALS[:, 1]),
+                     nz=("f4", NORMALS[:, 2]), instance=("i2", LABELS))  # fmt: skip
+    camera = ("camera", [("fx", np.array([525.0, 1.0, 2.0])), ("w", np.array([640, 1, 2], "u2")),
+                         ("flag", np.array([1, 0, 1], "i1"))])  # fmt: skip
+    path = _ply(tmp_path / "s.ply", data, text=fmt == "ascii", byte_order=fmt[0], before=[camera],
+                after=[FACES])  # fmt: skip
+    c = read_cloud(path)
+    np.testing.assert_array_equal(c.points, POINTS.astype("f4"))
+    np.testing.assert_array_equal(c.normals, NORMALS.astype("f4"))
+    np.testing.assert_array_equal(c.labels, LABELS)
+    assert c.label_field == "instance" and c.fields == data.dtype.names
+
+
+@pytest.mark.parametrize("fmt", ["<", ">", "ascii"])
+def test_ply_list_property_in_vertex_is_skipped(tmp_path, fmt):
+    lists = [np.arange(i % 4, dtype="i4") for i in range(N)]
+    data = _vertices(xyz="f4")
+    text = fmt == "ascii"
+    path = tmp_path / "l.ply"
+    _ply(path, data, text=text, byte_order=fmt[0], after=[FACES])
+    # the same vertex element with a list property between y and z, built on the first file
+    head, body = path.read_bytes().split(b"end_header\n")
+    head = head.replace(b"property float z", b"property list uchar int idx\nproperty float z")
+    rows = []
+    for i, lst in enumerate(lists):
+        x, y, z = (data[k][i : i + 1] for k in "xyz")
+        cells = [x, y, np.array([len(lst)], "u1"), lst, z]
+        if text:
+            rows.append(" ".join(repr(v) for cell in cells for v in cell.tolist()).encode() + b"\n")
+        else:
+            rows += [cell.astype(fmt + cell.dtype.str[1:]).tobytes() for cell in cells]
+    faces = body[N * 12 :] if not text else b"".join(body.splitlines(True)[N:])
+    path.write_bytes(head + b"end_header\n" + b"".join(rows) + faces)
+    c = read_cloud(path)
+    np.testing.assert_array_equal(c.points, POINTS.astype("f4"))
+    assert c.fields == ("x", "y", "z")
+    cut = b"".join(rows[:-1]) if text else b"".join(rows)[:-3]  # the last vertex incomplete
+    path.write_bytes(head + b"end_header\n" + cut)
+    _assert_bad(path, "truncated")
+
+
+def test_ply_list_element_before_vertex(tmp_path):
+    material = ("material", [("ids", [np.array([1, 2, 3], "i4")]), ("s", np.array([9], "i4"))])
+    data = _vertices()
+    c = read_cloud(_ply(tmp_path / "a.ply", data, text=True, before=[material]))
+    np.testing.assert_allclose(c.points, POINTS, rtol=1e-15)  # ascii: its lines are skipped
+    for bo in "<>":
+        _assert_bad(_ply(tmp_path / "b.ply", data, byte_order=bo, before=[material]),
+                    "'material'.*list properties.*not supported")  # fmt: skip
+
+
+@pytest.mark.parametrize("byte_order", ["<", ">"])
+def test_ply_truncated_binary(tmp_path, byte_order):
+    camera = ("camera", [("fx", np.array([525.0, 1.0]))])
+    path = _ply(tmp_path / "t.ply", _vertices(), byte_order=byte_order, before=[camera])
+    full = path.read_bytes()
+    vertex_bytes = N * 24
+    path.write_bytes(full[:-1])
+    _assert_bad(path, rf"truncated: {N} vertices of 24 bytes take {vertex_bytes} bytes")
+    path.write_bytes(full[: -vertex_bytes - 1])  # inside the camera element
+    _assert_bad(path, "truncated: the elements before 'vertex' \\(camera\\)")
+    path.write_bytes(full[: full.index(b"end_header") + 5])  # inside the header
+    _assert_bad(path, "no 'end_header'")
+
+
+@pytest.mark.parametrize(
+    ("change", "match"),
+    [
+        ((b"format ascii 1.0\n", b""), "no 'format' line"),
+        ((b"ascii 1.0", b"ascii 2.0"), "unsupported PLY version"),
+        ((b"ascii 1.0", b"binary_middle_endian 1.0"), "expected 'format"),
+        ((b"float z", b"half z"), "unknown property type 'half'"),
+        ((b"float z", b"list float int z"), "length type must be an integer"),
+        ((b"float z", b"float x"), "a second property 'x'"),
+        ((b"vertex 2", b"vertex -2"), "expected 'element <name> <count>'"),
+        ((b"vertex 2", b"point 2"), "no 'vertex' element \\(elements: point\\)"),
+        ((b"end_header", b"weird line\nend_header"), "unknown keyword 'weird'"),
+        ((b"ply\n", b"plx\n"), "not a PLY file"),
+        ((b"4 5 6\n", b""), "truncated: the header declares 2 vertices, the file holds 1"),
+        ((b"4 5 6", b"4 5"), "number of columns changed"),
+        ((b"4 5 6", b"4 x 6"), "could not convert string 'x'"),
+        ((b"float z", b"uchar z"), None),  # 3 and 6: fine as uchar
+        ((b"4 5 6", b"4 5 6.5"), "integer property 'z' has non-integer values"),
+        ((b"4 5 6", b"4 5 256"), "outside the range of uchar"),
+    ],
+)
+def test_ply_bad_header_and_ascii_data(tmp_path, change, match):
+    text = (b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
+            b"property float z\nend_header\n1 2 3\n4 5 6\n")  # fmt: skip
+    if change[1] in (b"4 5 6.5", b"4 5 256"):
+        text = text.replace(b"float z", b"uchar z")
+    p = tmp_path / "h.ply"
+    p.write_bytes(text.replace(*change))
+    if match is None:
+        np.testing.assert_array_equal(read_cloud(p).points, [[1, 2, 3], [4, 5, 6]])
+    else:
+        _assert_bad(p, match)
+
+
+def test_ply_crlf_blank_lines_and_comments(tmp_path):
+    p = tmp_path / "w.ply"
+    p.write_bytes(b"ply\r\ncomment made on windows\r\nformat ascii 1.0\r\nobj_info x\r\n"
+                  b"element vertex 2\r\nproperty double x\r\nproperty double y\r\n"
+                  b"property double z\r\nend_header\r\n1 2 3\r\n\r\n4\t5 6\r\n")  # fmt: skip
+    np.testing.assert_array_equal(read_cloud(p).points, [[1, 2, 3], [4, 5, 6]])
+
+
+def test_ply_written_header_and_body(tmp_path):
+    """``write_cloud`` writes a plain little-endian vertex element (readable by any PLY reader)."""
+    p = write_cloud(tmp_path / "w.ply", POINTS[:3], COLORS[:3], [1, 2, 3])
+    head, body = p.read_bytes().split(b"end_header\n")
+    assert head.decode().splitlines() == [
+        "ply", "format binary_little_endian 1.0", "comment written by ssp", "element vertex 3",
+        "property float x", "property float y", "property float z", "property uchar red",
+        "property uchar green", "property uchar blue", "property uint label",
+    ]  # fmt: skip
+    dtype = [(k, "<f4") for k in "xyz"] + [(k, "u1") for k in ("red", "green", "blue")]
+    rows = np.frombuffer(body, dtype=[*dtype, ("label", "<u4")])
+    np.testing.assert_array_equal(rows["y"], POINTS[:3, 1].astype("f4"))
+    np.testing.assert_array_equal(rows["label"], [1, 2, 3])
 
 
 def test_label_field_order_and_float_labels(tmp_path):

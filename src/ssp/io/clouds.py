@@ -12,16 +12,21 @@ Fields read (names matched case-insensitively, the first match wins):
 * viewpoint: the PCD ``VIEWPOINT tx ty tz qw qx qy qz`` header (the sensor pose in the cloud's
   frame); the identity, which every PCD writer puts there when it knows nothing, reads as None.
 
-PLY goes through ``plyfile`` (ascii, binary little and big endian), except that ascii files of
-the usual layout are parsed and written here with numpy (plyfile's ascii path runs row by row in
-Python: 7 s to read and 24 s to write 640 x 480 points, measured). PCD has its own reader and
-writer here, because the maintained PCD package on PyPI (``pypcd4`` 1.5.1, measured 2026) reads
-PCL's ascii ``rgb`` wrongly (PCL writes that float field as the uint32 integer, pypcd4 parses it as
-a float32 and loses the low bits: colour (10, 20, 30) with alpha 255 came back as (127, 10, 20)),
-writes ascii ``rgb`` as ``%.10f`` (every packed colour became 0), and returns silently fewer points
-from a truncated file. PCD is a short text header plus one of three bodies, so a reader that checks
-every size is little code; ``binary_compressed`` needs LZF, from the ``lzf`` module
-(``python-neo-lzf``, the wheel-packaged fork of ``python-lzf``).
+PLY (``format ascii``, ``binary_little_endian`` and ``binary_big_endian`` 1.0) is parsed and
+written here with numpy: the header, then ``np.frombuffer`` of the ``vertex`` rows in a binary
+file and :func:`numpy.loadtxt` of them in an ascii one. The well-known Python PLY library,
+``plyfile``, is GPL-3.0, incompatible with this package's MIT licence, and trimesh's loader does
+not give custom per-vertex fields such as ``label`` (a ``PointCloud`` has colours only; the rest
+sits in the private ``metadata["_ply_raw"]``). Elements before ``vertex`` are skipped (in a binary
+file only if they have no list properties); elements after it (faces) are not read.
+
+PCD has its own reader and writer here, because the maintained PCD package on PyPI (``pypcd4``
+1.5.1, measured 2026) reads PCL's ascii ``rgb`` wrongly (PCL writes that float field as the uint32
+integer, pypcd4 parses it as a float32 and loses the low bits: colour (10, 20, 30) with alpha 255
+came back as (127, 10, 20)), writes ascii ``rgb`` as ``%.10f`` (every packed colour became 0), and
+returns silently fewer points from a truncated file. PCD is a short text header plus one of three
+bodies, so a reader that checks every size is little code; ``binary_compressed`` needs LZF, from
+the ``lzf`` module (``python-neo-lzf``, the wheel-packaged fork of ``python-lzf``).
 
 Every problem with a file raises :class:`~ssp.errors.CloudFormatError` naming the file and the
 problem. Non-finite points are kept (``Frame.validate`` drops them).
@@ -29,16 +34,15 @@ problem. Non-finite points are kept (``Frame.validate`` drops them).
 
 from __future__ import annotations
 
-import io
 import logging
 import os
 import re
 import struct
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import plyfile
 from scipy.spatial.transform import Rotation
 
 from ssp.errors import CloudFormatError
@@ -258,120 +262,349 @@ _PLY_TYPES = {
 }  # fmt: skip
 _PLY_NAMES = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": "int",
               "u4": "uint", "f4": "float", "f8": "double"}  # fmt: skip
+#: ``format`` of a PLY file -> numpy byte order of its body (None: ascii).
+_PLY_FORMATS = {"ascii": None, "binary_little_endian": "<", "binary_big_endian": ">"}
+_PLY_END_HEADER = re.compile(rb"^end_header[ \t\r]*$", re.MULTILINE)
+_PLY_COUNT_STRUCT = {"i1": "b", "u1": "B", "i2": "h", "u2": "H", "i4": "i", "u4": "I"}
+
+
+@dataclass
+class _PlyProperty:
+    name: str
+    code: str  # numpy type code of the value (of each item, for a list)
+    count_code: str | None = None  # numpy type code of a list's length; None: a scalar
+
+
+@dataclass
+class _PlyElement:
+    name: str
+    count: int
+    properties: list[_PlyProperty] = field(default_factory=list)
+
+    @property
+    def has_lists(self) -> bool:
+        return any(p.count_code is not None for p in self.properties)
+
+    def dtype(self, byte_order: str) -> np.dtype:
+        """The record of one row (scalar properties only)."""
+        return np.dtype([(p.name, byte_order + p.code) for p in self.properties])
 
 
 def _read_ply(path: Path, raw: bytes) -> dict[str, np.ndarray]:
     """Columns of the ``vertex`` element of a PLY file (list properties are skipped).
 
-    ``plyfile`` reads binary files through a memory map (fast); its ascii reader goes row by
-    row in Python (about 7 s for 640 x 480 points), so an ascii file whose first element is a
-    ``vertex`` without list properties, the usual layout, is parsed here with numpy instead.
+    Elements before ``vertex`` are skipped (in a binary file they must have scalar properties
+    only: their rows then have a fixed size); elements after it (faces) are not read.
     """
-    columns = _ply_ascii_fast(raw)
-    if columns is not None:
-        return columns
-    try:
-        ply = plyfile.PlyData.read(str(path), mmap="c")
-    except Exception as exc:  # any failure to parse these bytes is a format problem
-        raise CloudFormatError(f"{path}: not a readable PLY file: {exc}") from exc
-    names = [e.name for e in ply.elements]
+    byte_order, elements, start = _parse_ply_header(path, raw)
+    names = [e.name for e in elements]
     if "vertex" not in names:
         raise CloudFormatError(
             f"{path}: PLY file has no 'vertex' element (elements: {', '.join(names) or 'none'})"
         )
-    data = ply["vertex"].data
-    columns = {}
-    for name in data.dtype.names or ():
-        col = data[name]
-        if col.dtype == object:  # a list property: not a per-point scalar
-            log.debug("%s: skipping PLY list property %r", path, name)
-            continue
-        columns[name] = np.array(col, dtype=col.dtype.newbyteorder("="))  # a copy, off the map
-    return columns
+    k = names.index("vertex")
+    before, vertex = elements[:k], elements[k]
+    for p in vertex.properties:
+        if p.count_code is not None:
+            log.debug("%s: skipping PLY list property %r", path, p.name)
+    if byte_order is None:
+        return _ply_ascii_vertex(path, raw, start, before, vertex)
+    return _ply_binary_vertex(path, raw, start, byte_order, before, vertex)
 
 
-def _ply_ascii_fast(raw: bytes) -> dict[str, np.ndarray] | None:
-    """Vertex columns of an ascii PLY whose first element is ``vertex`` with scalar properties
-    only; None for any other file or any irregularity (``plyfile`` then reads it and reports
-    the error precisely)."""
-    end = raw.find(b"end_header", 0, 1 << 16)
-    if not raw.startswith(b"ply") or end < 0:
-        return None
-    nl = raw.find(b"\n", end)
+def _parse_ply_header(path: Path, raw: bytes) -> tuple[str | None, list[_PlyElement], int]:
+    """(byte order ``<`` / ``>``, or None for ascii; the elements; the offset of the data)."""
+    nl = raw.find(b"\n", 0, 256)
+    if not raw.startswith(b"ply") or (nl >= 0 and raw[:nl].strip() != b"ply"):
+        raise CloudFormatError(f"{path}: not a PLY file (the first line is not 'ply')")
+    end = _PLY_END_HEADER.search(raw)
+    if end is None:
+        raise CloudFormatError(
+            f"{path}: bad PLY header: no 'end_header' line (truncated, or not a PLY file)"
+        )
     try:
-        lines = [ln.split() for ln in raw[:end].decode("ascii").splitlines()[1:]]
+        text = raw[: end.start()].decode("utf-8")
     except UnicodeDecodeError:
-        return None
-    lines = [ln for ln in lines if ln and ln[0] not in ("comment", "obj_info")]
-    if not lines or lines[0][:2] != ["format", "ascii"] or len(lines) < 2:
-        return None
-    if len(lines[1]) != 3 or lines[1][:2] != ["element", "vertex"] or not lines[1][2].isdigit():
-        return None
-    count, props = int(lines[1][2]), []
-    for ln in lines[2:]:
-        if ln[0] == "element":
-            break
-        if len(ln) != 3 or ln[0] != "property" or ln[1] not in _PLY_TYPES:
-            return None  # a list property or something unusual
-        props.append((ln[2], _PLY_TYPES[ln[1]]))
-    if nl < 0 or not props or len({n for n, _ in props}) != len(props):
-        return None
-    rows = raw[nl + 1 :].split(b"\n", count)
-    if len(rows) < count:
-        return None
-    tokens = b" ".join(rows[:count]).split()
-    if len(tokens) != count * len(props):
-        return None
-    table = np.array(tokens).reshape(count, len(props))
+        text = raw[: end.start()].decode("latin-1")  # only comments may hold such bytes
+    fmt: str | None = None
+    elements: list[_PlyElement] = []
+    for lineno, line in enumerate(text.split("\n")[1:], start=2):
+        words = line.split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+
+        def bad(problem: str, lineno=lineno, line=line) -> CloudFormatError:
+            return CloudFormatError(
+                f"{path}: bad PLY header, line {lineno} ({line.strip()!r}): {problem}"
+            )
+
+        if words[0] == "format":
+            if fmt is not None or elements:
+                raise bad("'format' must come once, before the elements")
+            if len(words) != 3 or words[1] not in _PLY_FORMATS:
+                raise bad(f"expected 'format {' | '.join(_PLY_FORMATS)} 1.0'")
+            if words[2] not in ("1.0", "1"):
+                raise bad(f"unsupported PLY version {words[2]!r} (expected 1.0)")
+            fmt = words[1]
+        elif words[0] == "element":
+            if len(words) != 3 or not (words[2].isascii() and words[2].isdigit()):
+                raise bad("expected 'element <name> <count>'")
+            if any(e.name == words[1] for e in elements):
+                raise bad(f"a second element {words[1]!r}")
+            elements.append(_PlyElement(words[1], int(words[2])))
+        elif words[0] == "property":
+            if not elements:
+                raise bad("a property before any element")
+            if len(words) == 3:
+                count_type, item_type, name = None, words[1], words[2]
+            elif len(words) == 5 and words[1] == "list":
+                count_type, item_type, name = words[2], words[3], words[4]
+            else:
+                raise bad(
+                    "expected 'property <type> <name>' or "
+                    "'property list <length type> <item type> <name>'"
+                )
+            for t in (count_type, item_type):
+                if t is not None and t not in _PLY_TYPES:
+                    raise bad(f"unknown property type {t!r} (known: {', '.join(_PLY_TYPES)})")
+            if count_type is not None and _PLY_TYPES[count_type][0] not in "iu":
+                raise bad(f"a list's length type must be an integer type, not {count_type!r}")
+            props = elements[-1].properties
+            if any(p.name == name for p in props):
+                raise bad(f"a second property {name!r} in element {elements[-1].name!r}")
+            props.append(
+                _PlyProperty(name, _PLY_TYPES[item_type], count_type and _PLY_TYPES[count_type])
+            )
+        else:
+            raise bad(f"unknown keyword {words[0]!r}")
+    if fmt is None:
+        raise CloudFormatError(f"{path}: bad PLY header: no 'format' line")
+    return _PLY_FORMATS[fmt], elements, min(end.end() + 1, len(raw))
+
+
+def _ply_binary_vertex(
+    path: Path,
+    raw: bytes,
+    start: int,
+    byte_order: str,
+    before: list[_PlyElement],
+    vertex: _PlyElement,
+) -> dict[str, np.ndarray]:
+    """Binary: the elements before ``vertex`` skipped by size, its rows by ``np.frombuffer``."""
+    offset = start
+    for e in before:
+        if e.has_lists:
+            raise CloudFormatError(
+                f"{path}: element {e.name!r} comes before 'vertex' and has list properties: "
+                "skipping it in a binary PLY file is not supported"
+            )
+        offset += e.count * e.dtype(byte_order).itemsize
+    if offset > len(raw):
+        raise CloudFormatError(
+            f"{path}: truncated: the elements before 'vertex' "
+            f"({', '.join(e.name for e in before)}) take {offset - start} bytes, the file has "
+            f"{len(raw) - start} after the header"
+        )
+    if vertex.has_lists:
+        return _ply_binary_rows_with_lists(path, raw, offset, byte_order, vertex)
+    dtype = vertex.dtype(byte_order)
+    need = vertex.count * dtype.itemsize
+    if len(raw) - offset < need:
+        raise CloudFormatError(
+            f"{path}: truncated: {vertex.count} vertices of {dtype.itemsize} bytes take {need} "
+            f"bytes, the file has {len(raw) - offset}"
+        )
+    if vertex.count == 0 or not vertex.properties:
+        return {p.name: np.empty(0, p.code) for p in vertex.properties}
+    data = np.frombuffer(raw, dtype=dtype, count=vertex.count, offset=offset)
+    return {p.name: _native(data[p.name]) for p in vertex.properties}
+
+
+def _ply_binary_rows_with_lists(
+    path: Path, raw: bytes, offset: int, byte_order: str, vertex: _PlyElement
+) -> dict[str, np.ndarray]:
+    """A binary ``vertex`` element with list properties: the rows differ in size, so they are
+    walked in Python to find where each scalar value sits (slow, and rare in point clouds)."""
+    steps = [
+        (p.name, np.dtype(p.code).itemsize, None, 0)
+        if p.count_code is None
+        else (None, np.dtype(p.count_code).itemsize,
+              struct.Struct(byte_order + _PLY_COUNT_STRUCT[p.count_code]),
+              np.dtype(p.code).itemsize)
+        for p in vertex.properties
+    ]  # fmt: skip
+    where: dict[str, list[int]] = {name: [] for name, _, _, _ in steps if name is not None}
+    pos, size = offset, len(raw)
+    for row in range(vertex.count):
+        for name, step, length, item in steps:
+            if length is None:
+                where[name].append(pos)
+                pos += step
+                continue
+            if pos + step > size:
+                pos = size + 1
+                break
+            (n,) = length.unpack_from(raw, pos)
+            if n < 0:
+                raise CloudFormatError(f"{path}: vertex {row}: a list of negative length {n}")
+            pos += step + n * item
+        if pos > size:
+            raise CloudFormatError(
+                f"{path}: truncated: the data ends in vertex {row} of {vertex.count}"
+            )
+    buf = np.frombuffer(raw, dtype=np.uint8)
     columns = {}
-    for j, (name, code) in enumerate(props):
-        try:
-            vals = table[:, j].astype(np.float64)
-        except ValueError:
-            return None
-        if code[0] in "iu":
-            if not (np.all(np.isfinite(vals)) and np.all(vals == np.round(vals))):
-                return None
-            info = np.iinfo(code)
-            if count and (vals.min() < info.min or vals.max() > info.max):
-                return None
-        columns[name] = vals.astype(code)
+    for p in vertex.properties:
+        if p.count_code is None:
+            dt = np.dtype(byte_order + p.code)
+            idx = np.asarray(where[p.name], dtype=np.int64)[:, None] + np.arange(dt.itemsize)
+            columns[p.name] = _native(buf[idx].reshape(-1).view(dt))
     return columns
+
+
+def _ply_ascii_vertex(
+    path: Path, raw: bytes, start: int, before: list[_PlyElement], vertex: _PlyElement
+) -> dict[str, np.ndarray]:
+    """Ascii: one row per line (blank lines are ignored); the lines of the elements before
+    ``vertex`` are skipped, the vertex rows parsed with :func:`numpy.loadtxt`."""
+    lines = raw[start:].decode("latin-1").split("\n")  # any other byte fails as a number
+    i = 0
+    for e in before:
+        need = e.count if e.properties else 0  # a row of no values is a blank line
+        while need and i < len(lines):
+            need -= bool(lines[i].strip())
+            i += 1
+        if need:
+            raise CloudFormatError(
+                f"{path}: truncated: element {e.name!r} has {e.count} rows, the file holds "
+                f"{e.count - need}"
+            )
+    scalars = [p for p in vertex.properties if p.count_code is None]
+    if vertex.count == 0 or not scalars:
+        return {p.name: np.empty(0, p.code) for p in scalars}
+    if vertex.has_lists:
+        cells = _ply_ascii_rows_with_lists(path, lines, i, vertex)
+    else:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)  # about blank lines and max_rows
+            try:
+                table = np.loadtxt(
+                    lines[i:], dtype=np.float64, comments=None, ndmin=2, max_rows=vertex.count
+                )
+            except ValueError as exc:
+                problem = str(exc).split("; use `usecols`")[0]
+                raise CloudFormatError(f"{path}: bad ascii vertex data: {problem}") from exc
+        if len(table) < vertex.count:
+            raise CloudFormatError(
+                f"{path}: truncated: the header declares {vertex.count} vertices, the file holds "
+                f"{len(table)}"
+            )
+        if table.shape[1] != len(scalars):
+            raise CloudFormatError(
+                f"{path}: the vertex rows have {table.shape[1]} values, the header declares "
+                f"{len(scalars)} properties"
+            )
+        cells = {p.name: table[:, j] for j, p in enumerate(scalars)}
+    return {p.name: _ply_ascii_column(path, p, cells[p.name]) for p in scalars}
+
+
+def _ply_ascii_rows_with_lists(
+    path: Path, lines: list[str], i: int, vertex: _PlyElement
+) -> dict[str, np.ndarray]:
+    """The scalar values of an ascii ``vertex`` element with list properties, row by row."""
+    values: dict[str, list[str]] = {p.name: [] for p in vertex.properties if p.count_code is None}
+    row = 0
+    while row < vertex.count:
+        if i >= len(lines):
+            raise CloudFormatError(
+                f"{path}: truncated: the header declares {vertex.count} vertices, the file holds "
+                f"{row}"
+            )
+        words = lines[i].split()
+        i += 1
+        if not words:
+            continue
+        k, complete = 0, True
+        for p in vertex.properties:
+            if k >= len(words):
+                complete = False
+                break
+            if p.count_code is None:
+                values[p.name].append(words[k])
+                k += 1
+                continue
+            try:
+                n = int(words[k])
+            except ValueError:
+                n = -1
+            if n < 0:
+                raise CloudFormatError(
+                    f"{path}: vertex {row}: list {p.name!r} has a bad length {words[k]!r}"
+                )
+            k += 1 + n
+        if not complete or k != len(words):
+            raise CloudFormatError(
+                f"{path}: vertex {row}: the line has {len(words)} values, "
+                + ("too few for its properties" if not complete else f"its properties take {k}")
+            )
+        row += 1
+    columns = {}
+    for name, cells in values.items():
+        try:
+            columns[name] = np.asarray(cells).astype(np.float64)
+        except ValueError as exc:
+            raise CloudFormatError(
+                f"{path}: property {name!r} has a non-numeric value ({exc})"
+            ) from exc
+    return columns
+
+
+def _ply_ascii_column(path: Path, prop: _PlyProperty, vals: np.ndarray) -> np.ndarray:
+    """Float64 values read from text as the property's type (integers must be whole and in
+    the type's range)."""
+    if prop.code[0] in "iu":
+        if not (np.all(np.isfinite(vals)) and np.all(vals == np.round(vals))):
+            raise CloudFormatError(f"{path}: integer property {prop.name!r} has non-integer values")
+        info = np.iinfo(prop.code)
+        if len(vals) and (vals.min() < info.min or vals.max() > info.max):
+            raise CloudFormatError(
+                f"{path}: property {prop.name!r} has values outside the range of "
+                f"{_PLY_NAMES[prop.code]} ({info.min}..{info.max})"
+            )
+    with np.errstate(over="ignore"):  # doubles beyond float32 become inf, as in C
+        return vals.astype(prop.code)
 
 
 def _text_rows(fields: list[tuple[str, np.ndarray]]) -> bytes:
-    """One line per point, values separated by a space: floats ``%.9g``, integers ``%d``."""
+    """One line per point, values separated by a space: floats ``%.9g``, integers ``%d``.
+
+    (The rows go through Python numbers and one ``%`` format a row: 3 times faster than
+    :func:`numpy.savetxt`, which formats numpy scalars, for the same text.)
+    """
     table = np.empty(
         len(fields[0][1]), dtype=[(f"c{i}", a.dtype) for i, (_, a) in enumerate(fields)]
     )
     for i, (_, a) in enumerate(fields):
         table[f"c{i}"] = a
-    out = io.StringIO()
-    fmts = ["%.9g" if a.dtype.kind == "f" else "%d" for _, a in fields]
-    np.savetxt(out, table, fmt=fmts, delimiter=" ")
-    return out.getvalue().encode("ascii")
+    row = " ".join("%.9g" if a.dtype.kind == "f" else "%d" for _, a in fields)
+    return ("\n".join(map(row.__mod__, table.tolist())) + "\n").encode("ascii")
 
 
 def _write_ply(path: Path, fields: list[tuple[str, np.ndarray]], binary: bool) -> None:
-    if not binary:  # plyfile writes ascii row by row in Python: slow for big clouds
-        header = ["ply", "format ascii 1.0", "comment written by ssp"]
-        header.append(f"element vertex {len(fields[0][1])}")
-        header += [f"property {_PLY_NAMES[a.dtype.str[1:]]} {n}" for n, a in fields]
-        header.append("end_header")
-        atomic_write_bytes(path, ("\n".join(header) + "\n").encode("ascii") + _text_rows(fields))
-        return
-    data = np.empty(len(fields[0][1]), dtype=[(n, a.dtype.str) for n, a in fields])
-    for name, arr in fields:
-        data[name] = arr
-    ply = plyfile.PlyData(
-        [plyfile.PlyElement.describe(data, "vertex")],
-        text=False,
-        byte_order="<",
-        comments=["written by ssp"],
-    )
-    buf = io.BytesIO()
-    ply.write(buf)
-    atomic_write_bytes(path, buf.getvalue())
+    """Write the ``vertex`` element: ``binary_little_endian``, or ascii (one row a line)."""
+    n = len(fields[0][1])
+    header = ["ply", f"format {'binary_little_endian' if binary else 'ascii'} 1.0"]
+    header += ["comment written by ssp", f"element vertex {n}"]
+    header += [f"property {_PLY_NAMES[a.dtype.str[1:]]} {name}" for name, a in fields]
+    header.append("end_header")
+    if binary:
+        data = np.empty(n, dtype=[(name, "<" + a.dtype.str[1:]) for name, a in fields])
+        for name, arr in fields:
+            data[name] = arr
+        body = data.tobytes()
+    else:
+        body = _text_rows(fields)
+    atomic_write_bytes(path, ("\n".join(header) + "\n").encode("ascii") + body)
 
 
 # ------------------------------------------------------------------------------------ PCD
