@@ -108,3 +108,20 @@ def test_simulate_and_table1_commands(tmp_path):
     assert result["frames"] == 2 and "ssp" in result["methods"]
     r = runner.invoke(app, ["bench", "table1", "--experiment", "towers", "--out", str(tmp_path)])
     assert r.exit_code != 0 and "isolated or structure" in r.output
+
+
+def test_run_reports_bad_frames_and_fails_without_good_ones(tmp_path):
+    src = tmp_path / "in"
+    src.mkdir()
+    (src / "a.ply").write_text("ply\nformat ascii 1.0\nelement vertex 3\n")  # no end_header
+    (src / "b.pcd").write_bytes(b"not a pcd")
+    r = runner.invoke(app, ["run", str(src), "--out", str(tmp_path / "out")])
+    assert r.exit_code == 1
+    assert "skipped" in r.output and "a.ply" in r.output and "b.pcd" in r.output
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["done"] == 0 and [f["frame"] for f in summary["failed"]] == ["a", "b"]
+
+
+def test_run_rejects_unknown_hypotheses_mode(tmp_path):
+    r = runner.invoke(app, ["run", str(tmp_path), "--hypotheses", "magic"])
+    assert r.exit_code != 0
