@@ -70,8 +70,9 @@ def _camera_cloud(seq, i):
 
 
 def test_cloud_folder_estimated_with_bad_frames(lib, seq, tmp_path):
-    """Clouds in the camera frame, no camera pose (the table gives it), labels; three bad
-    files are reported and skipped, the good frames still come out right."""
+    """Clouds in the camera frame, no camera pose (the table gives it), labels; a truncated and
+    a millimetre cloud are reported and skipped, an unlabelled cloud is clustered, and the good
+    frames still come out right."""
     src = tmp_path / "in"
     src.mkdir()
     for i in range(len(seq)):
@@ -87,6 +88,7 @@ def test_cloud_folder_estimated_with_bad_frames(lib, seq, tmp_path):
     failed = {f["frame"]: f["error"] for f in summary.failed}
     assert done[: len(seq)] == [f"frame{i}" for i in range(len(seq))]
     assert "frame10" in failed and "frame12" in failed
+    assert "frame11" in done  # no labels: plane removal and clustering
     assert "millimetres" in failed["frame12"] or "mm" in failed["frame12"]
     # the last good frame: every visible object found within 5 mm (camera frame)
     rec = json.loads((tmp_path / "out" / "frames" / f"frame{len(seq) - 1}.json").read_text())

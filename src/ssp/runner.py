@@ -71,7 +71,7 @@ class RunSummary:
 
 @dataclass
 class _Source:
-    """One input frame: its name, 0-based index, stamp, and a function that perceives it."""
+    """One input frame: its name, 0-based index, and a function that reads and perceives it."""
 
     name: str
     index: int

@@ -61,13 +61,6 @@ def estimate_sequence(
         for k, (gid, (cls, T_gt)) in enumerate(sf.gt.items()):
             sym = library[cls].symmetry
             seg = res.segments.get(k)
-
-            def close(h, cls=cls, T_gt=T_gt, sym=sym) -> bool:
-                if h.class_name != cls:
-                    return False
-                dt, dr = pose_error(T_gt, h.T_world_obj, sym)
-                return dt <= RECALL_MM and dr <= RECALL_DEG
-
             top = seg.hypotheses[0] if seg is not None and seg.hypotheses else None
             records.append(
                 {
@@ -77,14 +70,22 @@ def estimate_sequence(
                     "visib_fract": float(sf.visib_fract.get(gid, 0.0)),
                     "segment_points": int(counts[k]),
                     "seconds": None if seg is None else float(seg.seconds),
-                    "recalled": any(close(h) for h in hyps),
-                    "top1": top is not None and close(top),
+                    "recalled": any(_close(h, cls, T_gt, sym) for h in hyps),
+                    "top1": top is not None and _close(top, cls, T_gt, sym),
                 }
             )
     info = dict(seq.info or {})
     info.pop("hypothesis_sources", None)  # the sources of the noisy hypotheses no longer apply
     info["hypotheses"] = "estimated"
     return replace(seq, frames=frames, info=info), records
+
+
+def _close(h, cls: str, T_gt: np.ndarray, symmetry) -> bool:
+    """Hypothesis ``h`` is of class ``cls`` and within the recall thresholds of ``T_gt``."""
+    if h.class_name != cls:
+        return False
+    dt, dr = pose_error(T_gt, h.T_world_obj, symmetry)
+    return dt <= RECALL_MM and dr <= RECALL_DEG
 
 
 def summarize_estimator(records: list[dict]) -> dict:

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -242,7 +242,10 @@ class HypothesisEstimator:
     """
 
     def __init__(
-        self, library: Mapping[str, ObjectModel], config: PerceptionConfig | None = None, seed=0
+        self,
+        library: Mapping[str, ObjectModel],
+        config: PerceptionConfig | None = None,
+        seed: int = 0,
     ) -> None:
         self.library = library
         self.cfg = config if config is not None else PerceptionConfig()
@@ -299,12 +302,15 @@ class HypothesisEstimator:
                 break
             p, n = pts[remaining], nrm[remaining]
             extent = _extent(p)
+            occ = _Occupancy(p, cfg.score_voxel)  # shared by every class's coarse scoring
+            seg_area = len(voxel_thin(p, cfg.score_voxel)) * cfg.score_voxel**2
+            seg_area /= _VOXEL_AREA_FACTOR
             pools = []
             for name in names:
                 table = self.table(name)
                 if single_object and extent > 1.3 * table.diameter:
                     continue  # the segment is larger than this class
-                pool = self._candidates(table, p, n, cam, rng)
+                pool = self._candidates(table, p, n, cam, rng, occ, seg_area)
                 if pool is not None:
                     result.candidates += len(pool.R)
                     pools.append(pool)
@@ -332,8 +338,13 @@ class HypothesisEstimator:
         result.seconds = time.perf_counter() - t0
         return result
 
-    def _candidates(self, table: ModelPairs, p, n, cam, rng) -> _Pool | None:
-        """Poses from matched point pairs with their coarse scores (steps 2-3), or None."""
+    def _candidates(
+        self, table: ModelPairs, p, n, cam, rng, occ: _Occupancy, seg_area: float
+    ) -> _Pool | None:
+        """Poses from matched point pairs with their coarse scores (steps 2-3), or None.
+
+        ``occ``: the occupancy grid of the segment ``p``; ``seg_area``: its surface area, m^2.
+        """
         cfg = self.cfg
         sel = voxel_thin(p, table.voxel)
         if len(sel) < 4:
@@ -368,7 +379,6 @@ class HypothesisEstimator:
         R = F_s[:, :3, :3] @ np.swapaxes(F_m[:, :3, :3], 1, 2)
         t = F_s[:, :3, 3] - np.einsum("nij,nj->ni", R, F_m[:, :3, 3])
         # coarse score: facing samples in occupied voxels of the segment
-        occ = _Occupancy(p, cfg.score_voxel)
         step = max(1, len(table.points) // 96)
         cp, cn = table.points[::step], table.normals[::step]
         wp = _rotate_all(R, cp) + t[:, None, :]
@@ -384,7 +394,6 @@ class HypothesisEstimator:
         # sample / segment area); the second keeps small classes from winning inside large
         # segments
         fit = coarse / np.maximum(facing.sum(1), 8)
-        seg_area = len(voxel_thin(p, cfg.score_voxel)) * cfg.score_voxel**2 / _VOXEL_AREA_FACTOR
         cover = np.minimum(1.0, coarse * (table.area / len(cp)) / max(seg_area, 1e-12))
         f1 = 2 * fit * cover / np.maximum(fit + cover, 1e-12)
         return _Pool(table, R, t, coarse, float(f1.max()))
@@ -485,17 +494,3 @@ def _extent(points: np.ndarray) -> float:
     _, _, vt = np.linalg.svd(c[:: max(1, len(c) // 500)], full_matrices=False)
     proj = c @ vt.T
     return float((proj.max(0) - proj.min(0)).max())
-
-
-def estimate_all(
-    estimator: HypothesisEstimator,
-    segments: Sequence[tuple[np.ndarray, np.ndarray]],
-    classes: Iterable[str],
-    camera_position=None,
-) -> list[SegmentResult]:
-    """:meth:`HypothesisEstimator.estimate` on each ``(points, normals)`` segment."""
-    names = list(classes)
-    return [
-        estimator.estimate(p, n, names, camera_position, seed=estimator.seed + i)
-        for i, (p, n) in enumerate(segments)
-    ]

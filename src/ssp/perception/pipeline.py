@@ -21,7 +21,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -29,6 +29,7 @@ from ssp.camera import Camera
 from ssp.config import PerceptionConfig, SSPConfig
 from ssp.errors import PerceptionError, UnknownObjectError
 from ssp.geometry import transform_points
+from ssp.io.hypotheses import to_world
 from ssp.library.model import ObjectModel
 from ssp.perception.depth import cloud_from_depth
 from ssp.perception.estimator import HypothesisEstimator, SegmentResult
@@ -195,8 +196,7 @@ class Perception:
         if hypotheses is not None and hypotheses_frame == "camera":
             if T_world_cam is None:
                 raise PerceptionError("camera-frame hypotheses need the camera pose")
-            T_wc = np.asarray(T_world_cam, dtype=float)
-            hypotheses = [replace(h, T_world_obj=T_wc @ h.T_world_obj) for h in hypotheses]
+            hypotheses = to_world(hypotheses, T_world_cam)
         if hypotheses is None:
             hypotheses = []
             cam = None if T_world_cam is None else np.asarray(T_world_cam)[:3, 3]

@@ -48,6 +48,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from ssp.io import write_json
 from ssp.scene import Hypothesis
 from ssp.sim.generate import generate_sequence
 from ssp.sim.hypotheses import HypothesisNoise
@@ -59,22 +60,6 @@ __all__ = ["DEPTH_SCALE", "read_bop", "simulate_to_disk", "write_bop"]
 #: Depth PNG unit, mm (0.1 mm: depths up to 6.5 m).
 DEPTH_SCALE = 0.1
 FORMAT_VERSION = 1
-
-
-def _json_default(o):
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (set, tuple)):
-        return list(o)
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
-
-
-def _dump(path: Path, obj) -> None:
-    path.write_text(json.dumps(obj, default=_json_default, indent=1))
 
 
 def _load(path: Path):
@@ -180,13 +165,13 @@ def write_bop(seq: SimSequence, out_dir, scene_id: int = 1) -> Path:
         _png(out / "depth" / f"{f.index:06d}.png", np.where(depth > 0, units, 0).astype(np.uint16))
         _png(out / "instance" / f"{f.index:06d}.png", (inst.astype(np.int32) + 2).astype(np.uint16))
 
-    _dump(out / "scene_gt.json", scene_gt)
-    _dump(out / "scene_camera.json", scene_camera)
-    _dump(out / "scene_gt_info.json", scene_info)
-    _dump(out / "hypotheses.json", hyps)
+    write_json(out / "scene_gt.json", scene_gt)
+    write_json(out / "scene_camera.json", scene_camera)
+    write_json(out / "scene_gt_info.json", scene_info)
+    write_json(out / "hypotheses.json", hyps)
     if sources is not None:
-        _dump(out / "hypotheses_gt.json", hyps_gt)
-    _dump(
+        write_json(out / "hypotheses_gt.json", hyps_gt)
+    write_json(
         out / "camera.json",
         {
             "width": int(cam.width),
@@ -198,7 +183,7 @@ def write_bop(seq: SimSequence, out_dir, scene_id: int = 1) -> Path:
             "depth_scale": DEPTH_SCALE,
         },
     )
-    _dump(
+    write_json(
         out / "models.json",
         {
             "obj_ids": {str(i): c for c, i in obj_id.items()},
@@ -208,7 +193,7 @@ def write_bop(seq: SimSequence, out_dir, scene_id: int = 1) -> Path:
             ],
         },
     )
-    _dump(
+    write_json(
         out / "sequence.json",
         {
             "format": "ssp-bop",
