@@ -471,6 +471,29 @@ class World:
         self._forward_current = False
         self._check_health(warn0, n)
 
+    def settle(
+        self,
+        *,
+        min_s: float = 0.2,
+        max_s: float = 2.0,
+        chunk_s: float = 0.05,
+        v_tol: float = 1e-3,
+        w_tol: float = 1e-2,
+    ) -> float | None:
+        """Simulate plain dynamics until every object is at rest (all linear speeds below
+        ``v_tol`` m/s and angular speeds below ``w_tol`` rad/s, checked every ``chunk_s`` s
+        after ``min_s`` s); the simulated time (s), or None if still moving after ``max_s``."""
+        n = max(1, round(chunk_s / self.timestep))
+        t = 0.0
+        while t < max_s - 1e-9:
+            self.step(n, quasi_static=False)
+            t += n * self.timestep
+            if t >= min_s - 1e-9:
+                lin, ang = self.velocities()
+                if len(lin) == 0 or (np.abs(lin).max() < v_tol and np.abs(ang).max() < w_tol):
+                    return t
+        return None
+
     def _check_health(self, warn0: np.ndarray, n: int) -> None:
         grew = self._warn[_FATAL_IDX] > warn0
         bad_state = not (np.isfinite(self._d.qpos).all() and np.isfinite(self._d.qvel).all())

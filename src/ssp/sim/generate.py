@@ -79,6 +79,7 @@ __all__ = [
     "default_camera_pose",
     "generate_sequence",
     "generate_sequences",
+    "observe_static_scene",
 ]
 
 EXPERIMENTS = ("isolated", "structure")
@@ -227,30 +228,7 @@ def _random_resting(model: ObjectModel, rng: np.random.Generator, region) -> np.
     return T
 
 
-# ---------------------------------------------------------------------------------- physics
-def _settle(
-    world: World,
-    *,
-    min_s: float = 0.2,
-    max_s: float = 2.0,
-    chunk_s: float = 0.05,
-    v_tol: float = 1e-3,
-    w_tol: float = 1e-2,
-) -> float | None:
-    """Simulate (dynamics) until every object is at rest; the time taken, or None if the
-    scene is still moving after ``max_s``."""
-    n = max(1, round(chunk_s / world.timestep))
-    t = 0.0
-    while t < max_s - 1e-9:
-        world.step(n, quasi_static=False)
-        t += n * world.timestep
-        if t >= min_s - 1e-9:
-            lin, ang = world.velocities()
-            if len(lin) == 0 or (np.abs(lin).max() < v_tol and np.abs(ang).max() < w_tol):
-                return t
-    return None
-
-
+# ---------------------------------------------------------------------------------- layouts
 @dataclass
 class _Stage:
     poses: dict[str, np.ndarray]  # present objects, in order of addition
@@ -310,7 +288,7 @@ def _build_isolated(
             world.set_poses(placed)
             for iid in new:
                 world.set_enabled(iid, True)
-            t = _settle(world)
+            t = world.settle()
             if t is not None and _isolated_ok(world, present + new, models, T_wc, camera):
                 break
             world.restore_state(saved)
@@ -525,7 +503,7 @@ def _run_structure(library, plan, stages, T_wc, camera, config) -> list[_Stage] 
         world.set_poses({i: planned[i] for i in new})
         for iid in new:
             world.set_enabled(iid, True)
-        t = _settle(world)
+        t = world.settle()
         if t is None:
             return None
         present += new
@@ -561,8 +539,11 @@ def _alone_count(model: ObjectModel, T: np.ndarray, T_wc: np.ndarray, cam: Camer
     return int(r.pixel_counts()["o"])
 
 
-def _stage_images(library, gt, T_wc, camera: Camera, stride: int, cache: dict):
-    """Clean depth, instance image, visib_fract and alone pixel counts of one static scene."""
+def observe_static_scene(library, gt, T_wc, camera: Camera, stride: int, cache: dict):
+    """Ray cast one static scene: ``(render, visib_fract, alone pixel counts, scene pixel
+    counts)``; ``gt`` is instance id -> ``(class, T_world_obj)``, ``camera`` full resolution.
+    ``cache`` (a dict kept by the caller) remembers each object's alone count while its pose
+    does not change."""
     scene = render(
         [(iid, library[cls].mesh, T) for iid, (cls, T) in gt.items()], T_wc, camera, stride=stride
     )
@@ -662,7 +643,7 @@ def generate_sequence(
     cam_s = camera.subsample(stride)
     for g, stage in enumerate(layout.stages):
         gt = {iid: (layout.classes[iid], T) for iid, T in stage.poses.items()}
-        scene, visib, alone, _ = _stage_images(library, gt, T_wc, camera, stride, cache)
+        scene, visib, alone, _ = observe_static_scene(library, gt, T_wc, camera, stride, cache)
         px_all.append(alone)
         instance = scene.instance.astype(np.int16)
         for _ in range(frames_per_stage):

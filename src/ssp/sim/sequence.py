@@ -16,7 +16,36 @@ import numpy as np
 from ssp.scene import Frame, Hypothesis
 from ssp.sim.render import Camera
 
-__all__ = ["SimFrame", "SimSequence"]
+__all__ = ["SimFrame", "SimSequence", "depth_frame"]
+
+
+def depth_frame(
+    depth: np.ndarray,
+    instance: np.ndarray | None,
+    camera: Camera,
+    T_world_cam: np.ndarray,
+    hypotheses: list[Hypothesis],
+    stamp: float,
+) -> Frame:
+    """The parser's input from a depth image ``(H, W)`` (m, 0 = no return): its cloud in the
+    world frame, per-point labels from ``instance`` (``(H, W)`` object index, -1 table, below
+    -1 nothing; labels < -1 become -1) and the hypotheses."""
+    depth = np.asarray(depth, dtype=float)
+    ok = depth.reshape(-1) > 0
+    p_cam = camera.backproject(depth).reshape(-1, 3)[ok]
+    T_wc = np.asarray(T_world_cam, dtype=float)
+    points = p_cam @ T_wc[:3, :3].T + T_wc[:3, 3]
+    lab = None
+    if instance is not None:
+        lab = np.asarray(instance).reshape(-1)[ok].astype(np.int64)
+        lab[lab < -1] = -1
+    return Frame(
+        stamp=float(stamp),
+        points=points,
+        hypotheses=list(hypotheses),
+        labels=lab,
+        T_world_cam=T_wc.copy(),
+    )
 
 
 @dataclass
@@ -81,20 +110,13 @@ class SimSequence:
         """The parser's input for frame ``i``: the cloud back-projected from the depth image
         (world frame) with per-point instance labels (table -1) and the noisy hypotheses."""
         f = self.frames[i]
-        depth = np.asarray(f.depth, dtype=float)
-        ok = depth.reshape(-1) > 0
-        p_cam = self.camera.backproject(depth).reshape(-1, 3)[ok]
-        R, t = self.T_world_cam[:3, :3], self.T_world_cam[:3, 3]
-        points = p_cam @ R.T + t
-        lab = np.asarray(f.instance).reshape(-1)[ok].astype(np.int64) if labels else None
-        if lab is not None:
-            lab[lab < -1] = -1
-        return Frame(
-            stamp=f.stamp,
-            points=points,
-            hypotheses=list(f.hypotheses),
-            labels=lab,
-            T_world_cam=self.T_world_cam.copy(),
+        return depth_frame(
+            f.depth,
+            f.instance if labels else None,
+            self.camera,
+            self.T_world_cam,
+            f.hypotheses,
+            f.stamp,
         )
 
     def ground_truth(self, i: int) -> Mapping[str, tuple[str, np.ndarray]]:
