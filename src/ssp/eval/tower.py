@@ -202,6 +202,10 @@ class TowerTrial:
         tower_poses: their true poses after the last successful stack.
         frames: per perceived frame, ``(true poses {id: T}, the method's output)``.
         seconds: wall time of the method's updates, one per frame.
+        placements: per placement, the held cube's tilt (deg) and its horizontal offset from
+            the cube below (mm, from the site for the first) at release, and the height (mm)
+            at which the guarded descent stopped above the perceived target.
+        final_depth: the last frame's depth image.
     """
 
     stacks: int = 0
@@ -210,6 +214,7 @@ class TowerTrial:
     tower_poses: dict[str, np.ndarray] = field(default_factory=dict)
     frames: list[tuple[dict[str, np.ndarray], list[Detection]]] = field(default_factory=list)
     seconds: list[float] = field(default_factory=list)
+    placements: list[dict] = field(default_factory=list)
     final_depth: np.ndarray | None = None
 
 
@@ -351,7 +356,16 @@ def run_trial(
             out.failure = "grasp missed"
             break
         before = {oid: world.get_pose(oid) for oid in out.tower}
-        place(world, held, target)
+        stop = place(world, held, target)
+        T_held = world.get_pose(held.oid)
+        T_below = world.get_pose(out.tower[-1]) if out.tower else target
+        out.placements.append(
+            {
+                "tilt_deg": tilt_deg(model, T_held),
+                "offset_mm": 1000.0 * float(np.hypot(*(T_held[:2, 3] - T_below[:2, 3]))),
+                "stop_mm": 1000.0 * stop,
+            }
+        )
         release(world)
         reason = _judge(world, model, size, out.tower, before, held.oid)
         if reason is not None:
@@ -492,6 +506,7 @@ def run_tower(
                     "consistency_mm": _mean_std(c)[0],
                     "consistency_deg": _mean_std(d)[0],
                     "frames": len(tr.frames),
+                    "placements": tr.placements,
                 }
             )
         sm, ss = _mean_std(stacks, ddof=1)
@@ -611,7 +626,14 @@ def tower_picture(library, trial: TowerTrial, method: str, camera: Camera | None
     truth = [(CUBE, T) for T in poses.values()]
     depth = render([(oid, library[CUBE].mesh, T) for oid, T in poses.items()], T_wc, cam).depth
     return overlay(
-        library, depth, cam, T_wc, truth, {method: [(d[0], d[1]) for d in dets]}, min_size=640
+        library,
+        depth,
+        cam,
+        T_wc,
+        truth,
+        {method: [(d[0], d[1]) for d in dets]},
+        crop_margin=120,
+        min_size=640,
     )
 
 
@@ -625,6 +647,6 @@ def write_tower(result: dict, out_dir: str | Path, pictures: Mapping[str, np.nda
     files[0].write_text(json.dumps(result, indent=2) + "\n")
     files[1].write_text(_markdown(result))
     for m, img in pictures.items():
-        title = f"{m}: final scene of trial 0 (white: truth, colour: {m}'s estimate)"
+        title = f"{m}, trial 0: final scene"
         files.append(save_png(out / f"tower_{m}.png", img, title=title, legend=("truth", m)))
     return files
