@@ -181,8 +181,8 @@ def test_run_tower_is_deterministic_and_writes_the_report(lib, tmp_path):
     kw = dict(methods=("estimator",), frames_per_step=1, blocks=3, stride=2)
     r1 = tower.run_tower(2, 5, lib, SSPConfig(), **kw)
     r2 = tower.run_tower(2, 5, lib, SSPConfig(), **kw)
-    for r in (r1, r2):
-        assert r["methods"]["estimator"].pop("sec_per_frame") > 0  # wall time differs
+    for r in (r1, r2):  # wall times differ
+        assert r["methods"]["estimator"].pop("sec_per_frame") > 0 and r.pop("wall_s") > 0
     assert r1 == r2
     m = r1["methods"]["estimator"]
     for key in ("stacks_mean", "stacks_std", "straightness_mm", "straightness_deg",
@@ -201,6 +201,16 @@ def test_ssp_stacks_a_short_tower(lib):
     assert tr.stacks == 3, tr.failure
     mm, _ = tower.consistency(tr, lib)
     assert len(mm) > 0 and np.mean(mm) < 3.0
+
+
+def test_noise_presets():
+    base = HypothesisNoise.structure()
+    assert tower.noise_preset("structure") == base
+    loud = tower.noise_preset("case-study")
+    assert loud.sigma_r_deg == pytest.approx(4.3 * base.sigma_r_deg)
+    assert loud.sigma_t == pytest.approx(1.2 * base.sigma_t) and loud.k == base.k
+    with pytest.raises(ValueError, match="case-study"):
+        tower.noise_preset("loud")
 
 
 def test_bad_arguments_are_rejected(lib):

@@ -472,6 +472,7 @@ def run_tower(
         raise ValueError("trials and frames_per_step must be >= 1")
     config = config if config is not None else SSPConfig()
     model = library[CUBE]
+    t_start = time.perf_counter()
     out_methods: dict[str, dict] = {}
     detail: dict[str, list[dict]] = {}
     for name in methods:
@@ -539,6 +540,7 @@ def run_tower(
         else None,
         "methods": out_methods,
         "trials_detail": detail,
+        "wall_s": time.perf_counter() - t_start,
         "paper": PAPER_TABLE3,
     }
 
