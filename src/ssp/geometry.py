@@ -27,6 +27,15 @@ def make_pose(R: np.ndarray | None = None, t: np.ndarray | None = None) -> np.nd
     return T
 
 
+def yaw_pose(yaw: float, t=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """4x4 pose rotated by ``yaw`` (rad) about the world z axis, translated by ``t`` (3,), m."""
+    c, s = float(np.cos(yaw)), float(np.sin(yaw))
+    T = np.eye(4)
+    T[:2, :2] = [[c, -s], [s, c]]
+    T[:3, 3] = t
+    return T
+
+
 def invert(T: np.ndarray) -> np.ndarray:
     """Inverse of a rigid transform, (4, 4) or (n, 4, 4)."""
     T = np.asarray(T, dtype=float)

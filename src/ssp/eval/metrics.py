@@ -47,6 +47,7 @@ __all__ = [
     "chordal_mean_rotation",
     "hypothesis_errors",
     "match_frame",
+    "plus_minus",
     "pose_error",
     "precision_deviations",
     "summarize",
@@ -231,3 +232,10 @@ def summarize(trans_mm: Sequence[float], rot_deg: Sequence[float]) -> dict[str, 
     tm, ts = ms(trans_mm)
     rm, rs = ms(rot_deg)
     return {"trans_mm_mean": tm, "trans_mm_std": ts, "rot_deg_mean": rm, "rot_deg_std": rs}
+
+
+def plus_minus(mean: float | None, std: float | None, digits: int = 2) -> str:
+    """``"mean ± std"`` with ``digits`` decimals, or ``"n/a"`` when ``mean`` is None."""
+    if mean is None:
+        return "n/a"
+    return f"{mean:.{digits}f} ± {std:.{digits}f}"

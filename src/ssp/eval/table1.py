@@ -42,6 +42,7 @@ from ssp.eval.metrics import (
     DEFAULT_GATE,
     hypothesis_errors,
     match_frame,
+    plus_minus,
     precision_deviations,
     summarize,
 )
@@ -304,12 +305,6 @@ def run_table1(
 
 
 # ------------------------------------------------------------------------------ report
-def _pm(mean, std, digits: int = 2) -> str:
-    if mean is None:
-        return "n/a"
-    return f"{mean:.{digits}f} ± {std:.{digits}f}"
-
-
 def _markdown(result: dict) -> str:
     exp = result["experiment"]
     lines = [
@@ -337,27 +332,28 @@ def _markdown(result: dict) -> str:
             "",
         ]
     lines.append(
-        f"| hypotheses | Induced Noise | {_pm(n['trans_mm_mean'], n['trans_mm_std'])} | "
-        f"{_pm(n['rot_deg_mean'], n['rot_deg_std'])} | | | | "
+        f"| hypotheses | Induced Noise | {plus_minus(n['trans_mm_mean'], n['trans_mm_std'])} | "
+        f"{plus_minus(n['rot_deg_mean'], n['rot_deg_std'])} | | | | "
         f"{n.get('hypotheses', '')} hyp., {n.get('outliers', 0)} outliers |"
     )
     for name, d in result["methods"].items():
         a, p = d["accuracy"], d["precision"]
         lines.append(
-            f"| {name} | Accuracy | {_pm(a['trans_mm_mean'], a['trans_mm_std'])} | "
-            f"{_pm(a['rot_deg_mean'], a['rot_deg_std'])} | {d['max_penetration_mm']:.2f} | "
+            f"| {name} | Accuracy | {plus_minus(a['trans_mm_mean'], a['trans_mm_std'])} | "
+            f"{plus_minus(a['rot_deg_mean'], a['rot_deg_std'])} | {d['max_penetration_mm']:.2f} | "
             f"{d['unsupported_objects']:.2f} | {d['sec_per_frame']:.3f} | "
             f"{d.get('matched', '')} / {d.get('missed', '')} / {d.get('false_positives', '')} |"
         )
         lines.append(
-            f"| {name} | Precision | {_pm(p['trans_mm_mean'], p['trans_mm_std'])} | "
-            f"{_pm(p['rot_deg_mean'], p['rot_deg_std'])} | | | | |"
+            f"| {name} | Precision | {plus_minus(p['trans_mm_mean'], p['trans_mm_std'])} | "
+            f"{plus_minus(p['rot_deg_mean'], p['rot_deg_std'])} | | | | |"
         )
         c = d.get("accuracy_common")
         if c:
             lines.append(
-                f"| {name} | Accuracy, common | {_pm(c['trans_mm_mean'], c['trans_mm_std'])} | "
-                f"{_pm(c['rot_deg_mean'], c['rot_deg_std'])} | | | | "
+                f"| {name} | Accuracy, common | "
+                f"{plus_minus(c['trans_mm_mean'], c['trans_mm_std'])} | "
+                f"{plus_minus(c['rot_deg_mean'], c['rot_deg_std'])} | | | | "
                 f"{d['common_objects']} matched by all |"
             )
     e = result.get("estimator")

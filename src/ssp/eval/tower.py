@@ -65,7 +65,14 @@ import numpy as np
 
 from ssp.config import SSPConfig
 from ssp.eval.baselines import Detection, make_method
-from ssp.eval.metrics import DEFAULT_GATE, match_frame, precision_deviations, summarize
+from ssp.eval.metrics import (
+    DEFAULT_GATE,
+    match_frame,
+    plus_minus,
+    precision_deviations,
+    summarize,
+)
+from ssp.geometry import yaw_pose
 from ssp.library.model import ObjectInstance, ObjectModel
 from ssp.physics.world import World
 from ssp.probability import pose_change
@@ -162,14 +169,6 @@ def camera_pose() -> np.ndarray:
     return look_at(eye, target)
 
 
-def _yaw_pose(yaw: float, xyz) -> np.ndarray:
-    c, s = math.cos(yaw), math.sin(yaw)
-    T = np.eye(4)
-    T[:2, :2] = [[c, -s], [s, c]]
-    T[:3, 3] = xyz
-    return T
-
-
 def _layout(rng: np.random.Generator, size: float, blocks: int) -> list[np.ndarray]:
     """``blocks`` resting poses, at least :data:`MIN_SPACING` apart and
     :data:`SITE_CLEARANCE` from the site (rejection sampling)."""
@@ -187,7 +186,7 @@ def _layout(rng: np.random.Generator, size: float, blocks: int) -> list[np.ndarr
         raise ValueError(f"could not lay out {blocks} cubes in REGION")
     yaws = rng.uniform(-math.pi / 4, math.pi / 4, size=blocks)
     return [
-        _yaw_pose(float(a), (p[0], p[1], size / 2 + 5e-4)) for p, a in zip(xy, yaws, strict=True)
+        yaw_pose(float(a), (p[0], p[1], size / 2 + 5e-4)) for p, a in zip(xy, yaws, strict=True)
     ]
 
 
@@ -332,7 +331,7 @@ def run_trial(
         dets = [d for d in look() if d.class_name == CUBE]
         tower_dets = [d for d in dets if _horizontal(d.T_world_obj) < size]
         if step == 0:
-            target = _yaw_pose(0.0, (SITE[0], SITE[1], size / 2))
+            target = yaw_pose(0.0, (SITE[0], SITE[1], size / 2))
         elif not tower_dets:
             out.failure = "tower not perceived"
             break
@@ -546,12 +545,6 @@ def run_tower(
 
 
 # ------------------------------------------------------------------------------ report
-def _pm(mean, std, digits: int = 2) -> str:
-    if mean is None:
-        return "n/a"
-    return f"{mean:.{digits}f} ± {std:.{digits}f}"
-
-
 def _markdown(result: dict) -> str:
     methods = list(result["methods"])
     head = "| Category | | " + " | ".join(methods) + " |"
@@ -568,9 +561,9 @@ def _markdown(result: dict) -> str:
         for m in methods:
             r = result["methods"][m]
             if key == "stacks":
-                cells.append(_pm(r["stacks_mean"], r["stacks_std"], digits))
+                cells.append(plus_minus(r["stacks_mean"], r["stacks_std"], digits))
             else:
-                cells.append(_pm(r[key], r[f"{key}_std"], digits))
+                cells.append(plus_minus(r[key], r[f"{key}_std"], digits))
         rows.append(f"| {label} | {sub} | " + " | ".join(cells) + " |")
     full = " | ".join(f"{result['methods'][m]['full_towers']}/{result['trials']}" for m in methods)
     n = result["blocks"]

@@ -59,6 +59,7 @@ import trimesh
 from scipy.spatial import ConvexHull
 
 from ssp.config import PhysicsConfig
+from ssp.geometry import yaw_pose
 from ssp.library.builtin import BLOCK_NAMES
 from ssp.library.model import ObjectInstance, ObjectModel
 from ssp.physics.world import World
@@ -208,21 +209,13 @@ def _stable_poses(model: ObjectModel, min_prob: float = 0.05) -> tuple[np.ndarra
     return transforms[keep], probs[keep] / probs[keep].sum()
 
 
-def _yaw_pose(yaw: float, t=(0.0, 0.0, 0.0)) -> np.ndarray:
-    c, s = math.cos(yaw), math.sin(yaw)
-    T = np.eye(4)
-    T[:2, :2] = [[c, -s], [s, c]]
-    T[:3, 3] = t
-    return T
-
-
 def _random_resting(model: ObjectModel, rng: np.random.Generator, region) -> np.ndarray:
     transforms, probs = _stable_poses(model)
     j = int(rng.choice(len(probs), p=probs))
     yaw = float(rng.uniform(-np.pi, np.pi))
     x = float(rng.uniform(*region[0]))
     y = float(rng.uniform(*region[1]))
-    T = _yaw_pose(yaw) @ transforms[j]
+    T = yaw_pose(yaw) @ transforms[j]
     centre = model.mesh.bounds.mean(axis=0) @ T[:3, :3].T + T[:3, 3]
     T[:2, 3] += np.array([x, y]) - centre[:2]
     return T
@@ -408,7 +401,7 @@ def _plan_structure(library, rng, n_total: int, T_wc, camera):
         kind = _KINDS[int(rng.choice(len(_KINDS), p=_KIND_WEIGHTS))]
         pieces = _component(kind, rng, cube.extents, block.extents)[: n_total - total]
         for _try in range(80):
-            T_c = _yaw_pose(
+            T_c = yaw_pose(
                 float(rng.uniform(-np.pi, np.pi)),
                 (rng.uniform(*STRUCTURE_REGION[0]), rng.uniform(*STRUCTURE_REGION[1]), 0.0),
             )
@@ -416,7 +409,7 @@ def _plan_structure(library, rng, n_total: int, T_wc, camera):
             for layer, cls, x, y, z, yaw in pieces:
                 jx, jy = rng.uniform(-STRUCTURE_JITTER_XY, STRUCTURE_JITTER_XY, 2)
                 jyaw = np.radians(rng.uniform(-STRUCTURE_JITTER_YAW_DEG, STRUCTURE_JITTER_YAW_DEG))
-                T = T_c @ _yaw_pose(yaw + jyaw, (x + jx, y + jy, z + STRUCTURE_LIFT))
+                T = T_c @ yaw_pose(yaw + jyaw, (x + jx, y + jy, z + STRUCTURE_LIFT))
                 placed.append((layer, cls, T))
                 new_polys.append(_footprint(models[cls], T))
             if not all(_in_view(models[cls], T, T_wc, camera) for _, cls, T in placed):
