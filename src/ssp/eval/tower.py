@@ -204,7 +204,6 @@ class TowerTrial:
         placements: per placement, the held cube's tilt (deg) and its horizontal offset from
             the cube below (mm, from the site for the first) at release, and the height (mm)
             at which the guarded descent stopped above the perceived target.
-        final_depth: the last frame's depth image.
     """
 
     stacks: int = 0
@@ -214,11 +213,11 @@ class TowerTrial:
     frames: list[tuple[dict[str, np.ndarray], list[Detection]]] = field(default_factory=list)
     seconds: list[float] = field(default_factory=list)
     placements: list[dict] = field(default_factory=list)
-    final_depth: np.ndarray | None = None
 
 
 class _Camera:
-    """The static camera and the hypothesis source of a trial."""
+    """The static camera and the hypothesis source of a trial. The scene is ray cast once per
+    static scene; each frame adds its own depth noise and hypotheses."""
 
     def __init__(
         self,
@@ -233,9 +232,9 @@ class _Camera:
         self.camera = camera or Camera.default()
         self.stride = int(stride)
         self.T_world_cam = camera_pose()
-        self.hypotheses = hypotheses
         self.noise = noise if noise is not None else HypothesisNoise.structure()
         self._cache: dict = {}
+        self._scene: tuple | None = None  # (poses, render, visib_fract) of the last scene
         self._perception = None
         if hypotheses == "estimated":
             from ssp.perception.pipeline import Perception
@@ -243,11 +242,19 @@ class _Camera:
             self._perception = Perception(library, config, classes=(CUBE,))
 
     def frame(self, poses: Mapping[str, np.ndarray], rng: np.random.Generator, stamp: float):
-        """A frame of the world with true ``poses``, and the noisy depth image."""
+        """The parser's input for the world with true ``poses``."""
         gt = {oid: (CUBE, T) for oid, T in poses.items()}
-        scene, visib, _, _ = observe_static_scene(
-            self.library, gt, self.T_world_cam, self.camera, self.stride, self._cache
-        )
+        last = self._scene
+        if (
+            last is None
+            or last[0].keys() != poses.keys()
+            or not all(np.array_equal(last[0][k], T) for k, T in poses.items())
+        ):
+            scene, visib, _, _ = observe_static_scene(
+                self.library, gt, self.T_world_cam, self.camera, self.stride, self._cache
+            )
+            self._scene = last = (dict(poses), scene, visib)
+        _, scene, visib = last
         depth = add_depth_noise(scene.depth, rng, quantum=KINECT_QUANTUM)
         if self._perception is None:
             hyps, _ = draw_hypotheses(gt, visib, self.library, self.noise, rng)
@@ -258,8 +265,7 @@ class _Camera:
                 depth, scene.camera, stamp=stamp, T_world_cam=self.T_world_cam, mask=mask
             )
             hyps = list(res.frame.hypotheses)
-        frame = depth_frame(depth, scene.instance, scene.camera, self.T_world_cam, hyps, stamp)
-        return frame, depth
+        return depth_frame(depth, scene.instance, scene.camera, self.T_world_cam, hyps, stamp)
 
 
 def _horizontal(T: np.ndarray) -> float:
@@ -315,13 +321,12 @@ def run_trial(
         dets: list[Detection] = []
         for _ in range(frames_per_step):
             poses = world.poses()
-            frame, depth = cam.frame(poses, np.random.default_rng([seed, trial, 1, n_frames]),
-                                     float(n_frames))  # fmt: skip
+            rng = np.random.default_rng([seed, trial, 1, n_frames])
+            frame = cam.frame(poses, rng, float(n_frames))
             t0 = time.perf_counter()
             dets = method.update(frame)
             out.seconds.append(time.perf_counter() - t0)
             out.frames.append((poses, list(dets)))
-            out.final_depth = depth
             n_frames += 1
         return dets
 
@@ -399,6 +404,12 @@ def _judge(world: World, model, size: float, tower, before, new: str) -> str | N
 
 
 # ------------------------------------------------------------------------------ measures
+def _moved(T0: np.ndarray, T1: np.ndarray, symmetry) -> bool:
+    """The cube's true pose changed by more than :data:`STATIC_SHIFT` / :data:`STATIC_TILT_DEG`."""
+    dt, dr = pose_change(T0, T1, symmetry)
+    return dt > STATIC_SHIFT or math.degrees(dr) > STATIC_TILT_DEG
+
+
 def straightness(trial: TowerTrial, model) -> tuple[list[float], list[float]]:
     """Per stacked cube above the base: ``(mm per level, deg per level)`` (module docstring)."""
     if len(trial.tower) < 2:
@@ -422,11 +433,7 @@ def consistency(trial: TowerTrial, library, gate: float = DEFAULT_GATE):
         by_gt = fm.by_gt()
         for oid, T in poses.items():
             runs = periods.setdefault(oid, [])
-            if runs:
-                dt, dr = pose_change(runs[-1][0], T, sym)
-                if dt > STATIC_SHIFT or math.degrees(dr) > STATIC_TILT_DEG:
-                    runs.append((T, []))
-            else:
+            if not runs or _moved(runs[-1][0], T, sym):
                 runs.append((T, []))
             m = by_gt.get(oid)
             if m is not None:
