@@ -10,7 +10,7 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from ssp.library.model import DecompositionInfo, ObjectModel
-from ssp.overlap import HullSet, overlap_fraction_table, overlap_fractions
+from ssp.overlap import HullSet, overlap_fraction_table, overlap_fractions, same_volume
 
 EDGE = 0.05  # m
 
@@ -270,3 +270,14 @@ def test_bad_pose_shape(cube):
         overlap_fractions([cube, cube], [at()])
     with pytest.raises(ValueError):
         overlap_fractions([cube], [np.full((4, 4), np.nan)])
+
+
+def test_same_volume(cube):
+    T = np.eye(4)
+    assert same_volume(cube, T, T, 0.3)
+    half = T.copy()
+    half[0, 3] = EDGE / 2  # half the volume shared
+    assert same_volume(cube, T, half, 0.3) and not same_volume(cube, T, half, 0.7)
+    far = T.copy()
+    far[0, 3] = 2 * EDGE
+    assert not same_volume(cube, T, far, 0.0)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from ssp.camera import Camera
 from ssp.errors import PerceptionError, TableNotFoundError, UnknownObjectError
@@ -101,6 +102,55 @@ def test_touching_objects_in_one_segment(lib, scene):
             if h.class_name == "cube"
         ]
         assert errs and min(e[0] for e in errs) < 5.0, (gid, errs)
+
+
+def test_diverse_keeps_other_orientations_that_explain_the_segment():
+    from ssp.config import PerceptionConfig
+    from ssp.perception.estimator import _diverse
+
+    def turned(deg, axis="z"):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_euler(axis, deg, degrees=True).as_matrix()
+        return T
+
+    sym = np.eye(3)[None]
+    found = [  # (score, T, coverage), best score first
+        (0.9, turned(0), 1.0),
+        (0.85, turned(5), 1.0),  # a near-duplicate of the best
+        (0.6, turned(90), 0.99),  # another orientation that explains the points
+        (0.5, turned(90, "x"), 0.8),  # another that does not
+    ]
+    cfg = PerceptionConfig()
+    kept = _diverse(found, 2, cfg, sym)
+    assert [s for s, _, _ in kept] == [0.9, 0.6]
+    assert [s for s, _, _ in _diverse(found, 3, cfg, sym)] == [0.9, 0.85, 0.6]
+    assert [s for s, _, _ in _diverse(found, 4, cfg, sym)] == [0.9, 0.85, 0.6, 0.5]
+    off = PerceptionConfig(alternatives=0, alternative_coverage=0.0)
+    assert [s for s, _, _ in _diverse(found, 2, off, sym)] == [0.9, 0.85]
+    assert _diverse([], 3, cfg, sym) == []
+
+
+def test_partly_hidden_block_gets_both_orientations(lib):
+    """A block behind a cube shows one end: the seen part fits it lying along x or along y.
+    Both orientations are among the hypotheses (the scene parser chooses); without
+    alternatives only the best-fitting one is."""
+    h, hb = lib["cube"].extents[2] / 2, lib["block"].extents[2] / 2
+    gt = {"cube": ("cube", _pose(0.0, -0.03, h)), "block": ("block", _pose(0.03, 0.03, hb))}
+    res = render([(k, lib[c].mesh, T) for k, (c, T) in gt.items()], T_WC, CAMERA, stride=1)
+    depth = add_depth_noise(res.depth, np.random.default_rng(0))
+    seg = _segment((gt, depth, np.asarray(res.instance).astype(np.int64)), 1)
+    nrm = estimate_normals(seg, viewpoint=T_WC[:3, 3])
+    sym = lib["block"].symmetry
+    T_gt = gt["block"][1]
+    from ssp.config import PerceptionConfig
+
+    for alternatives in (0, 4):
+        est = HypothesisEstimator(lib, PerceptionConfig(alternatives=alternatives))
+        res = est.estimate(seg, nrm, ["block"], T_WC[:3, 3], single_object=True)
+        errs = [pose_error(T_gt, hyp.T_world_obj, sym) for hyp in res.hypotheses]
+        assert min(dt for dt, dr in errs if dr <= 10) <= 5.0
+        turned = [dr for _, dr in errs if dr > 30]
+        assert (len(turned) > 0) == (alternatives > 0)
 
 
 def test_deterministic(lib, scene):

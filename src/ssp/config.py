@@ -414,6 +414,34 @@ class PerceptionConfig(_Section):
     )
     max_classes: int = Field(2, ge=1, description="Classes refined per object at most.")
     refine: int = Field(5, ge=1, description="Distinct candidates refined by ICP per object.")
+    alternatives: int = Field(
+        4,
+        ge=0,
+        description=(
+            "Other orientations refined per object: the best candidate of each orientation "
+            "turned by over alternative_deg from those refined. The ones that explain the "
+            "segment nearly as well are kept among the k (a mostly hidden object's seen part "
+            "often fits several orientations; the scene parser chooses)."
+        ),
+    )
+    alternative_deg: float = Field(
+        30.0, gt=0, le=180, description="Orientation difference of an alternative, deg."
+    )
+    alternative_coarse: float = Field(
+        0.5,
+        ge=0,
+        le=1,
+        description="An alternative's coarse score is at least this fraction of the best's.",
+    )
+    alternative_coverage: float = Field(
+        0.03,
+        ge=0,
+        le=1,
+        description=(
+            "An alternative explains at least the best's fraction of the segment points minus "
+            "this."
+        ),
+    )
     min_score: float = Field(
         0.3, ge=0, le=1, description="Objects whose best score is lower are not reported."
     )

@@ -34,7 +34,7 @@ if TYPE_CHECKING:
 
     from ssp.library.model import ObjectModel
 
-__all__ = ["HullSet", "overlap_fraction_table", "overlap_fractions"]
+__all__ = ["HullSet", "overlap_fraction_table", "overlap_fractions", "same_volume"]
 
 #: Decimals used to merge coplanar hull facets (Qhull triangulates each planar face).
 _PLANE_DECIMALS = 9
@@ -276,3 +276,13 @@ def overlap_fractions(
             covered[idx[hulls[j].contains(q, tol)]] = True
         out[i] = np.count_nonzero(covered) / k
     return out
+
+
+def same_volume(model: ObjectModel, T_a: np.ndarray, T_b: np.ndarray, fraction: float) -> bool:
+    """Do two poses of ``model`` share at least ``fraction`` of its volume (interior points at
+    ``T_a`` inside the convex parts at ``T_b``)? Two objects cannot share a volume, so two such
+    hypotheses are alternative poses of one object (``temporal.merge_overlap``)."""
+    if np.linalg.norm(np.asarray(T_a)[:3, 3] - np.asarray(T_b)[:3, 3]) > model.diameter:
+        return False
+    frac = overlap_fractions([model, model], np.stack([T_a, T_b]), table=False, pairs=[(0, 1)])
+    return bool(frac[0] >= fraction)

@@ -44,7 +44,7 @@ from ssp.forces import SegmentField
 from ssp.geometry import transform_points, validate_pose
 from ssp.library.library import ObjectLibrary
 from ssp.library.model import ObjectInstance, ObjectModel
-from ssp.overlap import overlap_fractions
+from ssp.overlap import overlap_fractions, same_volume
 from ssp.physics import World
 from ssp.probability import ObjectTerms, data_fit_fraction, pose_change
 from ssp.registration import icp_refine
@@ -313,15 +313,13 @@ class SceneParser:
 
     def _same_volume(self, a, b) -> bool:
         """Do hypotheses ``a`` and ``b`` (one class) share ``temporal.merge_overlap`` of the
-        model's volume? (interior samples of ``a`` inside ``b``'s convex parts)"""
-        model = self.library[a.class_name]
-        ta, tb = np.asarray(a.T_world_obj)[:3, 3], np.asarray(b.T_world_obj)[:3, 3]
-        if np.linalg.norm(ta - tb) > model.diameter:
-            return False
-        frac = overlap_fractions(
-            [model, model], np.stack([a.T_world_obj, b.T_world_obj]), table=False, pairs=[(0, 1)]
+        model's volume? (:func:`ssp.overlap.same_volume`)"""
+        return same_volume(
+            self.library[a.class_name],
+            a.T_world_obj,
+            b.T_world_obj,
+            self.config.temporal.merge_overlap,
         )
-        return bool(frac[0] >= self.config.temporal.merge_overlap)
 
     def _id_factory(self, counters: dict[str, int], taken: set[str]):
         def new_id(class_name: str) -> str:

@@ -3,9 +3,10 @@
 Each method is a small class with ``reset()`` and ``update(frame) -> list[Detection]``
 (``Detection`` is a ``(class_name, T_world_obj)`` named tuple), deterministic, fed the frames
 of one sequence in time order. Hypotheses are grouped per object as the parser groups them
-(:func:`ssp.temporal.associate` with the parser's per-class gate, best score first), and the
-object's segment of the cloud is found as the parser finds it
-(:func:`ssp.segments.object_segments`: the label most of the pose's model samples land on).
+(:func:`ssp.temporal.associate` with the parser's per-class gate, best score first, and
+clusters that share a volume merged: :func:`ssp.overlap.same_volume`), and the object's segment
+of the cloud is found as the parser finds it (:func:`ssp.segments.object_segments`: the label
+most of the pose's model samples land on).
 
 * ``estimator``: the best-scored hypothesis of each object (the pose estimator alone).
 * ``icp``: the estimator's pose refined by point-to-plane ICP on the object's segment.
@@ -32,6 +33,7 @@ from ssp.errors import SSPError
 from ssp.eval.metrics import chordal_mean_rotation
 from ssp.geometry import transform_points
 from ssp.library.model import ObjectModel
+from ssp.overlap import same_volume
 from ssp.parser import SceneParser
 from ssp.probability import data_fit_fraction, pose_change
 from ssp.registration import even_rows, facing_mask, icp_refine
@@ -111,13 +113,23 @@ class Estimator:
     def _groups(
         self, frame: Frame, previous: Mapping[str, tuple[str, np.ndarray]] | None = None, **kw
     ) -> dict[str, list[Hypothesis]]:
-        """The frame's hypotheses per object, best score first."""
+        """The frame's hypotheses per object, best score first, associated as the parser
+        does (clusters whose best poses share a volume are one object)."""
         return associate(
             frame.hypotheses,
             previous or {},
             self._symmetries,
             max_distance=self._gates,
+            same_volume=self._same_volume,
             **kw,
+        )
+
+    def _same_volume(self, a: Hypothesis, b: Hypothesis) -> bool:
+        return same_volume(
+            self.library[a.class_name],
+            a.T_world_obj,
+            b.T_world_obj,
+            self.config.temporal.merge_overlap,
         )
 
     def _segments(

@@ -225,11 +225,17 @@ class SegmentResult:
         return [h for obj in self.objects for h in obj]
 
 
+def _rotation_distances(Rs: np.ndarray, R_b: np.ndarray, sym: np.ndarray) -> np.ndarray:
+    """Smallest angles (rad, ``(n,)``) between each of ``Rs (n, 3, 3)`` and ``R_b S`` over
+    symmetry rotations ``S``."""
+    A = R_b[None] @ sym[:, :3, :3]  # (S, 3, 3); trace(Rs^T A) = sum of the products
+    tr = (Rs.reshape(len(Rs), 9) @ A.reshape(len(A), 9).T).max(1)
+    return np.arccos(np.clip((tr - 1) / 2, -1, 1))
+
+
 def _rotation_distance(R_a: np.ndarray, R_b: np.ndarray, sym: np.ndarray) -> float:
     """Smallest angle (rad) between ``R_a`` and ``R_b S`` over symmetry rotations ``S``."""
-    M = np.einsum("ji,jk,skl->sil", R_a, R_b, sym)
-    tr = np.trace(M, axis1=1, axis2=2)
-    return float(np.arccos(np.clip((tr.max() - 1) / 2, -1, 1)))
+    return float(_rotation_distances(R_a[None], R_b, sym)[0])
 
 
 class HypothesisEstimator:
@@ -329,8 +335,8 @@ class HypothesisEstimator:
             if best is None or best[0][0][0] < cfg.min_score:
                 break
             found, name = best
-            k = cfg.hypotheses_per_object
-            result.objects.append([Hypothesis(name, T, score=float(s)) for s, T in found[:k]])
+            kept = _diverse(found, cfg.hypotheses_per_object, cfg, self.table(name).symmetries)
+            result.objects.append([Hypothesis(name, T, score=s) for s, T, _ in kept])
             explained = self._explained(self.table(name), found[0][1], pts)
             if (remaining & explained).sum() < cfg.min_segment_points:
                 break
@@ -398,22 +404,45 @@ class HypothesisEstimator:
         f1 = 2 * fit * cover / np.maximum(fit + cover, 1e-12)
         return _Pool(table, R, t, coarse, float(f1.max()))
 
-    def _refine(self, pool: _Pool, p: np.ndarray, cam) -> list[tuple[float, np.ndarray]]:
-        """Ranked ``[(score, T_world_obj)]`` of distinct ICP-refined poses (step 4)."""
+    def _refine(self, pool: _Pool, p: np.ndarray, cam) -> list[tuple[float, np.ndarray, float]]:
+        """Ranked ``[(score, T_world_obj, coverage)]`` of distinct ICP-refined poses (step 4).
+
+        The ``refine`` best distinct candidates are refined, and also up to ``alternatives``
+        more whose orientation differs by over ``alternative_deg`` from all of those (the
+        best of each such orientation): when most of an object is hidden, the seen part often
+        fits several orientations, and the true one need not have the best coarse score.
+        """
         cfg, table = self.cfg, pool.table
         R, t, coarse = pool.R, pool.t, pool.coarse
+        sym = table.symmetries
+        order = np.argsort(-coarse, kind="stable")[: 40 * cfg.refine]
         chosen: list[int] = []  # distinct candidates, best coarse score first
-        for idx in np.argsort(-coarse, kind="stable")[: 40 * cfg.refine]:
+        for idx in order:
             if coarse[idx] == 0:
                 break
             if all(
                 np.linalg.norm(t[idx] - t[o]) > 0.1 * table.diameter
-                or _rotation_distance(R[o], R[idx], table.symmetries) > np.radians(15)
+                or _rotation_distance(R[o], R[idx], sym) > np.radians(15)
                 for o in chosen
             ):
                 chosen.append(int(idx))
                 if len(chosen) >= cfg.refine:
                     break
+        if chosen and cfg.alternatives:
+            # the best candidate of each other orientation, best first
+            apart = np.radians(cfg.alternative_deg)
+            floor = max(cfg.alternative_coarse * coarse[chosen[0]], 1)
+            rest = np.flatnonzero(coarse >= floor)
+            rest = rest[np.argsort(-coarse[rest], kind="stable")]
+            far = np.ones(len(rest), dtype=bool)
+            for o in chosen:
+                far &= _rotation_distances(R[rest], R[o], sym) > apart
+            extra = 0
+            while far.any() and extra < cfg.alternatives:
+                idx = int(rest[np.argmax(far)])
+                chosen.append(idx)
+                extra += 1
+                far &= _rotation_distances(R[rest], R[idx], sym) > apart
         model = self.library[table.name]
         poses: list[np.ndarray] = []
         for idx in chosen:  # coarse ICP, then drop the candidates that met
@@ -446,12 +475,12 @@ class HypothesisEstimator:
                 n_samples=800,
                 n_points=1000,
             )
-            refined.append((self._score(table, T, p, tree, cam), T))
-        refined.sort(key=lambda st: -st[0])
-        out: list[tuple[float, np.ndarray]] = []
-        for s, T in refined:
-            if not any(_same_pose(T, U, table.symmetries) for _, U in out):
-                out.append((s, T))
+            refined.append((*self._score(table, T, p, tree, cam), T))
+        refined.sort(key=lambda r: -r[0])
+        out: list[tuple[float, np.ndarray, float]] = []
+        for s, cover, T in refined:
+            if not any(_same_pose(T, U, table.symmetries) for _, U, _ in out):
+                out.append((s, T, cover))
         return out
 
     def _near(self, table: ModelPairs, T, p, radius: float) -> np.ndarray:
@@ -460,24 +489,53 @@ class HypothesisEstimator:
         d, _ = cKDTree(wp).query(p, distance_upper_bound=radius)
         return np.isfinite(d)
 
-    def _score(self, table: ModelPairs, T, p, tree: cKDTree, cam) -> float:
-        """F1 of fit (facing samples with a segment point within ``inlier_distance``) and
-        coverage (segment points within that distance of the model surface)."""
+    def _score(self, table: ModelPairs, T, p, tree: cKDTree, cam) -> tuple[float, float]:
+        """``(score, coverage)``: the score is the F1 of fit (facing samples with a segment
+        point within ``inlier_distance``) and coverage (segment points within that distance of
+        the model surface)."""
         r = self.cfg.inlier_distance
         wp = table.dense_points @ T[:3, :3].T + T[:3, 3]
         face = facing_mask(wp, table.dense_normals @ T[:3, :3].T, cam)
         if not face.any():
-            return 0.0
+            return 0.0, 0.0
         d, _ = tree.query(wp[face], distance_upper_bound=r)
         fit = float(np.mean(np.isfinite(d)))
         cover = float(self._explained(table, T, p).mean())
-        return 0.0 if fit + cover == 0 else 2 * fit * cover / (fit + cover)
+        return (0.0 if fit + cover == 0 else 2 * fit * cover / (fit + cover)), cover
 
     def _explained(self, table: ModelPairs, T, p) -> np.ndarray:
         """Mask of points ``p`` within ``inlier_distance`` of the model surface at ``T``."""
         wp = table.dense_points @ T[:3, :3].T + T[:3, 3]
         d, _ = cKDTree(wp).query(p, distance_upper_bound=self.cfg.inlier_distance)
         return np.isfinite(d)
+
+
+def _diverse(found: list, k: int, cfg: PerceptionConfig, sym: np.ndarray) -> list:
+    """The ``k`` hypotheses kept of ``found`` (``[(score, T, coverage)]``, best first).
+
+    The best, then the poses whose orientation differs by over ``alternative_deg`` from every
+    kept one and that explain the segment nearly as well
+    (coverage at least the best's minus ``alternative_coverage``), best score first; then the
+    rest by score. Fit alone favours the pose that puts the most surface where points are
+    seen, which for a mostly hidden object is often the wrong orientation; the scene parser's
+    occlusion-aware data term, collisions and support then choose among them.
+    """
+    if not found:
+        return []
+    apart = np.radians(cfg.alternative_deg)
+    floor = found[0][2] - cfg.alternative_coverage
+    kept = [0]
+    for i in range(1, len(found)):
+        if len(kept) >= k:
+            break
+        R = found[i][1][:3, :3]
+        if found[i][2] >= floor and all(
+            _rotation_distance(found[j][1][:3, :3], R, sym) > apart for j in kept
+        ):
+            kept.append(i)
+    kept += [i for i in range(len(found)) if i not in kept][: max(0, k - len(kept))]
+    kept.sort()
+    return [(float(found[i][0]), found[i][1], float(found[i][2])) for i in kept]
 
 
 def _same_pose(T: np.ndarray, U: np.ndarray, sym: np.ndarray) -> bool:
