@@ -438,8 +438,7 @@ class PerceptionConfig(_Section):
         ge=0,
         le=1,
         description=(
-            "An alternative explains at least the best's fraction of the segment points minus "
-            "this."
+            "An alternative explains at least the best's fraction of the segment points minus this."
         ),
     )
     min_score: float = Field(

@@ -15,11 +15,13 @@ The paper's pipeline gets several poses per object from ObjRecRANSAC (Papazov & 
 3. **Scoring** every candidate on a dilated occupancy grid of the segment (voxel
    ``score_voxel``): the number of camera-facing model samples in occupied voxels. This is
    ObjRecRANSAC's acceptance test and costs a gather per sample.
-4. **Refinement**: the best candidates that differ (symmetry-aware) are refined by
-   point-to-plane ICP (:func:`ssp.registration.icp_refine`) on the segment points near them and
-   scored by the F1 of *fit* (facing samples with a segment point within ``inlier_distance``)
-   and *coverage* (segment points within that distance of the model). The class with the best
-   score wins; its ``k`` best distinct poses are the hypotheses.
+4. **Refinement**: the best candidates that differ (symmetry-aware), and the best candidate of
+   each other orientation (``alternatives``), are refined by point-to-plane ICP
+   (:func:`ssp.registration.icp_refine`) on the segment points near them and scored by the F1
+   of *fit* (facing samples with a segment point within ``inlier_distance``) and *coverage*
+   (segment points within that distance of the model). The class with the best score wins;
+   its ``k`` hypotheses are the best pose, the other orientations that explain the segment
+   nearly as well (:func:`_diverse`), then the rest by score.
 5. **Several objects per segment**: the points the winner explains are removed and the rest is
    searched again (touching blocks form one segment when no labels are given).
 
@@ -514,11 +516,11 @@ def _diverse(found: list, k: int, cfg: PerceptionConfig, sym: np.ndarray) -> lis
     """The ``k`` hypotheses kept of ``found`` (``[(score, T, coverage)]``, best first).
 
     The best, then the poses whose orientation differs by over ``alternative_deg`` from every
-    kept one and that explain the segment nearly as well
-    (coverage at least the best's minus ``alternative_coverage``), best score first; then the
-    rest by score. Fit alone favours the pose that puts the most surface where points are
-    seen, which for a mostly hidden object is often the wrong orientation; the scene parser's
-    occlusion-aware data term, collisions and support then choose among them.
+    kept one and that explain the segment nearly as well (coverage at least the best's minus
+    ``alternative_coverage``), best score first; then the rest by score. Fit alone favours
+    the pose that puts the most surface where points are seen, which for a mostly hidden
+    object is often the wrong orientation; the scene parser's occlusion-aware data term,
+    collisions and support then choose among them.
     """
     if not found:
         return []
