@@ -56,3 +56,12 @@ def cube_model() -> ObjectModel:
 def make_box():
     """The :func:`box_model` factory."""
     return box_model
+
+
+@pytest.fixture(scope="session")
+def lib():
+    """The built-in library (``ObjectLibrary.builtin()``), built once per test run; modules
+    that need other models define their own ``lib``."""
+    from ssp.library import ObjectLibrary
+
+    return ObjectLibrary.builtin()

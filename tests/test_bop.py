@@ -14,11 +14,6 @@ from ssp.sim.generate import generate_sequence
 
 
 @pytest.fixture(scope="module")
-def lib():
-    return ObjectLibrary.builtin()
-
-
-@pytest.fixture(scope="module")
 def seq(lib):
     return generate_sequence(
         "structure", 2, lib, stages=2, frames_per_stage=2, stride=8, n_objects=6

@@ -8,18 +8,12 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from ssp.geometry import invert, make_pose, rotation_angle, transform_points
-from ssp.library import ObjectLibrary
 from ssp.sim.frames import perturb_pose, synthetic_frame, visible_fractions
 from ssp.sim.render import Camera, look_at
 
 EDGE = 0.0508
 CAM = Camera.default()
 T_WC = look_at([0.45, -0.35, 0.5], [0.0, 0.0, 0.03])
-
-
-@pytest.fixture(scope="module")
-def lib() -> ObjectLibrary:
-    return ObjectLibrary.builtin()
 
 
 def _pose(x, y, z, yaw_deg=0.0) -> np.ndarray:

@@ -19,11 +19,6 @@ SMALL = dict(stride=8, frames_per_stage=2)
 
 
 @pytest.fixture(scope="module")
-def lib():
-    return ObjectLibrary.builtin()
-
-
-@pytest.fixture(scope="module")
 def isolated(lib):
     return generate_sequence("isolated", 3, lib, stages=2, objects_per_stage=3, **SMALL)
 

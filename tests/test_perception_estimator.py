@@ -10,7 +10,6 @@ from ssp.camera import Camera
 from ssp.errors import PerceptionError, TableNotFoundError, UnknownObjectError
 from ssp.eval.metrics import pose_error
 from ssp.geometry import invert
-from ssp.library import ObjectLibrary
 from ssp.perception.estimator import HypothesisEstimator, ModelPairs
 from ssp.perception.normals import estimate_normals
 from ssp.perception.pipeline import Perception
@@ -27,11 +26,6 @@ def _pose(x, y, z, yaw_deg=0.0, roll_deg=0.0):
     T[:3, :3] = Rotation.from_euler("zx", [yaw_deg, roll_deg], degrees=True).as_matrix()
     T[:3, 3] = (x, y, z)
     return T
-
-
-@pytest.fixture(scope="module")
-def lib():
-    return ObjectLibrary.builtin()
 
 
 @pytest.fixture(scope="module")

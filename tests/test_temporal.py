@@ -13,7 +13,13 @@ from ssp.errors import DuplicateObjectError, SSPError
 from ssp.geometry import make_pose, rotation_angle
 from ssp.library.symmetry import ContinuousSymmetry, Symmetry
 from ssp.scene import Hypothesis, TransitionMode
-from ssp.temporal import associate, classify, default_id_factory, snap_symmetric
+from ssp.temporal import (
+    associate,
+    classify,
+    default_id_factory,
+    same_volume_test,
+    snap_symmetric,
+)
 
 CUBE_SYM = Symmetry(np.stack([make_pose(R) for R in Rotation.create_group("O").as_matrix()]))
 CYL_SYM = Symmetry(continuous=(ContinuousSymmetry(np.array([0.0, 0.0, 1.0])),))
@@ -262,7 +268,6 @@ def test_snap_sequence_never_flips():
 
 def test_hypotheses_sharing_a_volume_are_one_object():
     from ssp.library import ObjectLibrary
-    from ssp.parser import SceneParser
 
     lib = ObjectLibrary.builtin()
     block = lib["block"]
@@ -274,9 +279,8 @@ def test_hypotheses_sharing_a_volume_are_one_object():
     sym = {"block": block.symmetry}
     gate = {"block": 0.02}
     assert len(associate([a, b, far], {}, sym, max_distance=gate)) == 3
-    merged = associate(
-        [a, b, far], {}, sym, max_distance=gate, same_volume=SceneParser(lib)._same_volume
-    )
+    same = same_volume_test(lib, TemporalConfig().merge_overlap)
+    merged = associate([a, b, far], {}, sym, max_distance=gate, same_volume=same)
     assert len(merged) == 2
     groups = sorted(merged.values(), key=len)
     assert [h.score for h in groups[1]] == [0.9, 0.8] and [h.score for h in groups[0]] == [0.7]

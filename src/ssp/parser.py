@@ -44,7 +44,7 @@ from ssp.forces import SegmentField
 from ssp.geometry import transform_points, validate_pose
 from ssp.library.library import ObjectLibrary
 from ssp.library.model import ObjectInstance, ObjectModel
-from ssp.overlap import overlap_fractions, same_volume
+from ssp.overlap import overlap_fractions
 from ssp.physics import World
 from ssp.probability import ObjectTerms, data_fit_fraction, pose_change
 from ssp.registration import icp_refine
@@ -53,7 +53,13 @@ from ssp.scoring import SceneScore, SceneScorer
 from ssp.search import Candidate, Simulator, layered_search
 from ssp.segments import object_segments
 from ssp.support import GROUND
-from ssp.temporal import associate, association_gates, classify, snap_symmetric
+from ssp.temporal import (
+    associate,
+    association_gates,
+    classify,
+    same_volume_test,
+    snap_symmetric,
+)
 from ssp.timing import StageTimer
 from ssp.visibility import CameraView
 
@@ -311,16 +317,6 @@ class SceneParser:
             self._world_key = key
         return self._world
 
-    def _same_volume(self, a, b) -> bool:
-        """Do hypotheses ``a`` and ``b`` (one class) share ``temporal.merge_overlap`` of the
-        model's volume? (:func:`ssp.overlap.same_volume`)"""
-        return same_volume(
-            self.library[a.class_name],
-            a.T_world_obj,
-            b.T_world_obj,
-            self.config.temporal.merge_overlap,
-        )
-
     def _id_factory(self, counters: dict[str, int], taken: set[str]):
         def new_id(class_name: str) -> str:
             while True:
@@ -371,7 +367,7 @@ class SceneParser:
                 previous,
                 {n: m.symmetry for n, m in lib.items()},
                 max_distance=association_gates(self.library, cfg.temporal),
-                same_volume=self._same_volume,
+                same_volume=same_volume_test(self.library, cfg.temporal.merge_overlap),
                 new_id=self._id_factory(counters, taken),
             )
             for oid, hyps in groups.items():

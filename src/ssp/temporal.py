@@ -24,10 +24,18 @@ from scipy.spatial.transform import Rotation
 from ssp.config import TemporalConfig
 from ssp.errors import DuplicateObjectError, SSPError
 from ssp.library.symmetry import Symmetry
+from ssp.overlap import same_volume
 from ssp.probability import pose_change
 from ssp.scene import Hypothesis, TransitionMode
 
-__all__ = ["association_gates", "associate", "classify", "default_id_factory", "snap_symmetric"]
+__all__ = [
+    "association_gates",
+    "associate",
+    "classify",
+    "default_id_factory",
+    "same_volume_test",
+    "snap_symmetric",
+]
 
 #: Cost of a forbidden (gated-out) pair in the assignment matrix.
 _FORBIDDEN = 1e6
@@ -80,6 +88,16 @@ class _Cluster:
     @property
     def best(self) -> Hypothesis:
         return self.members[0]
+
+
+def same_volume_test(library: Mapping, fraction: float) -> Callable[[Hypothesis, Hypothesis], bool]:
+    """The ``same_volume`` test of :func:`associate`: do two hypotheses (one class) share
+    ``fraction`` of their model's volume in ``library``? (:func:`ssp.overlap.same_volume`)"""
+
+    def test(a: Hypothesis, b: Hypothesis) -> bool:
+        return same_volume(library[a.class_name], a.T_world_obj, b.T_world_obj, fraction)
+
+    return test
 
 
 def associate(

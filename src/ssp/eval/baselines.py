@@ -4,9 +4,9 @@ Each method is a small class with ``reset()`` and ``update(frame) -> list[Detect
 (``Detection`` is a ``(class_name, T_world_obj)`` named tuple), deterministic, fed the frames
 of one sequence in time order. Hypotheses are grouped per object as the parser groups them
 (:func:`ssp.temporal.associate` with the parser's per-class gate, best score first, and
-clusters that share a volume merged: :func:`ssp.overlap.same_volume`), and the object's segment
-of the cloud is found as the parser finds it (:func:`ssp.segments.object_segments`: the label
-most of the pose's model samples land on).
+clusters that share a volume merged: :func:`ssp.temporal.same_volume_test`), and the object's
+segment of the cloud is found as the parser finds it (:func:`ssp.segments.object_segments`: the
+label most of the pose's model samples land on).
 
 * ``estimator``: the best-scored hypothesis of each object (the pose estimator alone).
 * ``icp``: the estimator's pose refined by point-to-plane ICP on the object's segment.
@@ -33,13 +33,18 @@ from ssp.errors import SSPError
 from ssp.eval.metrics import chordal_mean_rotation
 from ssp.geometry import transform_points
 from ssp.library.model import ObjectModel
-from ssp.overlap import same_volume
 from ssp.parser import SceneParser
 from ssp.probability import data_fit_fraction, pose_change
 from ssp.registration import even_rows, facing_mask, icp_refine
 from ssp.scene import Frame, Hypothesis
 from ssp.segments import object_segments
-from ssp.temporal import associate, association_gates, default_id_factory, snap_symmetric
+from ssp.temporal import (
+    associate,
+    association_gates,
+    default_id_factory,
+    same_volume_test,
+    snap_symmetric,
+)
 
 __all__ = [
     "METHODS",
@@ -106,6 +111,7 @@ class Estimator:
         self.config = config if config is not None else SSPConfig()
         self._symmetries = {n: m.symmetry for n, m in library.items()}
         self._gates = association_gates(library, self.config.temporal)
+        self._same_volume = same_volume_test(library, self.config.temporal.merge_overlap)
 
     def reset(self) -> None:
         """Forget everything (nothing to forget for a memoryless method)."""
@@ -122,14 +128,6 @@ class Estimator:
             max_distance=self._gates,
             same_volume=self._same_volume,
             **kw,
-        )
-
-    def _same_volume(self, a: Hypothesis, b: Hypothesis) -> bool:
-        return same_volume(
-            self.library[a.class_name],
-            a.T_world_obj,
-            b.T_world_obj,
-            self.config.temporal.merge_overlap,
         )
 
     def _segments(
