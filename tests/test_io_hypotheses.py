@@ -32,17 +32,22 @@ def _pose(R=R, t=(0.1, -0.2, 0.3)):
 def test_round_trip(tmp_path):
     hyps = [
         Hypothesis("mug", _pose(), score=0.25, instance_id="mug_1"),
-        Hypothesis("box", _pose(np.eye(3), (0, 0, 0.05))),
+        Hypothesis("box", _pose(np.eye(3), (0, 0, 0.05)), segment=4),
     ]
     path = write_hypotheses(tmp_path / "h.json", hyps, frame="camera")
     doc = json.loads(path.read_text())
     assert doc["frame"] == "camera" and doc["units"] == "m"
     assert set(doc["hypotheses"][0]) == {"class", "score", "t", "R", "quat_xyzw", "id"}
-    assert "id" not in doc["hypotheses"][1]
+    assert "id" not in doc["hypotheses"][1] and doc["hypotheses"][1]["segment"] == 4
     hf = read_hypotheses(path)
     assert hf.frame == "camera" and len(hf.hypotheses) == 2
     for a, b in zip(hf.hypotheses, hyps, strict=True):
-        assert (a.class_name, a.score, a.instance_id) == (b.class_name, b.score, b.instance_id)
+        assert (a.class_name, a.score, a.instance_id, a.segment) == (
+            b.class_name,
+            b.score,
+            b.instance_id,
+            b.segment,
+        )
         np.testing.assert_allclose(a.T_world_obj, b.T_world_obj, atol=1e-12)
 
 
@@ -106,6 +111,8 @@ def test_near_rotation_accepted_and_cleaned(tmp_path):
         ({"class": "", "t": [0, 0, 0], "R": np.eye(3).tolist()}, "class"),
         ({"class": "a", "score": "high", "t": [0, 0, 0], "R": np.eye(3).tolist()}, "score"),
         ({"class": "a", "id": 3, "t": [0, 0, 0], "R": np.eye(3).tolist()}, "'id'"),
+        ({"class": "a", "segment": "2", "t": [0, 0, 0], "R": np.eye(3).tolist()}, "'segment'"),
+        ({"class": "a", "segment": 2.5, "t": [0, 0, 0], "R": np.eye(3).tolist()}, "'segment'"),
     ],
 )
 def test_bad_entries_rejected(tmp_path, entry, match):

@@ -415,3 +415,23 @@ def test_object_hidden_behind_a_new_tower_is_kept_as_ephemeral():
     # the tower is taken away and "a" is seen again: no longer ephemeral
     est2 = parser.update(frame(a, rng, stamp=2.0, ids=True))
     assert not est2["a"].ephemeral and [o.id for o in est2.removed] == ["t0", "t1", "t2"]
+
+
+def test_first_guess_is_the_previous_pose_when_any_hypothesis_agrees(lib):
+    """A static object whose best hypothesis is wrong (its hidden part fits a standing pose)
+    starts where it was when another hypothesis agrees; an object that moved starts at its best
+    hypothesis; a new object too."""
+    from ssp.config import TemporalConfig
+    from ssp.parser import first_guess
+
+    cfg = TemporalConfig()
+    sym = lib["block"].symmetry
+    T_prev = make_pose(t=[0.1, 0.0, 0.0125])
+    standing = make_pose(Rotation.from_euler("y", 90, degrees=True).as_matrix(), [0.1, 0.0, 0.03])
+    near = make_pose(Rotation.from_euler("z", 3, degrees=True).as_matrix(), [0.102, 0.0, 0.0125])
+    moved = make_pose(t=[0.15, 0.0, 0.0125])
+    hyps = [Hypothesis("block", standing, 0.9), Hypothesis("block", near, 0.4)]
+    assert first_guess(hyps, T_prev, sym, cfg) is T_prev
+    assert first_guess(hyps[:1], T_prev, sym, cfg) is standing
+    assert first_guess([Hypothesis("block", moved, 0.9)], T_prev, sym, cfg) is moved
+    assert first_guess(hyps, None, sym, cfg) is standing

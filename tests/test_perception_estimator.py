@@ -191,6 +191,24 @@ def test_pipeline_from_depth_without_pose_or_labels(lib, scene):
     # the world z of the points: table near 0, objects above
     assert abs(np.median(frame.points[frame.labels < 0][:, 2])) < 0.002
     assert set(res.timings) >= {"table", "segmentation", "normals", "hypotheses", "total"}
+    # a cluster may hold several objects: its hypotheses carry no instance segment
+    assert all(h.segment is None for h in frame.hypotheses)
+
+
+def test_pipeline_instance_labels_tag_hypotheses_with_their_segment(lib, scene):
+    """With an instance mask a segment is one object: each hypothesis names its segment, so
+    that association never groups two segments' hypotheses as one object."""
+    gt, depth, inst = scene
+    res = Perception(lib, classes=["cube", "block"]).from_depth(
+        depth, CAMERA, T_world_cam=T_WC, mask=inst
+    )
+    hyps = res.frame.hypotheses
+    assert hyps and len(res.segments) == len(gt)
+    for label, seg in res.segments.items():
+        tagged = [h for h in hyps if h.segment == label]
+        assert len(tagged) == len(seg.hypotheses) > 0
+        assert [h.score for h in tagged] == [h.score for h in seg.hypotheses]
+    assert {h.segment for h in hyps} == set(res.segments)
 
 
 def test_pipeline_given_hypotheses_in_camera_frame(lib, scene):

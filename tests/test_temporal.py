@@ -284,3 +284,30 @@ def test_hypotheses_sharing_a_volume_are_one_object():
     assert len(merged) == 2
     groups = sorted(merged.values(), key=len)
     assert [h.score for h in groups[1]] == [0.9, 0.8] and [h.score for h in groups[0]] == [0.7]
+
+
+def test_hypotheses_of_different_instance_segments_are_never_one_object(lib):
+    """A half-hidden block's hypothesis can reach into the block on top of it: from different
+    instance segments, the two are kept apart (clustering and same-volume merging alike);
+    without segments, or from one segment, they are grouped as before."""
+    block = lib["block"]
+    z = -float(block.mesh.bounds[0, 2])
+    sym = {"block": block.symmetry}
+    gate = {"block": 0.02}
+    same = same_volume_test(lib, TemporalConfig().merge_overlap)
+    near = (make_pose(t=[0.0, 0.0, z]), make_pose(t=[0.004, 0.0, z]))  # clustered by distance
+    apart = (make_pose(t=[0.0, 0.0, z]), make_pose(t=[0.022, 0.0, z]))  # merged by volume
+    for T_a, T_b in (near, apart):
+        for seg_a, seg_b, groups in ((None, None, 1), (3, 3, 1), (3, None, 1), (3, 4, 2)):
+            hs = [Hypothesis("block", T_a, 0.9, segment=seg_a)]
+            hs.append(Hypothesis("block", T_b, 0.8, segment=seg_b))
+            out = associate(hs, {}, sym, max_distance=gate, same_volume=same)
+            assert len(out) == groups, (T_b[0, 3], seg_a, seg_b)
+    # the previous object keeps its id through the segment whose hypothesis is nearest it
+    prev = {"block_0": ("block", make_pose(t=[0.0, 0.0, z]))}
+    hs = [
+        Hypothesis("block", make_pose(t=[0.005, 0.0, z]), 0.9, segment=7),  # the block on top
+        Hypothesis("block", make_pose(t=[0.0, 0.001, z]), 0.4, segment=2),  # the hidden one
+    ]
+    out = associate(hs, prev, sym, max_distance=gate, same_volume=same)
+    assert {k: [h.segment for h in v] for k, v in out.items()} == {"block_0": [2], "block_1": [7]}

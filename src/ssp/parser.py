@@ -15,9 +15,9 @@ One frame, in order (paper sections IV-V; DESIGN section 4):
    surface: its volume is empty) -> removed; *occluded* (its surface lies behind observed
    depth) -> kept as **ephemeral**; otherwise a removal candidate.
 5. **First guess and support graph**: every object at its best hypothesis (its previous pose
-   when that is within the static thresholds), settled with data forces; support graph and
-   layers (Alg. 2). A removal candidate that carries objects which move without it is
-   **support-retained**; the others are removed.
+   when one of its hypotheses is within the static thresholds of it, :func:`first_guess`),
+   settled with data forces; support graph and layers (Alg. 2). A removal candidate that
+   carries objects which move without it is **support-retained**; the others are removed.
 6. **Layered search** (Alg. 3, :func:`ssp.search.layered_search`) over the candidates: the
    frame's hypotheses, the previous pose, the current pose.
 7. **Transition modes** and symmetric snapping (the output orientation is the symmetric
@@ -32,23 +32,24 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from ssp.config import SSPConfig
+from ssp.config import SSPConfig, TemporalConfig
 from ssp.errors import InvalidPoseError, PhysicsError, SSPError, UnknownObjectError
 from ssp.forces import SegmentField
 from ssp.geometry import transform_points, validate_pose
 from ssp.library.library import ObjectLibrary
 from ssp.library.model import ObjectInstance, ObjectModel
+from ssp.library.symmetry import Symmetry
 from ssp.overlap import overlap_fractions
 from ssp.physics import World
 from ssp.probability import ObjectTerms, data_fit_fraction, pose_change
 from ssp.registration import icp_refine
-from ssp.scene import Frame, FrameError, TransitionMode
+from ssp.scene import Frame, FrameError, Hypothesis, TransitionMode
 from ssp.scoring import SceneScore, SceneScorer
 from ssp.search import Candidate, Simulator, layered_search
 from ssp.segments import object_segments
@@ -63,7 +64,14 @@ from ssp.temporal import (
 from ssp.timing import StageTimer
 from ssp.visibility import CameraView
 
-__all__ = ["ObjectEstimate", "SceneEstimate", "SceneParser", "SupportEdge", "parse_sequence"]
+__all__ = [
+    "ObjectEstimate",
+    "SceneEstimate",
+    "SceneParser",
+    "SupportEdge",
+    "first_guess",
+    "parse_sequence",
+]
 
 log = logging.getLogger(__name__)
 
@@ -201,6 +209,24 @@ class _Known:
     T_world_obj: np.ndarray
     ephemeral: bool = False
     fit: float = 0.0  # data fit c at T_world_obj in the frame that set it
+
+
+def first_guess(
+    hypotheses: Sequence[Hypothesis],
+    T_prev: np.ndarray | None,
+    symmetry: Symmetry,
+    config: TemporalConfig,
+) -> np.ndarray:
+    """An object's pose in the first-guess scene (4x4, m): its previous pose ``T_prev`` when
+    one of its ``hypotheses`` (best first) lies within the static thresholds of it
+    (symmetry-aware), else its best hypothesis. Starting a static object where it was keeps the
+    objects resting on it in place, even when a wrong pose of its hidden part scores best."""
+    if T_prev is not None:
+        for h in hypotheses:
+            dt, dth = pose_change(T_prev, h.T_world_obj, symmetry)
+            if dt < config.static_translation and dth < config.static_rotation:
+                return T_prev
+    return hypotheses[0].T_world_obj
 
 
 # ------------------------------------------------------------------------------ the parser
@@ -386,16 +412,12 @@ class SceneParser:
         models: dict[str, ObjectModel] = {oid: lib[c] for oid, c in classes.items()}
         prev_pose = {oid: self._known[oid].T_world_obj for oid in self._known}
 
-        # First guess per detected object: the previous pose when the best hypothesis agrees.
-        first: dict[str, np.ndarray] = {}
-        for oid in detected:
-            best = groups[oid][0].T_world_obj
-            if oid in prev_pose:
-                dt, dth = pose_change(prev_pose[oid], best, models[oid].symmetry)
-                if dt < cfg.temporal.static_translation and dth < cfg.temporal.static_rotation:
-                    first[oid] = prev_pose[oid]
-                    continue
-            first[oid] = best
+        # First guess per detected object: the previous pose when one of its hypotheses agrees
+        # (the objects on it then start where they rest on it), else its best hypothesis.
+        first = {
+            oid: first_guess(groups[oid], prev_pose.get(oid), models[oid].symmetry, cfg.temporal)
+            for oid in detected
+        }
 
         with timer("segments"):
             cand_poses = {
@@ -407,6 +429,12 @@ class SceneParser:
                 {oid: (models[oid], cand_poses[oid]) for oid in cand_poses},
                 radius=cfg.forces.max_distance,
                 table=self.table,
+                labels={
+                    oid: h.segment
+                    for oid in detected
+                    for h in groups[oid][:1]
+                    if h.segment is not None
+                },
             )
             view = None
             if frame.T_world_cam is not None:

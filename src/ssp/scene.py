@@ -51,12 +51,16 @@ class Hypothesis:
     ``score`` is the pose generator's confidence (higher is better; only its order matters).
     ``instance_id`` is set when the source already knows which object this is (tracking,
     simulation ground truth); otherwise :func:`ssp.temporal.associate` assigns one.
+    ``segment`` is the label of the instance segment (one object, this frame only) the
+    hypothesis was estimated from, when the segmentation separates objects: hypotheses of
+    different segments are then never taken for one object.
     """
 
     class_name: str
     T_world_obj: np.ndarray
     score: float = 1.0
     instance_id: str | None = None
+    segment: int | None = None
 
 
 @dataclass

@@ -4,10 +4,12 @@ The data forces (Eq. 9-10 of the algorithms section) and the data-fit term (Eq. 
 object's model with the scene points that belong to it. Where those come from, in order:
 
 1. ``frame.segments[instance_id]``: the caller segmented the cloud per object;
-2. ``frame.labels``: the label that covers most of the object's best candidate pose (the label
+2. ``frame.labels`` and the instance segment the object's hypotheses were estimated from
+   (:attr:`ssp.scene.Hypothesis.segment`): the points of that label;
+3. ``frame.labels``: the label that covers most of the object's best candidate pose (the label
    of the nearest scene point of each model sample, voted over samples within ``radius``;
    negative labels mark the table and background and never vote);
-3. otherwise a local crop: the scene points within the object's bounding sphere (plus ``radius``)
+4. otherwise a local crop: the scene points within the object's bounding sphere (plus ``radius``)
    of any of its candidate poses, leaving out the table (``z < table_clearance``) when the world
    has one. Neighbouring objects can leak into a crop; labels or segments are better.
 
@@ -47,6 +49,7 @@ def object_segments(
     radius: float,
     table: bool = True,
     table_clearance: float = 0.002,
+    labels: Mapping[str, int] | None = None,
 ) -> tuple[dict[str, np.ndarray], dict[str, int]]:
     """Segment points ``(K, 3)`` per object id (possibly empty), and the label each object's
     segment was taken from (only for objects segmented by ``frame.labels``).
@@ -54,6 +57,8 @@ def object_segments(
     Args:
         frame: the validated frame.
         objects: ``id -> (model, candidate poses)``; the first pose is the best guess.
+        labels: ``id -> label`` of ``frame.labels`` known to be the object's (the instance
+            segment its hypotheses came from); the others vote.
         radius: vote distance (labels) and crop margin, m (use the data-force cut-off d_t).
         table: the world has a table at z = 0; crops leave out points below ``table_clearance``.
     """
@@ -69,7 +74,12 @@ def object_segments(
             out[oid] = np.zeros((0, 3))
             continue
         if frame.labels is not None:
-            label = _vote_label(frame, tree, model, poses[0], radius)
+            label = (labels or {}).get(oid)
+            if label is not None and not np.any(np.asarray(frame.labels) == label):
+                log.warning("object %s: its segment label %d is not in the cloud", oid, label)
+                label = None
+            if label is None:
+                label = _vote_label(frame, tree, model, poses[0], radius)
             if label is not None:
                 out[oid] = frame.points[np.asarray(frame.labels) == label]
                 owner[oid] = label

@@ -80,10 +80,18 @@ class _Cluster:
         self.order = order  # position of its first (best) hypothesis, for stable ordering
         self.first_index = order  # smallest input position among its members
         self.instance_id = instance_id
+        self.segment = first.segment  # instance segment of its members, None: unknown
 
     def add(self, h: Hypothesis, index: int) -> None:
         self.members.append(h)
         self.first_index = min(self.first_index, index)
+        if self.segment is None:
+            self.segment = h.segment
+
+    def accepts(self, segment: int | None) -> bool:
+        """Can a hypothesis (or cluster) of instance segment ``segment`` describe this object?
+        Not when both segments are known and differ: one instance segment is one object."""
+        return segment is None or self.segment is None or segment == self.segment
 
     @property
     def best(self) -> Hypothesis:
@@ -120,11 +128,13 @@ def associate(
        one place with different orientations are alternative poses of one object (two objects
        cannot share a volume), and they are what the search compares. Note that two touching
        objects of one class closer than ``max_distance`` (centre to centre) would merge: keep
-       ``max_distance`` below the smallest object's size.
+       ``max_distance`` below the smallest object's size. Hypotheses from different instance
+       segments (:attr:`Hypothesis.segment`, both known) never share a group: a half-hidden
+       object's hypotheses can reach into the object on top of it.
     2b. **Merging** (with ``same_volume``): a cluster whose best hypothesis occupies the same
-       volume as the best of an earlier (better-scored) cluster of its class joins it: two
-       objects cannot share a volume, so widely spread hypotheses of one half-hidden object
-       do not become two objects.
+       volume as the best of an earlier (better-scored) cluster of its class joins it, unless
+       their instance segments differ: two objects cannot share a volume, so widely spread
+       hypotheses of one half-hidden object do not become two objects.
     3. **Matching.** Clusters without an id are matched, class by class, to the previous
        objects of that class not claimed by a given id, with
        :func:`scipy.optimize.linear_sum_assignment` (globally optimal) on
@@ -189,7 +199,7 @@ def associate(
         t = np.asarray(h.T_world_obj, dtype=float)[:3, 3]
         best, best_d = None, np.inf
         for c in clusters:
-            if c.best.class_name != h.class_name:
+            if c.best.class_name != h.class_name or not c.accepts(h.segment):
                 continue
             d = float(np.linalg.norm(np.asarray(c.best.T_world_obj)[:3, 3] - t))
             if d <= gate(h.class_name) and d < best_d:
@@ -208,7 +218,9 @@ def associate(
                     (
                         k
                         for k in kept
-                        if k.best.class_name == c.best.class_name and same_volume(k.best, c.best)
+                        if k.best.class_name == c.best.class_name
+                        and k.accepts(c.segment)
+                        and same_volume(k.best, c.best)
                     ),
                     None,
                 )

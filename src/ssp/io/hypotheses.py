@@ -14,12 +14,14 @@
     }
 
 Each hypothesis has ``class`` (str), ``score`` (float, default 1.0), optional ``id`` (a known
-instance id), and a pose: ``t`` plus a rotation ``R`` (3x3 nested list row-major, or 9 numbers
-row-major), ``quat_xyzw`` (scipy / ROS order) or ``quat_wxyz``; or instead of all of these ``T``
-(4x4, row-major). Several rotation keys may be given when they agree (within
-:data:`ROTATION_TOL`): :func:`write_hypotheses` writes both ``R`` and ``quat_xyzw``. Quaternions
-are normalised; rotation matrices must be orthonormal with det +1 within :data:`ROTATION_TOL`
-(then they are re-orthonormalised). Unknown keys are ignored with a warning.
+instance id), optional ``segment`` (int: the instance segment it was estimated from; hypotheses
+of different segments are never taken for one object), and a pose: ``t`` plus a rotation ``R``
+(3x3 nested list row-major, or 9 numbers row-major), ``quat_xyzw`` (scipy / ROS order) or
+``quat_wxyz``; or instead of all of these ``T`` (4x4, row-major). Several rotation keys may be
+given when they agree (within :data:`ROTATION_TOL`): :func:`write_hypotheses` writes both ``R``
+and ``quat_xyzw``. Quaternions are normalised; rotation matrices must be orthonormal with det +1
+within :data:`ROTATION_TOL` (then they are re-orthonormalised). Unknown keys are ignored with a
+warning.
 """
 
 from __future__ import annotations
@@ -60,7 +62,7 @@ FRAMES = ("world", "camera")
 ROTATION_TOL = 1e-3
 _UNITS = {"m": 1.0, "mm": 1e-3}
 _TOP_KEYS = {"frame", "units", "hypotheses"}
-_HYP_KEYS = {"class", "score", "id", "t", "R", "quat_xyzw", "quat_wxyz", "T"}
+_HYP_KEYS = {"class", "score", "id", "segment", "t", "R", "quat_xyzw", "quat_wxyz", "T"}
 _ROTATION_KEYS = ("R", "quat_xyzw", "quat_wxyz")
 
 
@@ -138,9 +140,12 @@ def _parse_one(item: Any, what: str, scale: float, unknown: set[str]) -> Hypothe
     iid = item.get("id")
     if iid is not None and (not isinstance(iid, str) or not iid):
         raise InputError(f"{what}: 'id' must be a non-empty string, got {iid!r}")
+    seg = item.get("segment")
+    if seg is not None and (isinstance(seg, bool) or not isinstance(seg, int)):
+        raise InputError(f"{what}: 'segment' must be an integer, got {seg!r}")
     T = _pose(item, what)
     T[:3, 3] *= scale
-    return Hypothesis(class_name=cls, T_world_obj=T, score=score, instance_id=iid)
+    return Hypothesis(class_name=cls, T_world_obj=T, score=score, instance_id=iid, segment=seg)
 
 
 def _pose(item: Mapping, what: str) -> np.ndarray:
@@ -238,7 +243,8 @@ def write_hypotheses(
 ) -> Path:
     """Write hypotheses in the format read by :func:`read_hypotheses` (metres), atomically.
 
-    Each entry has ``class``, ``score``, ``t``, ``R`` (3x3), ``quat_xyzw`` and, when set, ``id``.
+    Each entry has ``class``, ``score``, ``t``, ``R`` (3x3), ``quat_xyzw`` and, when set, ``id``
+    and ``segment``.
     """
     if frame not in FRAMES:
         raise ValueError(f"frame must be 'world' or 'camera', got {frame!r}")
@@ -254,6 +260,8 @@ def write_hypotheses(
         }
         if h.instance_id is not None:
             entry["id"] = h.instance_id
+        if h.segment is not None:
+            entry["segment"] = int(h.segment)
         items.append(entry)
     return write_json(path, {"frame": frame, "units": "m", "hypotheses": items})
 

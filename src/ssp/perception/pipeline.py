@@ -21,7 +21,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -218,7 +218,10 @@ class Perception:
                     seed=self.estimator.seed + int(label),
                 )
                 segments[int(label)] = res
-                hypotheses.extend(res.hypotheses)
+                if instance:  # one object per segment: never grouped with another segment's
+                    hypotheses.extend(replace(h, segment=int(label)) for h in res.hypotheses)
+                else:
+                    hypotheses.extend(res.hypotheses)
             timings["normals"] = t_normals
             timings["hypotheses"] = sum(r.seconds for r in segments.values())
         timings["total"] = time.perf_counter() - t_start

@@ -1,0 +1,59 @@
+"""Each object's segment (ssp.segments.object_segments)."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from ssp.geometry import make_pose, transform_points
+from ssp.scene import Frame
+from ssp.segments import object_segments
+
+
+def _two_cubes(lib):
+    """A cube on the table (label 0, only its top face seen) and one on it (label 1, whole)."""
+    cube = lib["cube"]
+    h = float(cube.extents[2])
+    T_low = make_pose(t=[0.0, 0.0, h / 2])
+    T_high = make_pose(t=[0.0, 0.0, 1.5 * h])
+    s = np.asarray(cube.surface_points, dtype=float)
+    top = s[s[:, 2] > h / 2 - 1e-6]
+    low = transform_points(T_low, top[: len(top) // 2])  # half its top face: mostly hidden
+    high = transform_points(T_high, s)
+    points = np.concatenate([low, high])
+    labels = np.concatenate([np.zeros(len(low), int), np.ones(len(high), int)])
+    return cube, T_low, T_high, Frame(0.0, points, labels=labels), len(low)
+
+
+def test_label_of_the_hypotheses_segment_beats_the_vote(lib):
+    """A guess reaching into the object on top votes for its label; the label the object's
+    hypotheses were estimated from gives the object its own points."""
+    cube, _, T_high, frame, n_low = _two_cubes(lib)
+    objects = {"low": (cube, [T_high])}  # a wrong guess: where the top cube is
+    seg, owner = object_segments(frame, objects, radius=0.01)
+    assert owner == {"low": 1}
+    seg, owner = object_segments(frame, objects, radius=0.01, labels={"low": 0})
+    assert owner == {"low": 0} and len(seg["low"]) == n_low
+
+
+def test_label_missing_from_the_cloud_falls_back_to_the_vote(lib, caplog):
+    cube, T_low, _, frame, _ = _two_cubes(lib)
+    objects = {"low": (cube, [T_low])}
+    with caplog.at_level(logging.WARNING, logger="ssp.segments"):
+        seg, owner = object_segments(frame, objects, radius=0.01, labels={"low": 7})
+    voted, voted_owner = object_segments(frame, objects, radius=0.01)
+    assert owner == voted_owner and np.array_equal(seg["low"], voted["low"])
+    assert "not in the cloud" in caplog.text
+
+
+def test_given_segments_come_first_and_crops_without_labels(lib):
+    cube, T_low, T_high, frame, _ = _two_cubes(lib)
+    own = np.zeros((5, 3)) + T_low[:3, 3]
+    given = Frame(0.0, frame.points, labels=frame.labels, segments={"low": own})
+    seg, owner = object_segments(given, {"low": (cube, [T_low])}, radius=0.01, labels={"low": 1})
+    assert owner == {} and np.array_equal(seg["low"], own)
+    bare = Frame(0.0, frame.points)
+    seg, owner = object_segments(bare, {"high": (cube, [T_high])}, radius=0.01)
+    assert owner == {} and len(seg["high"]) > 0  # a crop: near the pose, above the table
+    assert np.all(seg["high"][:, 2] >= 0.002)
