@@ -149,6 +149,24 @@ def test_interpenetrating_hypotheses_are_pushed_apart():
     assert all(o.terms.collision > np.log(0.9) for o in est.objects)
 
 
+def test_unsimulated_terms_rank_first_guesses_by_data_and_previous_pose():
+    """log P_D + log P_T without simulation: a pose on the segment beats one 1 cm off it, and
+    a turn from the previous pose costs its transition term."""
+    from ssp.probability import log_transition_from_poses
+
+    cfg = SSPConfig()
+    world = World([ObjectInstance("b", BLOCK)], config=cfg.physics)
+    T = on_table(BLOCK)
+    seg = transform_points(T, np.asarray(BLOCK.surface_points))
+    scorer = SceneScorer(world, cfg, {"b": seg}, {"b": None})
+    assert scorer.unsimulated(0, T) > scorer.unsimulated(0, on_table(BLOCK, x=0.01)) + 1
+    T_prev = on_table(BLOCK, yaw_deg=30.0)
+    moved = SceneScorer(world, cfg, {"b": seg}, {"b": T_prev})
+    expected = log_transition_from_poses(T_prev, T, cfg.transition, BLOCK.symmetry)
+    assert expected < -1
+    assert moved.unsimulated(0, T) == pytest.approx(scorer.unsimulated(0, T) + expected)
+
+
 def test_scorer_prefers_a_supported_pose_to_a_hovering_one():
     cfg = SSPConfig()
     world = World([ObjectInstance("c", CUBE)], config=cfg.physics)
@@ -435,3 +453,19 @@ def test_first_guess_is_the_previous_pose_when_any_hypothesis_agrees(lib):
     assert first_guess(hyps[:1], T_prev, sym, cfg) is standing
     assert first_guess([Hypothesis("block", moved, 0.9)], T_prev, sym, cfg) is moved
     assert first_guess(hyps, None, sym, cfg) is standing
+
+
+def test_best_first_guess_weighs_the_previous_pose_with_the_hypotheses():
+    from ssp.parser import best_first_guess
+
+    T_prev, a, b = (make_pose(t=[x, 0.0, 0.0125]) for x in (0.0, 0.03, 0.06))
+    hyps = [Hypothesis("block", a, 0.9), Hypothesis("block", b, 0.4)]
+    by_x = {0.0: -1.0, 0.03: -3.0, 0.06: -2.0}
+
+    def score(T):
+        return by_x[round(float(T[0, 3]), 2)]
+
+    assert best_first_guess(hyps, T_prev, score) is T_prev  # no hypothesis near it: still tested
+    assert best_first_guess(hyps, None, score) is b
+    assert best_first_guess(hyps, T_prev, lambda T: 0.0) is T_prev  # ties: the previous pose
+    assert best_first_guess(hyps, None, lambda T: 0.0) is a

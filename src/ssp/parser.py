@@ -14,9 +14,10 @@ One frame, in order (paper sections IV-V; DESIGN section 4):
    its old pose >= ``visible_fit``) -> kept; *seen through* (the camera sees depth behind its
    surface: its volume is empty) -> removed; *occluded* (its surface lies behind observed
    depth) -> kept as **ephemeral**; otherwise a removal candidate.
-5. **First guess and support graph**: every object at its best hypothesis (its previous pose
-   when one of its hypotheses is within the static thresholds of it, :func:`first_guess`),
-   settled with data forces; support graph and layers (Alg. 2). A removal candidate that
+5. **First guess and support graph**: every object at the pose among its previous pose and
+   its hypotheses with the best terms that need no simulation (data fit and transition,
+   :meth:`SceneScorer.unsimulated`), settled with data forces; support graph and layers
+   (Alg. 2). A removal candidate that
    carries objects which move without it is **support-retained**; the others are removed.
 6. **Layered search** (Alg. 3, :func:`ssp.search.layered_search`) over the candidates: the
    frame's hypotheses, the previous pose, the current pose.
@@ -32,7 +33,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -69,6 +70,7 @@ __all__ = [
     "SceneEstimate",
     "SceneParser",
     "SupportEdge",
+    "best_first_guess",
     "first_guess",
     "parse_sequence",
 ]
@@ -217,16 +219,32 @@ def first_guess(
     symmetry: Symmetry,
     config: TemporalConfig,
 ) -> np.ndarray:
-    """An object's pose in the first-guess scene (4x4, m): its previous pose ``T_prev`` when
-    one of its ``hypotheses`` (best first) lies within the static thresholds of it
-    (symmetry-aware), else its best hypothesis. Starting a static object where it was keeps the
-    objects resting on it in place, even when a wrong pose of its hidden part scores best."""
+    """An object's provisional pose (4x4, m), before its segment is known: its previous pose
+    ``T_prev`` when one of its ``hypotheses`` (best first) lies within the static thresholds of
+    it (symmetry-aware), else its best hypothesis. It votes for the object's segment label and
+    is the pose the undetected-object triage tests against; the first-guess scene then takes,
+    per object, the best of this pose and the hypotheses by data fit and transition."""
     if T_prev is not None:
         for h in hypotheses:
             dt, dth = pose_change(T_prev, h.T_world_obj, symmetry)
             if dt < config.static_translation and dth < config.static_rotation:
                 return T_prev
     return hypotheses[0].T_world_obj
+
+
+def best_first_guess(
+    hypotheses: Sequence[Hypothesis],
+    T_prev: np.ndarray | None,
+    score: Callable[[np.ndarray], float],
+) -> np.ndarray:
+    """The object's pose in the first-guess scene (4x4, m): the highest ``score`` (the terms
+    that need no simulation, :meth:`SceneScorer.unsimulated`) among its previous pose
+    ``T_prev`` (when known) and its ``hypotheses``; ties keep the earlier, previous pose
+    first."""
+    poses = [h.T_world_obj for h in hypotheses]
+    if T_prev is not None:
+        poses.insert(0, T_prev)
+    return max(poses, key=score)
 
 
 # ------------------------------------------------------------------------------ the parser
@@ -452,7 +470,6 @@ class SceneParser:
             world = self._world_for({oid: classes[oid] for oid in present})
             ids = world.ids
             world.reset()  # a reused world must behave exactly as a new one (determinism)
-            world.set_poses({oid: first.get(oid, prev_pose.get(oid)) for oid in ids})
             see = cfg.forces.visible_samples_only and frame.T_world_cam is not None
             cam = frame.T_world_cam[:3, 3] if see else None
             sample_filter = None
@@ -482,6 +499,16 @@ class SceneParser:
                 {oid: prev_pose.get(oid) for oid in ids},
                 camera_position=cam,
             )
+            # First guess: the candidate that best fits the data and the previous pose. A
+            # static object whose hidden part fits a wrong pose best thus starts where it was,
+            # and the objects on it settle onto it: the search tests each object with the
+            # objects it carries at their first-guess poses.
+            for oid in detected:
+                i = world.index(oid)
+                first[oid] = best_first_guess(
+                    groups[oid], prev_pose.get(oid), lambda T, i=i: scorer.unsimulated(i, T)
+                )
+            world.set_poses({oid: first.get(oid, prev_pose.get(oid)) for oid in ids})
 
         unchanged = (
             cfg.search.unchanged_shortcut

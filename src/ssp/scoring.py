@@ -159,6 +159,15 @@ class SceneScorer:
             pts = pts[((self.camera_position - pts) * nrm).sum(axis=1) > 0.0]
         return data_fit_fraction(pts, tree, self.config.data.inlier_radius)
 
+    def unsimulated(self, i: int, T_world_obj: np.ndarray) -> float:
+        """``log P_D + log P_T`` of object ``i`` at a pose: its terms that need no simulation
+        (Eq. 4 and 10). Used to pick the first-guess pose among an object's candidates."""
+        cfg = self.config
+        log_d = float(log_data(np.array([self.fit_fraction(i, T_world_obj)]), cfg.data)[0])
+        return log_d + log_transition_from_poses(
+            self.previous[i], T_world_obj, cfg.transition, self.models[i].symmetry
+        )
+
     def evaluate(self, world: World, timer: StageTimer | None = None) -> SceneScore:
         """Score the world's current state (its applied wrenches are cleared).
 
