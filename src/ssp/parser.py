@@ -17,8 +17,8 @@ One frame, in order (paper sections IV-V; DESIGN section 4):
 5. **First guess and support graph**: every object at the pose among its previous pose and
    its hypotheses with the best terms that need no simulation (data fit and transition,
    :meth:`SceneScorer.unsimulated`), settled with data forces; support graph and layers
-   (Alg. 2). A removal candidate that
-   carries objects which move without it is **support-retained**; the others are removed.
+   (Alg. 2). A removal candidate that carries objects which move without it is
+   **support-retained**; the others are removed.
 6. **Layered search** (Alg. 3, :func:`ssp.search.layered_search`) over the candidates: the
    frame's hypotheses, the previous pose, the current pose.
 7. **Transition modes** and symmetric snapping (the output orientation is the symmetric
@@ -430,8 +430,8 @@ class SceneParser:
         models: dict[str, ObjectModel] = {oid: lib[c] for oid, c in classes.items()}
         prev_pose = {oid: self._known[oid].T_world_obj for oid in self._known}
 
-        # First guess per detected object: the previous pose when one of its hypotheses agrees
-        # (the objects on it then start where they rest on it), else its best hypothesis.
+        # Provisional pose per detected object (segment vote, triage of undetected objects);
+        # replaced by the first guess once the scorer can weigh the candidates.
         first = {
             oid: first_guess(groups[oid], prev_pose.get(oid), models[oid].symmetry, cfg.temporal)
             for oid in detected
@@ -448,10 +448,9 @@ class SceneParser:
                 radius=cfg.forces.max_distance,
                 table=self.table,
                 labels={
-                    oid: h.segment
+                    oid: groups[oid][0].segment
                     for oid in detected
-                    for h in groups[oid][:1]
-                    if h.segment is not None
+                    if groups[oid][0].segment is not None
                 },
             )
             view = None
@@ -499,16 +498,6 @@ class SceneParser:
                 {oid: prev_pose.get(oid) for oid in ids},
                 camera_position=cam,
             )
-            # First guess: the candidate that best fits the data and the previous pose. A
-            # static object whose hidden part fits a wrong pose best thus starts where it was,
-            # and the objects on it settle onto it: the search tests each object with the
-            # objects it carries at their first-guess poses.
-            for oid in detected:
-                i = world.index(oid)
-                first[oid] = best_first_guess(
-                    groups[oid], prev_pose.get(oid), lambda T, i=i: scorer.unsimulated(i, T)
-                )
-            world.set_poses({oid: first.get(oid, prev_pose.get(oid)) for oid in ids})
 
         unchanged = (
             cfg.search.unchanged_shortcut
@@ -529,6 +518,16 @@ class SceneParser:
                 sim.settle(cfg.search.final_settle, with_forces=True)
             chosen = {oid: "unchanged" for oid in ids}
         else:
+            # First guess: the candidate that best fits the data and the previous pose. A
+            # static object whose hidden part fits a wrong pose best thus starts where it was,
+            # and the objects on it settle onto it: the search tests each object with the
+            # objects it carries at their first-guess poses.
+            for oid in detected:
+                i = world.index(oid)
+                first[oid] = best_first_guess(
+                    groups[oid], prev_pose.get(oid), lambda T, i=i: scorer.unsimulated(i, T)
+                )
+            world.set_poses({oid: first.get(oid, prev_pose.get(oid)) for oid in ids})
             base = world.save_state()
             try:
                 sim.settle(cfg.search.initial_settle, with_forces=True)
