@@ -166,10 +166,17 @@ def _boxes(world: World, indices, poses=None) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _out_of_reach(
-    world: World, i: int, poses: Sequence[np.ndarray], kids: Sequence[int], reach: float
+    world: World,
+    i: int,
+    poses: Sequence[np.ndarray],
+    kids: Sequence[int],
+    reach: float,
+    parents: Mapping[int, Sequence[int]],
 ) -> list[int]:
     """Enabled objects whose box stays farther than ``reach`` (m, per axis) from object ``i``'s
-    boxes at every candidate pose and from its children's boxes."""
+    boxes at every candidate pose and from its children's boxes, and that support none of the
+    objects that stay (``parents``: object -> its supporters in the first-guess graph; a
+    tower's lower objects hold up the ones in reach however far they are)."""
     others = [int(k) for k in np.flatnonzero(world.enabled) if k != i and k not in kids]
     if not others:
         return []
@@ -179,7 +186,14 @@ def _out_of_reach(
     hi = np.concatenate([hi_i, hi_k]) + reach
     lo_o, hi_o = _boxes(world, others)
     touch = np.all((lo_o[:, None] <= hi[None]) & (hi_o[:, None] >= lo[None]), axis=2).any(axis=1)
-    return [k for k, t in zip(others, touch, strict=True) if not t]
+    far = {k for k, t in zip(others, touch, strict=True) if not t}
+    stack = [i, *kids, *(k for k in others if k not in far)]
+    while stack:  # keep every supporter, transitively, of an object that stays
+        for p in parents.get(stack.pop(), ()):
+            if p in far:
+                far.discard(p)
+                stack.append(p)
+    return sorted(far)
 
 
 def layered_search(
@@ -208,6 +222,10 @@ def layered_search(
     """
     ids = world.ids
     reach = float(sim.config.search.reach)
+    parents: dict[int, list[int]] = {}
+    for p, kids_of_p in children.items():
+        for c in kids_of_p:
+            parents.setdefault(c, []).append(p)
     in_search = sorted({i for layer in layers for i in layer})
     for k in range(len(ids)):
         world.set_enabled(ids[k], False)
@@ -221,10 +239,11 @@ def layered_search(
             oid = ids[i]
             kids = [c for c in children.get(i, ()) if not world.is_enabled(ids[c])]
             tests = [Candidate(world.get_pose(oid), "current"), *candidates.get(oid, ())]
-            # Objects out of reach of every candidate (and of the children) are set aside for
-            # this object's tests, so a test costs the same in a scene of 5 or 50 objects; the
-            # candidates are compared on the same set of objects, as the scores require.
-            far = _out_of_reach(world, i, [c.T_world_obj for c in tests], kids, reach)
+            # Objects out of reach of every candidate (and of the children) that hold up none
+            # of the others are set aside for this object's tests, so a test costs about the
+            # same in a scene of 5 or 50 objects; the candidates are compared on the same set
+            # of objects, as the scores require.
+            far = _out_of_reach(world, i, [c.T_world_obj for c in tests], kids, reach, parents)
             for k in far:
                 world.set_enabled(ids[k], False)
             base = world.save_state()
