@@ -8,7 +8,7 @@ import numpy as np
 
 from ssp.geometry import make_pose, transform_points
 from ssp.scene import Frame
-from ssp.segments import object_segments
+from ssp.segments import explained_fraction, object_segments
 
 
 def _two_cubes(lib):
@@ -57,3 +57,14 @@ def test_given_segments_come_first_and_crops_without_labels(lib):
     seg, owner = object_segments(bare, {"high": (cube, [T_high])}, radius=0.01)
     assert owner == {} and len(seg["high"]) > 0  # a crop: near the pose, above the table
     assert np.all(seg["high"][:, 2] >= 0.002)
+
+
+def test_explained_fraction_counts_the_points_on_the_models_surface(lib):
+    cube, T_low, _, frame, n_low = _two_cubes(lib)
+    low = frame.points[frame.labels == 0]
+    assert explained_fraction(low, cube, T_low, 0.004) == 1.0
+    beside = make_pose(t=T_low[:3, 3] + [float(cube.extents[0]) + 0.01, 0.0, 0.0])
+    assert explained_fraction(low, cube, beside, 0.004) == 0.0
+    half = make_pose(t=T_low[:3, 3] + [float(cube.extents[0]) / 2, 0.0, 0.0])
+    assert 0.2 < explained_fraction(low, cube, half, 0.004) < 0.8
+    assert explained_fraction(np.zeros((0, 3)), cube, T_low, 0.004) == 0.0

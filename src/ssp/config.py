@@ -293,6 +293,17 @@ class TemporalConfig(_Section):
     depth_tolerance: float = Field(
         0.005, gt=0, description="Depth agreement for the visibility tests, m."
     )
+    explained_fraction: float = Field(
+        0.9,
+        ge=0,
+        le=1,
+        description=(
+            "A new object's hypotheses are a duplicate of an undetected object when that "
+            "object's previous pose explains this fraction of the segment they came from "
+            "(points within the inlier radius plus the sample spacing of its surface "
+            "samples); the undetected object takes the segment. 1 disables the test."
+        ),
+    )
 
 
 class SearchConfig(_Section):

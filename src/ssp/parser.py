@@ -53,7 +53,7 @@ from ssp.registration import icp_refine
 from ssp.scene import Frame, FrameError, Hypothesis, TransitionMode
 from ssp.scoring import SceneScore, SceneScorer
 from ssp.search import Candidate, Simulator, layered_search
-from ssp.segments import object_segments
+from ssp.segments import explained_fraction, object_segments
 from ssp.support import GROUND
 from ssp.temporal import (
     associate,
@@ -422,6 +422,7 @@ class SceneParser:
                         f"hypothesis calls it a {hyps[0].class_name!r}"
                     )
             groups = {oid: hyps[:k_max] for oid, hyps in groups.items()}
+            groups, claimed = self._explained_by_undetected(frame, groups)
             detected = sorted(groups)
             missing = sorted(set(self._known) - set(groups))
 
@@ -448,9 +449,12 @@ class SceneParser:
                 radius=cfg.forces.max_distance,
                 table=self.table,
                 labels={
-                    oid: groups[oid][0].segment
-                    for oid in detected
-                    if groups[oid][0].segment is not None
+                    **{
+                        oid: groups[oid][0].segment
+                        for oid in detected
+                        if groups[oid][0].segment is not None
+                    },
+                    **claimed,
                 },
             )
             view = None
@@ -461,7 +465,15 @@ class SceneParser:
                     labels=frame.labels,
                     depth_tolerance=cfg.temporal.depth_tolerance,
                 )
-            verdicts = self._triage_missing(view, missing, models, prev_pose, first, segments)
+            verdicts = self._triage_missing(
+                view,
+                [oid for oid in missing if oid not in claimed],
+                models,
+                prev_pose,
+                first,
+                segments,
+            )
+            verdicts.update({oid: "visible" for oid in claimed})
 
         removed = {oid for oid, v in verdicts.items() if v == "removed"}
         present = [oid for oid in sorted(classes) if oid not in removed]
@@ -581,6 +593,62 @@ class SceneParser:
             unchanged,
             counters,
         )
+
+    def _explained_by_undetected(
+        self, frame: Frame, groups: dict[str, list[Hypothesis]]
+    ) -> tuple[dict[str, list[Hypothesis]], dict[str, int]]:
+        """Drop the new objects whose hypotheses duplicate an undetected object.
+
+        A new hypothesis group (no known object took it) estimated from segment ``s`` of
+        ``frame.labels`` is the same object as an undetected known one when that object's
+        previous pose explains at least ``temporal.explained_fraction`` of the points of ``s``
+        (:func:`ssp.segments.explained_fraction`, within the data fit's inlier radius plus
+        the surface-sample spacing): typically a mostly hidden object for which
+        the estimator proposed only a wrong class. The group is dropped and the undetected
+        object takes the segment (its data forces then hold it where it is seen).
+
+        Returns:
+            the remaining groups, and ``undetected id -> label`` of the segments taken.
+        """
+        t = self.config.temporal
+        undetected = sorted(set(self._known) - set(groups))
+        if frame.labels is None or t.explained_fraction >= 1 or not undetected:
+            return groups, {}
+        labels = np.asarray(frame.labels)
+        # a scene point on the surface lies up to about one sample spacing from a sample
+        radius = self.config.data.inlier_radius + self.config.library.surface_spacing
+        kept = dict(groups)
+        claimed: dict[str, int] = {}
+        for oid in sorted(groups):
+            seg = groups[oid][0].segment
+            if oid in self._known or seg is None:
+                continue
+            points = frame.points[labels == seg]
+            best, best_fraction = None, t.explained_fraction
+            for u in undetected:
+                if claimed.get(u, seg) != seg:
+                    continue
+                known = self._known[u]
+                f = explained_fraction(
+                    points,
+                    self.library[known.class_name],
+                    known.T_world_obj,
+                    radius,
+                )
+                if f >= best_fraction:
+                    best, best_fraction = u, f
+            if best is not None:
+                log.info(
+                    "new %s (segment %d): %.0f %% of its points lie on %s where it was; "
+                    "a duplicate, dropped",
+                    oid,
+                    seg,
+                    100 * best_fraction,
+                    best,
+                )
+                del kept[oid]
+                claimed[best] = seg
+        return kept, claimed
 
     def _unchanged(self, scorer: SceneScorer, i: int, known: _Known, hyps) -> bool:
         """Is object ``i`` where it was? Its hypotheses agree (their per-axis median position

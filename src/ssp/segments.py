@@ -28,7 +28,7 @@ from ssp.geometry import transform_points
 from ssp.library.model import ObjectModel
 from ssp.scene import Frame
 
-__all__ = ["object_segments"]
+__all__ = ["explained_fraction", "object_segments"]
 
 log = logging.getLogger(__name__)
 
@@ -123,3 +123,23 @@ def _crop(
     if table:
         seg = seg[seg[:, 2] >= table_clearance]
     return seg
+
+
+def explained_fraction(
+    points: np.ndarray, model: ObjectModel, T_world_obj: np.ndarray, radius: float
+) -> float:
+    """Fraction of ``points`` ``(K, 3)`` (world, m) within ``radius`` (m) of the model's surface
+    samples at ``T_world_obj``: how much of a segment the object at that pose accounts for
+    (the data-to-model direction; the data fit c of Eq. 10 is model-to-data). 0 for no points.
+    """
+    points = np.asarray(points, dtype=float).reshape(-1, 3)
+    if not len(points):
+        return 0.0
+    c_local, r = _bounding_sphere(model)
+    centre = T_world_obj[:3, :3] @ c_local + T_world_obj[:3, 3]
+    near = np.linalg.norm(points - centre, axis=1) <= r + radius
+    if not near.any():
+        return 0.0
+    tree = cKDTree(transform_points(T_world_obj, np.asarray(model.surface_points, dtype=float)))
+    dist, _ = tree.query(points[near], k=1, distance_upper_bound=radius)
+    return float(np.count_nonzero(np.isfinite(dist))) / len(points)
