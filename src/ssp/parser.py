@@ -7,7 +7,8 @@ One frame, in order (paper sections IV-V; DESIGN section 4):
 2. **Associate** hypotheses with known objects (:func:`ssp.temporal.associate`: instance ids,
    else a globally optimal assignment on class and pose distance, with a gate of at most
    ``association_size_fraction`` of the class's smallest extent). The best ``k`` per object
-   are kept.
+   are kept. A new group whose segment an undetected object explains where it was is that
+   object's duplicate and is dropped (``temporal.explained_fraction``).
 3. **Segments** per object (:func:`ssp.segments.object_segments`) and the data forces.
 4. **Undetected objects** (known, no hypothesis this frame): *replaced* (another object's best
    hypothesis fills ``replaced_overlap`` of its volume) -> removed; *still visible* (data fit at
