@@ -604,9 +604,9 @@ class SceneParser:
         ``frame.labels`` is the same object as an undetected known one when that object's
         previous pose explains at least ``temporal.explained_fraction`` of the points of ``s``
         (:func:`ssp.segments.explained_fraction`, within the data fit's inlier radius plus
-        the surface-sample spacing): typically a mostly hidden object for which
-        the estimator proposed only a wrong class. The group is dropped and the undetected
-        object takes the segment (its data forces then hold it where it is seen).
+        the surface-sample spacing): typically a mostly hidden object for which the estimator
+        proposed only a wrong class. The group is dropped, and the undetected object takes the
+        segment and counts as still visible (its data forces hold it where it is seen).
 
         Returns:
             the remaining groups, and ``undetected id -> label`` of the segments taken.
