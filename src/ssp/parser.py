@@ -444,19 +444,16 @@ class SceneParser:
                 oid: [first[oid], *(h.T_world_obj for h in groups[oid])] for oid in detected
             }
             cand_poses.update({oid: [prev_pose[oid]] for oid in missing})
+            # the segment each object's hypotheses came from, and those undetected objects took
+            segment_labels = {oid: groups[oid][0].segment for oid in detected}
+            segment_labels = {oid: s for oid, s in segment_labels.items() if s is not None}
+            segment_labels.update(claimed)
             segments, owner = object_segments(
                 frame,
                 {oid: (models[oid], cand_poses[oid]) for oid in cand_poses},
                 radius=cfg.forces.max_distance,
                 table=self.table,
-                labels={
-                    **{
-                        oid: groups[oid][0].segment
-                        for oid in detected
-                        if groups[oid][0].segment is not None
-                    },
-                    **claimed,
-                },
+                labels=segment_labels,
             )
             view = None
             if frame.T_world_cam is not None:
