@@ -173,3 +173,26 @@ def test_hypothesis_errors_follow_recorded_sources():
     assert np.allclose(errs, [(20.0, 0.0), (170.0, 0.0)], atol=1e-6)
     with pytest.raises(ValueError, match="sources"):
         hypothesis_errors(gt, hyps, SYMS, sources=["a"])
+
+
+def test_errors_and_matching_are_measured_at_the_centre_of_mass():
+    """A mesh whose origin lies 95 mm from its centre: a 10 deg turn about the centre moves
+    the origin by 16.5 mm, but the object's centre not at all; matching uses the centre."""
+
+    class OffCentre:
+        symmetry = Symmetry()
+        center_of_mass = np.array([0.095, 0.0, 0.0])
+
+    lib = {"tool": OffCentre()}
+    c = OffCentre.center_of_mass
+    R = Rotation.from_rotvec([0.0, 0.0, np.radians(10.0)]).as_matrix()
+    T_gt = np.eye(4)
+    T_est = np.eye(4)
+    T_est[:3, :3] = R
+    T_est[:3, 3] = c - R @ c  # turned about the centre
+    fm = match_frame({"a": ("tool", T_gt)}, [("tool", T_est)], lib, gate=0.01)
+    assert len(fm.matches) == 1
+    assert fm.matches[0].trans_mm == pytest.approx(0.0, abs=1e-9)
+    assert fm.matches[0].rot_deg == pytest.approx(10.0)
+    # with bare symmetries (no centre) the origin is the centre: 16.5 mm, beyond a 1 cm gate
+    assert match_frame({"a": ("tool", T_gt)}, [("tool", T_est)], {"tool": Symmetry()}, 0.01).missed

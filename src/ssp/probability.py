@@ -259,12 +259,18 @@ def _angles_mod_axis(R_rel: np.ndarray, axis: np.ndarray | None) -> np.ndarray:
 
 
 def pose_change(
-    T_prev: np.ndarray, T_cur: np.ndarray, symmetry: Symmetry | None = None
+    T_prev: np.ndarray,
+    T_cur: np.ndarray,
+    symmetry: Symmetry | None = None,
+    centre: np.ndarray | None = None,
 ) -> tuple[float, float]:
     """World-frame motion ``(dt, dtheta)`` between two poses of one object (for Eq. 4).
 
-    ``dt`` (m) is the norm of the displacement of the pose translation (the model-frame origin
-    in the world), ``|t_cur - t_prev|``. ``dtheta`` (rad, in ``[0, pi]``) is the smallest
+    ``dt`` (m) is the displacement of the model point ``centre`` (model frame, m; e.g. the
+    centre of mass), ``|T_cur c - T_prev c|``; without ``centre``, of the model-frame origin,
+    ``|t_cur - t_prev|`` (a mesh whose origin lies far from its body then turns a rotation
+    into a translation). Symmetries map the centre of mass onto itself, so ``dt`` at the
+    centre of mass does not depend on them. ``dtheta`` (rad, in ``[0, pi]``) is the smallest
     rotation angle of ``R_prev^T R_cur'`` over the symmetric equivalents ``T_cur @ S``:
     discrete symmetries are enumerated; a continuous axis is handled exactly (closed form, no
     sampling); two non-parallel continuous axes (a sphere) make every orientation equivalent,
@@ -273,10 +279,17 @@ def pose_change(
     Args:
         T_prev, T_cur: ``(4, 4)`` world-from-model poses, metres.
         symmetry: the model's symmetries, or None for an asymmetric object.
+        centre: ``(3,)`` model-frame point whose displacement is ``dt`` (None: the origin).
     """
     T_prev = np.asarray(T_prev, dtype=float)
     T_cur = np.asarray(T_cur, dtype=float)
-    dt = float(np.linalg.norm(T_cur[:3, 3] - T_prev[:3, 3]))
+    if centre is None:
+        dt = float(np.linalg.norm(T_cur[:3, 3] - T_prev[:3, 3]))
+    else:
+        c = np.asarray(centre, dtype=float)
+        dt = float(
+            np.linalg.norm(T_cur[:3, :3] @ c + T_cur[:3, 3] - T_prev[:3, :3] @ c - T_prev[:3, 3])
+        )
     R_base = T_prev[:3, :3].T @ T_cur[:3, :3]
     if symmetry is None:
         return dt, float(_angles_mod_axis(R_base[None], None)[0])

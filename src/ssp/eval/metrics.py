@@ -8,8 +8,11 @@ Definitions (paper section "Experiments"; DESIGN section 5):
   without an estimate is *missed*, an estimate left without a ground-truth object is a *false
   positive*; both are counted, neither enters the errors. Estimators' instance ids are their
   own and never compared with the ground truth's.
-* **Error** of a matched pair: ``(|t_est - t_gt|`` in mm, the smallest rotation angle between
-  the two poses over the model's symmetries in deg) from :func:`ssp.probability.pose_change`.
+* **Error** of a matched pair: ``(|T_est c - T_gt c|`` in mm with ``c`` the model's centre of
+  mass, the smallest rotation angle between the two poses over the model's symmetries in deg)
+  from :func:`ssp.probability.pose_change`. Distances are measured at the centre, not at the
+  mesh origin, so that a model whose origin lies off its body does not turn a rotation error
+  into a translation error (or a miss); matching uses the same centre distance.
 * **Accuracy**: the errors of every matched object in every frame, occluded ones included (as
   the paper), as ``mean`` and ``std``.
 * **Precision**: the spread of an object's estimates over the repeated frames of one static
@@ -44,6 +47,7 @@ __all__ = [
     "DEFAULT_GATE",
     "FrameMatch",
     "Match",
+    "centre_position",
     "chordal_mean_rotation",
     "hypothesis_errors",
     "match_frame",
@@ -69,12 +73,30 @@ def _symmetry(symmetries: Symmetries | None, class_name: str) -> Symmetry | None
     return getattr(value, "symmetry", value)
 
 
+def _centre(symmetries: Symmetries | None, class_name: str) -> np.ndarray | None:
+    """The model's centre of mass (model frame, m) when ``symmetries`` holds models."""
+    if symmetries is None or class_name not in symmetries:
+        return None
+    c = getattr(symmetries[class_name], "center_of_mass", None)
+    return None if c is None else np.asarray(c, dtype=float)
+
+
 def pose_error(
-    T_gt: np.ndarray, T_est: np.ndarray, symmetry: Symmetry | None = None
+    T_gt: np.ndarray,
+    T_est: np.ndarray,
+    symmetry: Symmetry | None = None,
+    centre: np.ndarray | None = None,
 ) -> tuple[float, float]:
-    """Symmetry-aware error ``(translation mm, rotation deg)`` of ``T_est`` against ``T_gt``."""
-    dt, dth = pose_change(T_gt, T_est, symmetry)
+    """Symmetry-aware error ``(translation mm, rotation deg)`` of ``T_est`` against ``T_gt``;
+    the translation is that of the model point ``centre`` (m; None: the origin)."""
+    dt, dth = pose_change(T_gt, T_est, symmetry, centre)
     return 1000.0 * dt, float(np.degrees(dth))
+
+
+def centre_position(T: np.ndarray, centre: np.ndarray | None) -> np.ndarray:
+    """World position ``(3,)`` of the model point ``centre`` at pose ``T`` (origin if None)."""
+    T = np.asarray(T, dtype=float)
+    return T[:3, 3] if centre is None else T[:3, :3] @ centre + T[:3, 3]
 
 
 @dataclass(frozen=True)
@@ -114,9 +136,10 @@ def match_frame(
 ) -> FrameMatch:
     """Match one frame's estimates ``[(class_name, T_world_obj), ...]`` to the ground truth.
 
-    Per class, a Hungarian assignment on the translation distance (pairs beyond ``gate``, m,
-    forbidden); errors from :func:`pose_error` with the class's symmetry (``symmetries`` maps
-    class names to a :class:`Symmetry` or to models with a ``.symmetry``, e.g. the library).
+    Per class, a Hungarian assignment on the distance between centres (pairs beyond ``gate``,
+    m, forbidden); errors from :func:`pose_error` with the class's symmetry (``symmetries`` maps
+    class names to a :class:`Symmetry` or to models with ``.symmetry`` and
+    ``.center_of_mass``, e.g. the library; with bare symmetries the origin is the centre).
     """
     gt_ids = list(gt)
     matched: dict[str, Match] = {}
@@ -126,8 +149,9 @@ def match_frame(
         cols = [j for j, (c, _) in enumerate(estimates) if c == cls]
         if not cols:
             continue
-        t_gt = np.array([np.asarray(gt[g][1])[:3, 3] for g in rows])
-        t_est = np.array([np.asarray(estimates[j][1])[:3, 3] for j in cols])
+        centre = _centre(symmetries, cls)
+        t_gt = np.array([centre_position(gt[g][1], centre) for g in rows])
+        t_est = np.array([centre_position(estimates[j][1], centre) for j in cols])
         dist = np.linalg.norm(t_gt[:, None, :] - t_est[None, :, :], axis=2)
         cost = np.where(dist <= gate, dist, 1e6)
         sym = _symmetry(symmetries, cls)
@@ -135,7 +159,7 @@ def match_frame(
             if dist[r, c] > gate:
                 continue
             j = cols[c]
-            mm, deg = pose_error(gt[rows[r]][1], estimates[j][1], sym)
+            mm, deg = pose_error(gt[rows[r]][1], estimates[j][1], sym, centre)
             matched[rows[r]] = Match(rows[r], cls, j, mm, deg)
             used.add(j)
     return FrameMatch(
@@ -158,8 +182,8 @@ def hypothesis_errors(
 
     With ``sources`` (the ground-truth id each hypothesis was drawn from, as a generator
     records it; None for a hypothesis of no object) that object is used, whatever the
-    distance. Without, the nearest ground-truth object of the hypothesis's class in
-    translation, if within ``gate``.
+    distance. Without, the nearest ground-truth object of the hypothesis's class (distance
+    between centres), if within ``gate``.
     """
     hypotheses = list(hypotheses)
     if sources is not None and len(sources) != len(hypotheses):
@@ -181,13 +205,16 @@ def hypothesis_errors(
             if not cands:
                 outliers += 1
                 continue
-            d = [float(np.linalg.norm(T[:3, 3] - T_h[:3, 3])) for T in cands]
+            c = _centre(symmetries, h.class_name)
+            p_h = centre_position(T_h, c)
+            d = [float(np.linalg.norm(centre_position(T, c) - p_h)) for T in cands]
             k = int(np.argmin(d))
             if d[k] > gate:
                 outliers += 1
                 continue
             T_gt = cands[k]
-        errors.append(pose_error(T_gt, T_h, _symmetry(symmetries, h.class_name)))
+        cls = h.class_name
+        errors.append(pose_error(T_gt, T_h, _symmetry(symmetries, cls), _centre(symmetries, cls)))
     return errors, outliers
 
 
