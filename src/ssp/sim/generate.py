@@ -30,7 +30,8 @@ leave the view; in a structure no object may move more than ``STRUCTURE_MAX_SHIF
 The camera is static: ``CAMERA_DISTANCE`` (1 m) from the workspace centre, looking down at
 ``CAMERA_ELEVATION_DEG`` (45 degrees) from the -y side (:func:`default_camera_pose`), with the
 Kinect-like intrinsics of :meth:`Camera.default`. Every object is inside the view (all its
-hull vertices project at least ``VIEW_MARGIN_PX`` pixels inside the full-resolution image).
+hull vertices project at least :data:`ssp.sim.placement.VIEW_MARGIN_PX` pixels inside the
+full-resolution image).
 
 Each stage is shown for ``frames_per_stage`` frames (the paper: the parser ran 4-5 times on
 each static scene), all with the same ground truth. Per stage the clean scene is ray cast once
@@ -52,11 +53,8 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from functools import lru_cache
 
 import numpy as np
-import trimesh
-from scipy.spatial import ConvexHull
 
 from ssp.config import PhysicsConfig
 from ssp.geometry import yaw_pose
@@ -70,6 +68,13 @@ from ssp.sim.hypotheses import (
     HypothesisNoise,
     draw_hypotheses,
     induced_errors,
+)
+from ssp.sim.placement import (
+    footprint,
+    hull_world,
+    in_view,
+    poly_distance,
+    random_resting,
 )
 from ssp.sim.render import KINECT_QUANTUM, Camera, add_depth_noise, look_at, render
 from ssp.sim.sequence import SimFrame, SimSequence
@@ -90,8 +95,6 @@ GENERATOR_VERSION = 1
 #: Camera distance to the workspace centre, m, and elevation of the view, degrees.
 CAMERA_DISTANCE = 1.0
 CAMERA_ELEVATION_DEG = 45.0
-#: Objects must project at least this far (full-resolution pixels) inside the image border.
-VIEW_MARGIN_PX = 8.0
 
 #: Where isolated objects are dropped (x range, y range), m; the view check trims the corners.
 ISOLATED_REGION = ((-0.45, 0.45), (-0.32, 0.55))
@@ -134,91 +137,6 @@ def default_camera_pose(
     target = np.asarray(target, dtype=float)
     eye = target + distance * np.array([0.0, -np.cos(e), np.sin(e)])
     return look_at(eye, target)
-
-
-def _hull_world(model: ObjectModel, T: np.ndarray) -> np.ndarray:
-    return model.hull_vertices @ T[:3, :3].T + T[:3, 3]
-
-
-def _in_view(model: ObjectModel, T: np.ndarray, T_wc: np.ndarray, camera: Camera) -> bool:
-    p = (_hull_world(model, T) - T_wc[:3, 3]) @ T_wc[:3, :3]
-    if not (p[:, 2] > 0.05).all():
-        return False
-    uv = camera.project(p)
-    m = VIEW_MARGIN_PX
-    return bool(
-        (uv[:, 0] >= m).all()
-        and (uv[:, 0] <= camera.width - 1 - m).all()
-        and (uv[:, 1] >= m).all()
-        and (uv[:, 1] <= camera.height - 1 - m).all()
-    )
-
-
-# ---------------------------------------------------------------------------------- footprints
-def _footprint(model: ObjectModel, T: np.ndarray) -> np.ndarray:
-    """Convex hull (CCW, (P, 2)) of the object's projection on the table, m."""
-    xy = _hull_world(model, T)[:, :2]
-    return xy[ConvexHull(xy).vertices]
-
-
-def _separated(P: np.ndarray, Q: np.ndarray) -> bool:
-    """Separating-axis test for two convex polygons (True: they do not overlap)."""
-    for A in (P, Q):
-        e = np.roll(A, -1, axis=0) - A
-        normals = np.column_stack([e[:, 1], -e[:, 0]])
-        pa = P @ normals.T
-        qa = Q @ normals.T
-        if ((pa.max(0) < qa.min(0)) | (qa.max(0) < pa.min(0))).any():
-            return True
-    return False
-
-
-def _points_to_segments(P: np.ndarray, Q: np.ndarray) -> float:
-    """Smallest distance from the points ``P`` to the edges of polygon ``Q``."""
-    a = Q
-    d = np.roll(Q, -1, axis=0) - Q
-    ap = P[:, None, :] - a[None]
-    t = np.clip((ap * d[None]).sum(-1) / np.maximum((d * d).sum(-1), 1e-18)[None], 0.0, 1.0)
-    diff = ap - t[..., None] * d[None]
-    return float(np.sqrt((diff * diff).sum(-1).min()))
-
-
-def _poly_distance(P: np.ndarray, Q: np.ndarray) -> float:
-    """Distance between two convex polygons (0 if they overlap), m."""
-    if not _separated(P, Q):
-        return 0.0
-    return min(_points_to_segments(P, Q), _points_to_segments(Q, P))
-
-
-# ---------------------------------------------------------------------------------- poses
-@lru_cache(maxsize=128)
-def _stable_poses(model: ObjectModel, min_prob: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
-    """Stable resting transforms of ``model`` (lowest point at z = 0) and their probabilities
-    (those above ``min_prob``, renormalised; at least the most probable one)."""
-    transforms, probs = trimesh.poses.compute_stable_poses(model.mesh, n_samples=1, threshold=0.0)
-    transforms = np.asarray(transforms, dtype=float)
-    probs = np.asarray(probs, dtype=float)
-    if len(transforms) == 0:
-        T = np.eye(4)
-        T[2, 3] = -model.mesh.bounds[0, 2]
-        return T[None], np.ones(1)
-    order = np.argsort(-probs, kind="stable")
-    transforms, probs = transforms[order], probs[order]
-    keep = probs >= min_prob
-    keep[0] = True
-    return transforms[keep], probs[keep] / probs[keep].sum()
-
-
-def _random_resting(model: ObjectModel, rng: np.random.Generator, region) -> np.ndarray:
-    transforms, probs = _stable_poses(model)
-    j = int(rng.choice(len(probs), p=probs))
-    yaw = float(rng.uniform(-np.pi, np.pi))
-    x = float(rng.uniform(*region[0]))
-    y = float(rng.uniform(*region[1]))
-    T = yaw_pose(yaw) @ transforms[j]
-    centre = model.mesh.bounds.mean(axis=0) @ T[:3, :3].T + T[:3, 3]
-    T[:2, 3] += np.array([x, y]) - centre[:2]
-    return T
 
 
 # ---------------------------------------------------------------------------------- layouts
@@ -273,7 +191,7 @@ def _build_isolated(
         new = [inst.id for inst in instances[s * per_stage : (s + 1) * per_stage]]
         saved = world.save_state()
         for _attempt in range(_MAX_STAGE_ATTEMPTS):
-            polys = [_footprint(models[i], world.get_pose(i)) for i in present]
+            polys = [footprint(models[i], world.get_pose(i)) for i in present]
             placed = _place_isolated(new, models, polys, rng, T_wc, camera)
             if placed is None:
                 resamples += 1
@@ -302,11 +220,11 @@ def _place_isolated(new, models, polys, rng, T_wc, camera, tries: int = 400):
     for iid in new:
         model = models[iid]
         for _ in range(tries):
-            T = _random_resting(model, rng, ISOLATED_REGION)
-            if not _in_view(model, T, T_wc, camera):
+            T = random_resting(model, rng, ISOLATED_REGION)
+            if not in_view(model, T, T_wc, camera):
                 continue
-            poly = _footprint(model, T)
-            if all(_poly_distance(poly, q) >= ISOLATED_CLEARANCE for q in polys):
+            poly = footprint(model, T)
+            if all(poly_distance(poly, q) >= ISOLATED_CLEARANCE for q in polys):
                 break
         else:
             return None
@@ -321,12 +239,12 @@ def _isolated_ok(world: World, ids, models, T_wc, camera) -> bool:
     if (c.obj_b >= 0).any():
         return False
     poses = {i: world.get_pose(i) for i in ids}
-    if not all(_in_view(models[i], T, T_wc, camera) for i, T in poses.items()):
+    if not all(in_view(models[i], T, T_wc, camera) for i, T in poses.items()):
         return False
-    polys = [_footprint(models[i], poses[i]) for i in ids]
+    polys = [footprint(models[i], poses[i]) for i in ids]
     for a in range(len(polys)):
         for b in range(a + 1, len(polys)):
-            if _poly_distance(polys[a], polys[b]) < ISOLATED_CLEARANCE_AFTER:
+            if poly_distance(polys[a], polys[b]) < ISOLATED_CLEARANCE_AFTER:
                 return False
     return True
 
@@ -411,10 +329,10 @@ def _plan_structure(library, rng, n_total: int, T_wc, camera):
                 jyaw = np.radians(rng.uniform(-STRUCTURE_JITTER_YAW_DEG, STRUCTURE_JITTER_YAW_DEG))
                 T = T_c @ yaw_pose(yaw + jyaw, (x + jx, y + jy, z + STRUCTURE_LIFT))
                 placed.append((layer, cls, T))
-                new_polys.append(_footprint(models[cls], T))
-            if not all(_in_view(models[cls], T, T_wc, camera) for _, cls, T in placed):
+                new_polys.append(footprint(models[cls], T))
+            if not all(in_view(models[cls], T, T_wc, camera) for _, cls, T in placed):
                 continue
-            if all(_poly_distance(a, b) >= STRUCTURE_CLEARANCE for a in new_polys for b in polys):
+            if all(poly_distance(a, b) >= STRUCTURE_CLEARANCE for a in new_polys for b in polys):
                 break
         else:
             continue
@@ -505,7 +423,7 @@ def _run_structure(library, plan, stages, T_wc, camera, config) -> list[_Stage] 
             dt, dr = pose_change(before[i], T)
             if dt > STRUCTURE_MAX_SHIFT or np.degrees(dr) > STRUCTURE_MAX_TILT_DEG:
                 return None
-            if not _in_view(models[i], T, T_wc, camera):
+            if not in_view(models[i], T, T_wc, camera):
                 return None
         out.append(_Stage(poses, tuple(new), float(t)))
     return out
@@ -516,7 +434,7 @@ def _alone_count(model: ObjectModel, T: np.ndarray, T_wc: np.ndarray, cam: Camer
     """Pixels of the object rendered alone (table present), ray casting only its image
     bounding box (``cam`` is the already subsampled camera)."""
     mesh = model.mesh
-    p = (_hull_world(model, T) - T_wc[:3, 3]) @ T_wc[:3, :3]
+    p = (hull_world(model, T) - T_wc[:3, 3]) @ T_wc[:3, :3]
     if (p[:, 2] <= 1e-6).any():
         r = render([("o", mesh, T)], T_wc, cam)
         return int(r.pixel_counts()["o"])
