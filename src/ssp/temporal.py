@@ -33,6 +33,7 @@ __all__ = [
     "associate",
     "classify",
     "default_id_factory",
+    "one_object_per_segment",
     "same_volume_test",
     "snap_symmetric",
 ]
@@ -130,7 +131,9 @@ def associate(
        objects of one class closer than ``max_distance`` (centre to centre) would merge: keep
        ``max_distance`` below the smallest object's size. Hypotheses from different instance
        segments (:attr:`Hypothesis.segment`, both known) never share a group: a half-hidden
-       object's hypotheses can reach into the object on top of it.
+       object's hypotheses can reach into the object on top of it. Hypotheses of one class
+       from the same instance segment always do, however far apart: an estimator's gross
+       outliers on a segment are wrong poses of that segment's object, not other objects.
     2b. **Merging** (with ``same_volume``): a cluster whose best hypothesis occupies the same
        volume as the best of an earlier (better-scored) cluster of its class joins it, unless
        their instance segments differ: two objects cannot share a volume, so widely spread
@@ -198,7 +201,16 @@ def associate(
             continue
         t = np.asarray(h.T_world_obj, dtype=float)[:3, 3]
         best, best_d = None, np.inf
-        for c in clusters:
+        if h.segment is not None:  # one instance segment is one object, however spread
+            best = next(
+                (
+                    c
+                    for c in clusters
+                    if c.best.class_name == h.class_name and c.segment == h.segment
+                ),
+                None,
+            )
+        for c in clusters if best is None else ():
             if c.best.class_name != h.class_name or not c.accepts(h.segment):
                 continue
             d = float(np.linalg.norm(np.asarray(c.best.T_world_obj)[:3, 3] - t))
@@ -268,6 +280,33 @@ def associate(
         members = sorted(c.members, key=lambda h: -float(h.score))  # stable: input order on ties
         out[c.instance_id] = [replace(h, instance_id=c.instance_id) for h in members]
     return out
+
+
+def one_object_per_segment(
+    groups: Mapping[str, list[Hypothesis]],
+    rank: Callable[[str, list[Hypothesis]], float | tuple],
+) -> tuple[dict[str, list[Hypothesis]], dict[str, str]]:
+    """One object per instance segment: among the groups whose hypotheses came from the same
+    segment (:attr:`Hypothesis.segment` of their best; of different classes, since
+    :func:`associate` already joins one class's), the one with the highest ``rank(id, group)``
+    stays (ties: the first in ``groups``); the others are an estimator's class confusions.
+
+    Returns:
+        the groups kept (in their order) and ``dropped id -> the id that kept the segment``.
+    """
+    by_segment: dict[int, list[str]] = {}
+    for oid, hyps in groups.items():
+        seg = hyps[0].segment if hyps else None
+        if seg is not None:
+            by_segment.setdefault(int(seg), []).append(oid)
+    dropped: dict[str, str] = {}
+    for oids in by_segment.values():
+        if len(oids) < 2:
+            continue
+        keep = max(oids, key=lambda o: (rank(o, groups[o]), -oids.index(o)))
+        dropped.update({o: keep for o in oids if o != keep})
+    kept = {oid: hyps for oid, hyps in groups.items() if oid not in dropped}
+    return kept, dropped
 
 
 def classify(
