@@ -62,6 +62,8 @@ from ssp.library.builtin import BLOCK_NAMES
 from ssp.library.model import ObjectInstance, ObjectModel
 from ssp.physics.world import World
 from ssp.probability import pose_change
+from ssp.sim.distractors import distractor_models
+from ssp.sim.events import run_event
 from ssp.sim.hypotheses import (
     CHI3_MEAN,
     PAPER_INDUCED_NOISE,
@@ -69,6 +71,7 @@ from ssp.sim.hypotheses import (
     draw_hypotheses,
     induced_errors,
 )
+from ssp.sim.masks import add_mask_defects
 from ssp.sim.placement import (
     footprint,
     hull_world,
@@ -76,6 +79,7 @@ from ssp.sim.placement import (
     poly_distance,
     random_resting,
 )
+from ssp.sim.realistic import RealisticNoise, RealisticStream, SceneRealism
 from ssp.sim.render import KINECT_QUANTUM, Camera, add_depth_noise, look_at, render
 from ssp.sim.sequence import SimFrame, SimSequence
 
@@ -145,6 +149,8 @@ class _Stage:
     poses: dict[str, np.ndarray]  # present objects, in order of addition
     added: tuple[str, ...]
     settle_s: float
+    extras: dict[str, np.ndarray] = field(default_factory=dict)  # distractor id -> pose
+    event: dict | None = None  # the event that led to this stage (realistic scenes)
 
 
 @dataclass
@@ -153,6 +159,7 @@ class _Layout:
     stages: list[_Stage]
     resamples: int = 0
     notes: dict = field(default_factory=dict)
+    skipped_events: list[dict] = field(default_factory=list)
 
 
 # ---------------------------------------------------------------------------------- isolated
@@ -429,6 +436,77 @@ def _run_structure(library, plan, stages, T_wc, camera, config) -> list[_Stage] 
     return out
 
 
+# ---------------------------------------------------------------------------------- realism
+#: Distractors keep this much clearance (m) from every object's footprint.
+DISTRACTOR_CLEARANCE = 0.02
+
+
+def _realistic_layout(
+    layout: _Layout,
+    library: Mapping[str, ObjectModel],
+    realism: SceneRealism,
+    rng: np.random.Generator,
+    experiment: str,
+    T_wc: np.ndarray,
+    camera: Camera,
+    config: PhysicsConfig,
+) -> dict[str, ObjectModel]:
+    """Add distractors to every stage of ``layout`` and the dynamic events after its last
+    stage (in place); the distractors' models by id. Distractors rest at free spots of
+    :data:`ISOLATED_REGION` (in view, :data:`DISTRACTOR_CLEARANCE` from every footprint of
+    the last stage, where every object is present); each event (:func:`ssp.sim.events.
+    run_event`) is simulated in one world holding every object and distractor."""
+    last = layout.stages[-1]
+    models = {iid: library[layout.classes[iid]] for iid in last.poses}
+    polys = [footprint(models[i], T) for i, T in last.poses.items()]
+    shapes = distractor_models()
+    names = list(shapes)
+    extras: dict[str, ObjectModel] = {}
+    placed: dict[str, np.ndarray] = {}
+    for j in rng.permutation(len(names))[: realism.distractors]:
+        model = shapes[names[int(j)]]
+        for _ in range(400):
+            T = random_resting(model, rng, ISOLATED_REGION)
+            poly = footprint(model, T)
+            if in_view(model, T, T_wc, camera) and all(
+                poly_distance(poly, q) >= DISTRACTOR_CLEARANCE for q in polys
+            ):
+                did = f"distractor_{len(extras)}"
+                extras[did], placed[did] = model, T
+                polys.append(poly)
+                break
+    world = World([ObjectInstance(i, m) for i, m in {**models, **extras}.items()], config=config)
+    world.set_poses({**last.poses, **placed})
+    world.settle()
+    still = {d: world.get_pose(d) for d in extras}
+    for stage in layout.stages:
+        stage.extras = dict(still)
+    movable = list(last.poses)
+    prefer: list[str] = []
+    for kind in realism.events_for(experiment):
+        ev = run_event(
+            kind, world, movable, rng, T_wc=T_wc, camera=camera, region=ISOLATED_REGION,
+            prefer=prefer if kind == "stack" else (),
+        )  # fmt: skip
+        note = {"kind": kind, "stage": len(layout.stages)}
+        if ev is None:
+            note["skipped"] = True  # no attempt passed the event's checks
+            layout.skipped_events.append(note)
+            continue
+        prefer = [ev.target]
+        note.update(target=ev.target, moved=list(ev.moved))
+        layout.stages.append(
+            _Stage(
+                {i: world.get_pose(i) for i in movable},
+                (),
+                0.0,
+                extras={d: world.get_pose(d) for d in extras},
+                event=note,
+            )
+        )
+    return extras
+
+
 # ---------------------------------------------------------------------------------- rendering
 def _alone_count(model: ObjectModel, T: np.ndarray, T_wc: np.ndarray, cam: Camera) -> int:
     """Pixels of the object rendered alone (table present), ray casting only its image
@@ -450,14 +528,18 @@ def _alone_count(model: ObjectModel, T: np.ndarray, T_wc: np.ndarray, cam: Camer
     return int(r.pixel_counts()["o"])
 
 
-def observe_static_scene(library, gt, T_wc, camera: Camera, stride: int, cache: dict):
+def observe_static_scene(
+    library, gt, T_wc, camera: Camera, stride: int, cache: dict, extras: Mapping | None = None
+):
     """Ray cast one static scene: ``(render, visib_fract, alone pixel counts, scene pixel
     counts)``; ``gt`` is instance id -> ``(class, T_world_obj)``, ``camera`` full resolution.
+    ``extras`` (id -> ``(model, T_world_obj)``: distractors) are rendered after the ground
+    truth (their instance labels follow its), hide it, and get no visible fraction.
     ``cache`` (a dict kept by the caller) remembers each object's alone count while its pose
     does not change."""
-    scene = render(
-        [(iid, library[cls].mesh, T) for iid, (cls, T) in gt.items()], T_wc, camera, stride=stride
-    )
+    objects = [(iid, library[cls].mesh, T) for iid, (cls, T) in gt.items()]
+    objects += [(did, m.mesh, T) for did, (m, T) in (extras or {}).items()]
+    scene = render(objects, T_wc, camera, stride=stride)
     counts = scene.pixel_counts()
     cam = scene.camera
     visib, alone = {}, {}
@@ -483,7 +565,8 @@ def generate_sequence(
     stages: int | None = None,
     camera: Camera | None = None,
     stride: int = 1,
-    hypotheses: HypothesisNoise | None = None,
+    hypotheses: HypothesisNoise | RealisticNoise | None = None,
+    realism: SceneRealism | None = None,
     objects_per_stage: int = 3,
     n_objects: int | tuple[int, int] | None = None,
     classes: Sequence[str] | None = None,
@@ -502,7 +585,11 @@ def generate_sequence(
         stages: number of static scenes (default 5).
         camera: full-resolution intrinsics (:meth:`Camera.default` if None).
         stride: render every ``stride``-th pixel (the sequence's camera is subsampled).
-        hypotheses: noise model (default: the experiment's calibrated preset).
+        hypotheses: noise model (default: the experiment's calibrated preset); a
+            :class:`~ssp.sim.realistic.RealisticNoise` draws the realistic estimator stream
+            (:class:`~ssp.sim.realistic.RealisticStream`).
+        realism: distractors, dynamic events and mask defects
+            (:class:`~ssp.sim.realistic.SceneRealism`; module docstring), or None.
         objects_per_stage: isolated: objects added per stage (3: 15 objects in 5 stages).
         n_objects: structure: total objects, or an inclusive ``(lo, hi)`` range to draw from
             (default ``STRUCTURE_OBJECTS`` = 9-13); split over the stages bottom-up.
@@ -513,8 +600,9 @@ def generate_sequence(
 
     Returns:
         A :class:`SimSequence`; ``info`` holds the settings, per stage the objects added,
-        settling time and alone pixel counts (``px_count_all``), and per frame the source
-        instance of every hypothesis (``hypothesis_sources``, for evaluation only).
+        settling time and alone pixel counts (``px_count_all``), per frame the source
+        instance of every hypothesis (``hypothesis_sources``, for evaluation only) and, for
+        the realistic stream, its kind (``hypothesis_kinds``), and the events (``events``).
     """
     if experiment not in EXPERIMENTS:
         raise ValueError(f"unknown experiment {experiment!r}; expected one of {EXPERIMENTS}")
@@ -547,36 +635,69 @@ def generate_sequence(
             config=config,
         )  # fmt: skip
 
+    extra_models: dict[str, ObjectModel] = {}
+    if realism is not None:
+        rng_r = np.random.default_rng([seed, 2, _EXPERIMENT_CODE[experiment]])
+        extra_models = _realistic_layout(
+            layout, library, realism, rng_r, experiment, T_wc, camera, config
+        )
+    used = set(layout.classes.values())
+    stream = None
+    if isinstance(noise, RealisticNoise):
+        stream = RealisticStream(
+            library,
+            noise,
+            seed,
+            classes=[n for n in library if n in used],
+            resting_pose=lambda m, r: random_resting(m, r, ISOLATED_REGION),
+        )
+
     frames: list[SimFrame] = []
-    sources: list[list[str]] = []
+    sources: list[list[str | None]] = []
+    kinds: list[list[str]] = []
     px_all: list[dict[str, int]] = []
     cache: dict = {}
     cam_s = camera.subsample(stride)
     for g, stage in enumerate(layout.stages):
         gt = {iid: (layout.classes[iid], T) for iid, T in stage.poses.items()}
-        scene, visib, alone, _ = observe_static_scene(library, gt, T_wc, camera, stride, cache)
+        extras = {did: (extra_models[did], T) for did, T in stage.extras.items()}
+        scene, visib, alone, _ = observe_static_scene(
+            library, gt, T_wc, camera, stride, cache, extras
+        )
         px_all.append(alone)
-        instance = scene.instance.astype(np.int16)
+        labels = {oid: k for k, oid in enumerate([*gt, *extras])}
         for _ in range(frames_per_stage):
             i = len(frames)
             frng = np.random.default_rng([seed, 1, i])
-            depth = add_depth_noise(scene.depth, frng, quantum=KINECT_QUANTUM).astype(np.float32)
-            hyps, src = draw_hypotheses(gt, visib, library, noise, frng)
+            depth = add_depth_noise(scene.depth, frng, quantum=KINECT_QUANTUM)
+            instance = scene.instance
+            if realism is not None and realism.mask_defects is not None:
+                depth, instance, _ = add_mask_defects(
+                    depth, instance, frng, fraction=realism.mask_defects
+                )
+            if stream is None:
+                hyps, src = draw_hypotheses(gt, visib, library, noise, frng)
+                kind = ["nominal"] * len(hyps)
+            else:
+                drawn = stream.draw(i, gt, visib, segments=labels, distractors=extras)
+                hyps = [d.hypothesis for d in drawn]
+                src, kind = [d.source for d in drawn], [d.kind for d in drawn]
             frames.append(
                 SimFrame(
                     index=i,
                     stamp=i * float(frame_period),
                     gt={iid: (cls, T.copy()) for iid, (cls, T) in gt.items()},
-                    depth=depth,
-                    instance=instance.copy(),
+                    depth=depth.astype(np.float32),
+                    instance=instance.astype(np.int16),
                     visib_fract=dict(visib),
                     hypotheses=hyps,
                     static_group=g,
+                    distractors={d: (m.name, T.copy()) for d, (m, T) in extras.items()},
                 )
             )
             sources.append(src)
+            kinds.append(kind)
 
-    used = set(layout.classes.values())
     info = {
         "generator": "ssp.sim.generate",
         "generator_version": GENERATOR_VERSION,
@@ -597,6 +718,13 @@ def generate_sequence(
         "hypothesis_sources": sources,
         **({"layout": layout.notes} if layout.notes else {}),
     }
+    if stream is not None:
+        info["hypothesis_kinds"] = kinds
+    if realism is not None:
+        info["realism"] = realism.to_dict()
+        info["events"] = [s.event for s in layout.stages if s.event is not None]
+        info["events_skipped"] = layout.skipped_events
+        info["distractors"] = {d: m.name for d, m in extra_models.items()}
     return SimSequence(
         experiment=experiment,
         seed=seed,

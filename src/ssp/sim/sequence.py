@@ -58,13 +58,16 @@ class SimFrame:
         gt: ground truth, instance id -> ``(class_name, T_world_obj)``; every object present,
             occluded ones included. Its order defines the instance labels of ``instance``.
         depth: (H, W) float32 depth image, m (0 = no return), with sensor noise.
-        instance: (H, W) int16: index into ``gt`` of the object seen at each pixel, -1 table,
-            -2 nothing.
+        instance: (H, W) int16: index into ``gt`` of the object seen at each pixel (then the
+            ``distractors``), -1 table, -2 nothing.
         visib_fract: instance id -> visible fraction (0..1, BOP ``visib_fract``).
         hypotheses: the pose estimator's output for this frame: noisy poses, ``instance_id``
             None (the parser never sees ground truth).
         static_group: frames with the same value show the same static scene (the repeated
             frames whose spread is the precision metric).
+        distractors: objects in the scene that are not in the library (realistic scenes):
+            id -> ``(model name, T_world_obj)``; their instance labels follow ``gt``'s, in
+            this order. Never part of the ground truth the methods are scored against.
     """
 
     index: int
@@ -75,6 +78,7 @@ class SimFrame:
     visib_fract: dict[str, float]
     hypotheses: list[Hypothesis]
     static_group: int = 0
+    distractors: dict[str, tuple[str, np.ndarray]] = field(default_factory=dict)
 
     @property
     def ids(self) -> tuple[str, ...]:
