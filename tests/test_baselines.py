@@ -223,3 +223,65 @@ def test_ssp_method_wraps_the_parser(lib):
     dets = m.update(seq.frame(0))
     assert errors(lib, gt, dets)["a"][0] < 3.0
     assert m.last_estimate is not None and len(m.last_estimate.objects) == 1
+
+
+def test_icp_filter_rejects_an_outlier_and_follows_a_confirmed_move(lib):
+    from ssp.eval.baselines import ICPFilter
+
+    T0 = pose(0.0, 0.0, yaw_deg=20)
+    T1 = pose(0.03, 0.0, yaw_deg=20)  # moved 3 cm: beyond the 2 cm gate
+    outlier = moved(T0, (0.0, 0.0, 0.0), (0, 0, 45))  # a gross turn of the best hypothesis
+    gts = [{"a": ("cube", T0)}] * 3 + [{"a": ("cube", T1)}] * 4
+    hyps = [
+        [Hypothesis("cube", T0)],
+        [Hypothesis("cube", T0)],
+        [Hypothesis("cube", outlier, 0.9)],  # the only hypothesis: an outlier, rejected
+        *[[Hypothesis("cube", T1)]] * 4,
+    ]
+    seq = sequence(lib, gts, hyps)
+    f = ICPFilter(lib, window=3, confirm=3)
+    outs = [f.update(seq.frame(i)) for i in range(len(seq))]
+    sym = lib["cube"].symmetry
+    assert pose_error(T0, outs[2][0].T_world_obj, sym)[1] < 2.0  # the outlier did not pass
+    assert all(o[0].id == outs[0][0].id for o in outs)  # one track throughout
+    assert pose_error(T0, outs[4][0].T_world_obj, sym)[0] < 2.0  # two outliers: still there
+    assert pose_error(T1, outs[6][0].T_world_obj, sym)[0] < 2.0  # third: it moved
+
+
+def test_icp_filter_coasts_through_a_missed_detection(lib):
+    from ssp.eval.baselines import ICPFilter
+
+    T = pose(0.0, 0.0)
+    seq = sequence(lib, [{"a": ("cube", T)}] * 3, [[Hypothesis("cube", T, 0.8)], [], []])
+    f = ICPFilter(lib, max_missed=1)
+    (first,) = f.update(seq.frame(0))
+    (coast,) = f.update(seq.frame(1))
+    assert coast.id == first.id and coast.score == pytest.approx(0.4)
+    assert f.update(seq.frame(2)) == []
+
+
+def test_ssp_single_frame_has_no_memory(lib):
+    from ssp.eval.baselines import SSPSingleFrame
+
+    T = pose(0.0, 0.0)
+    seq = sequence(lib, [{"a": ("cube", T)}] * 2, [[Hypothesis("cube", T)], []])
+    m = SSPSingleFrame(lib)
+    (det,) = m.update(seq.frame(0))
+    assert det.id is None
+    assert m.update(seq.frame(1)) == []  # the full parser would keep the unseen cube
+    full = SSPMethod(lib)
+    full.update(seq.frame(0))
+    assert len(full.update(seq.frame(1))) == 1
+
+
+def test_groups_are_one_object_per_instance_segment(lib):
+    T = pose(0.0, 0.0)
+    far = moved(T, (0.06, 0.0, 0.0))  # a gross outlier 6 cm away, from the same mask
+    hyps = [
+        Hypothesis("cube", T, 0.9, segment=0),
+        Hypothesis("cube", far, 0.8, segment=0),
+        Hypothesis("bar", T, 0.5, segment=0),  # a class confusion on the same mask
+    ]
+    seq = sequence(lib, [{"a": ("cube", T)}], [hyps])
+    (det,) = Estimator(lib).update(seq.frame(0))
+    assert det.class_name == "cube" and np.allclose(det.T_world_obj, T)

@@ -79,7 +79,9 @@ def test_sequence_demo_writes_the_report(tmp_path):
     result = run_sequence_demo(tmp_path, stages=2, frames_per_stage=2, stride=4)
     page = (tmp_path / "report.html").read_text()
     assert "<td>ssp</td>" in page and "frames/003.png" in page
-    assert set(result["methods"]) == {"ssp", "estimator", "icp", "bestfit", "temporal_filter"}
+    assert set(result["methods"]) == {
+        "ssp", "estimator", "icp", "bestfit", "temporal_filter", "icp_filter",
+    }  # fmt: skip
     assert result["methods"]["ssp"]["max_penetration_mm"] < 1.0
 
 

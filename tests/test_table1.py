@@ -157,3 +157,31 @@ def test_write_table1_writes_the_report(lib, seq, tmp_path):
     assert "| hypotheses | Induced Noise |" in md
     assert "| estimator | Accuracy |" in md and "| temporal_filter | Precision |" in md
     assert "3.05 ± 1.11" in md and "2.49 ± 3.34" in md  # the paper's numbers
+
+
+def test_run_table1_reports_the_tails_on_the_realistic_stream(tmp_path):
+    from ssp.library import ObjectLibrary
+    from ssp.sim.generate import generate_sequence
+    from ssp.sim.realistic import RealisticNoise, SceneRealism
+
+    lib = ObjectLibrary.builtin()
+    seq = generate_sequence(
+        "structure", 5, lib, stages=2, frames_per_stage=1, stride=4,
+        hypotheses=RealisticNoise(), realism=SceneRealism(events=("move",)),
+    )  # fmt: skip
+    methods = ("estimator", "temporal_filter", "icp_filter")
+    result = run_table1([seq], lib, SSPConfig(), methods=methods)
+    for name in methods:
+        d = result["methods"][name]
+        assert 0.0 <= d["bop"]["AR"] <= 1.0 and d["bop"]["targets"] > 0
+        assert {"AR_VSD", "AR_MSSD", "AR_MSPD"} <= set(d["bop"])
+        assert 0.0 <= d["gross_rate"] <= 1.0
+        conds = d["gross_by_condition"]
+        assert sum(v["object_frames"] for v in conds.values()) == sum(len(f.gt) for f in seq.frames)
+        assert d["false_positives_per_frame"] == d["false_positives"] / len(seq)
+        assert sum(d["false_object_causes"].values()) == d["false_positives"]
+    assert result["methods"]["estimator"]["id_switches"] is None
+    assert isinstance(result["methods"]["icp_filter"]["id_switches"], int)
+    write_table1(result, tmp_path)
+    md = (tmp_path / "results.md").read_text()
+    assert "Tails" in md and "nominal" in md  # the per-condition table

@@ -238,3 +238,23 @@ def test_bench_tower_command(tmp_path):
     assert r.exit_code != 0 and "structure" in r.output
     r = runner.invoke(app, [*args, "--methods", "oracle", "--out", str(tmp_path)])
     assert r.exit_code != 0 and "oracle" in r.output
+
+
+def test_realistic_trial_has_distractors_and_explains_a_missed_grasp(lib):
+    from ssp.sim.realistic import RealisticNoise, SceneRealism
+
+    noise = RealisticNoise(distractor_rate=1.0, mode_persistence=1.0)
+    realism = SceneRealism(events=(), mask_defects=(0.01, 0.01))
+    tr = tower.run_trial(
+        "estimator", 0, 11, lib, SSPConfig(), noise=noise, realism=realism,
+        frames_per_step=1, blocks=3, stride=2,
+    )  # fmt: skip
+    assert all(set(poses) == {"b0", "b1", "b2"} for poses, _ in tr.frames)  # cubes only
+    if tr.failure == "grasp missed":
+        d = tr.failure_detail
+        assert d["pick"] >= 1 and d["nearest_cube_mm"] > 0
+        assert d["reached_for"] in ("cube", "distractor", "nothing (a ghost)")
+    else:
+        assert tr.failure is None or tr.failure_detail is not None
+    # the stream named cubes on the distractors: more detections than cubes at some frame
+    assert max(len(dets) for _, dets in tr.frames) > 3

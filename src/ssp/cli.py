@@ -458,6 +458,17 @@ def simulate(
         console.print(f"wrote [bold]{p}[/]")
 
 
+def _methods(text: str) -> list[str]:
+    """The ``--methods`` list, checked against :data:`ssp.eval.baselines.METHODS`."""
+    from ssp.eval.baselines import METHODS
+
+    names = [m.strip() for m in text.split(",") if m.strip()]
+    unknown = [m for m in names if m not in METHODS]
+    if unknown or not names:
+        raise typer.BadParameter(f"--methods: unknown {unknown}; known: {', '.join(METHODS)}")
+    return names
+
+
 def _print_table1(result: dict) -> None:
     table = Table(
         title=(
@@ -493,6 +504,24 @@ def _print_table1(result: dict) -> None:
             f"{m['sec_per_frame']:.3f}",
         )
     console.print(table)
+    tails = Table(title="Tails: BOP average recall, gross errors, false objects, id switches")
+    for col in ("method", "AR", "VSD / MSSD / MSPD", "gross", "gross, visible", "missed / frame",
+                "false / frame", "id switches (static)"):  # fmt: skip
+        tails.add_column(col, justify="left" if col == "method" else "right")
+    for name, m in result["methods"].items():
+        b = m["bop"]
+        sw = m.get("id_switches")
+        tails.add_row(
+            name,
+            f"{b['AR']:.3f}",
+            f"{b.get('AR_VSD', float('nan')):.3f} / {b['AR_MSSD']:.3f} / {b['AR_MSPD']:.3f}",
+            f"{m['gross_rate']:.3f}",
+            f"{m['gross_rate_visible']:.3f}",
+            f"{m['missed_per_frame']:.2f}",
+            f"{m['false_positives_per_frame']:.2f}",
+            "-" if sw is None else f"{sw} ({m['id_switches_static']})",
+        )
+    console.print(tails)
 
 
 @bench_app.command("table1")
@@ -513,21 +542,41 @@ def bench_table1(
         "noisy",
         "--hypotheses",
         help=(
-            "noisy: the paper's noisy ground truth; estimated: the perception front end's "
-            "pose hypotheses on the rendered depth (also reports its time and recall)."
+            "noisy: noisy ground truth (the --noise model); estimated: the perception front "
+            "end's pose hypotheses on the rendered depth (also reports its time and recall)."
         ),
     ),
+    noise: str = typer.Option(
+        "paper",
+        "--noise",
+        help=(
+            "paper: the paper's protocol (independent Gaussian hypotheses, clean masks, static "
+            "scenes); realistic: the realistic estimator stream (gross outliers, flips, class "
+            "confusions, false positives, persistent errors, dropouts) in scenes with "
+            "distractors, mask defects and dynamic events (docs/benchmarks.md)."
+        ),
+    ),
+    methods: str | None = typer.Option(
+        None, help="Comma-separated methods to compare (default: ssp and all six baselines)."
+    ),
+    vsd: bool = typer.Option(True, help="Include VSD in the BOP average recall (slower)."),
 ) -> None:
-    """The paper's Table I: every method (ssp, estimator, icp, bestfit, temporal_filter) on the
-    same synthetic sequences; writes results.json, results.md and plots."""
-    from ssp.eval.table1 import run_table1, write_table1
+    """The paper's Table I: ssp and its baselines on the same synthetic sequences, with the BOP
+    average recall, gross errors, false objects and id switches; writes results.json,
+    results.md and plots."""
+    from ssp.eval.table1 import DEFAULT_METHODS, run_table1, write_table1
     from ssp.sim.generate import generate_sequence
+    from ssp.sim.realistic import RealisticNoise, SceneRealism
 
     if hypotheses not in ("noisy", "estimated"):
         raise typer.BadParameter("--hypotheses must be 'noisy' or 'estimated'")
+    if noise not in ("paper", "realistic"):
+        raise typer.BadParameter("--noise must be 'paper' or 'realistic'")
+    names = _methods(methods) if methods else list(DEFAULT_METHODS)
     experiment = _experiment(experiment)
     cfg = _config(config)
     lib = _library(models, config)
+    realistic = noise == "realistic"
     seqs = []
     with _bar() as progress:
         task = progress.add_task(f"simulating {experiment}", total=sequences)
@@ -540,6 +589,8 @@ def bench_table1(
                     stages=stages,
                     frames_per_stage=frames_per_stage,
                     stride=stride,
+                    hypotheses=RealisticNoise() if realistic else None,
+                    realism=SceneRealism() if realistic else None,
                 )
             )
             progress.update(task, advance=1)
@@ -556,9 +607,22 @@ def bench_table1(
                 records.extend({"sequence": i, **r} for r in recs)
         task = progress.add_task("running the methods", total=total)
         result = run_table1(
-            seqs, lib, cfg, progress=lambda msg: progress.update(task, advance=1, description=msg)
+            seqs,
+            lib,
+            cfg,
+            methods=names,
+            progress=lambda msg: progress.update(task, advance=1, description=msg),
+            vsd=vsd,
         )
     result["hypotheses"] = hypotheses
+    result["noise"] = noise
+    if realistic:
+        result["protocol_settings"] = {
+            "estimator": RealisticNoise().to_dict(),
+            "scene": SceneRealism().to_dict(),
+            "events": [s.info.get("events") for s in seqs],
+            "events_skipped": [s.info.get("events_skipped") for s in seqs],
+        }
     if records:
         from ssp.eval.estimated import summarize_estimator
 
@@ -573,6 +637,9 @@ def bench_table1(
         "frames_per_stage": frames_per_stage,
         "stride": stride,
         "hypotheses": hypotheses,
+        "noise": noise,
+        "methods": names,
+        "vsd": vsd,
     }
     files = write_table1(result, out)
     _print_table1(result)
@@ -593,7 +660,7 @@ def _print_tower(result: dict) -> None:
     table = Table(
         title=(
             f"Tower case study (Table III): {result['trials']} trials, seed {result['seed']}, "
-            f"{result['hypotheses']} hypotheses"
+            f"{result['hypotheses']} hypotheses, {result['command']['noise']} noise"
         )
     )
     for col in ("method", "stacks", "8/8", "straightness mm / deg", "consistency mm / deg",
@@ -614,6 +681,37 @@ def _print_tower(result: dict) -> None:
             ", ".join(f"{k}: {v}" for k, v in sorted(m["failures"].items())) or "none",
         )
     console.print(table)
+
+
+@bench_app.command("stream")
+@_friendly
+def bench_stream(
+    out: Path = typer.Option(Path("bench-out/stream"), "--out", "-o", help="Output folder."),
+    experiment: str = ExperimentOption,
+    sequences: int = typer.Option(5, min=1, help="Number of sequences."),
+    seed: int = typer.Option(0, help="Seed of the first sequence (development seeds: 0-99)."),
+    config: Path | None = ConfigOption,
+) -> None:
+    """The realistic estimator stream beside the built-in estimator it is calibrated to: the
+    same failure statistics of both on the same scenes; writes results.json and results.md."""
+    from ssp.eval.bench_stream import run_stream_calibration, write_stream_calibration
+
+    experiment = _experiment(experiment)
+    cfg = _config(config)
+    lib = _library(None, config)
+    with _bar() as progress:
+        task = progress.add_task("stream", total=sequences)
+        result = run_stream_calibration(
+            experiment,
+            range(seed, seed + sequences),
+            lib,
+            cfg,
+            progress=lambda msg: progress.update(task, advance=1, description=msg),
+        )
+    files = write_stream_calibration(result, out)
+    console.print(files[1].read_text())
+    for f in files:
+        console.print(f"wrote [bold]{f}[/]")
 
 
 @bench_app.command("tower")
@@ -638,15 +736,16 @@ def bench_tower(
         "structure",
         "--noise",
         help=(
-            "Noisy hypotheses: structure (Table I's structure noise) or case-study (its sigmas "
-            "scaled so the estimator fluctuates as ObjRecRANSAC did in the paper's Table III)."
+            "Noisy hypotheses: structure (Table I's structure noise), case-study (its sigmas "
+            "scaled so the estimator fluctuates as ObjRecRANSAC did in the paper's Table III) "
+            "or realistic (the realistic estimator stream, distractors on the table and mask "
+            "defects: docs/benchmarks.md)."
         ),
     ),
     config: Path | None = ConfigOption,
 ) -> None:
     """The paper's case study (Table III): a simulated robot stacks 8 cubes from perceived
     poses; writes results.json, results.md and a picture of a final tower per method."""
-    from ssp.eval.baselines import METHODS
     from ssp.eval.tower import (
         HYPOTHESES,
         NOISE_PRESETS,
@@ -655,15 +754,13 @@ def bench_tower(
         tower_picture,
         write_tower,
     )
+    from ssp.sim.realistic import RealisticNoise, SceneRealism
 
-    if noise not in NOISE_PRESETS:
-        raise typer.BadParameter(f"--noise must be one of {', '.join(NOISE_PRESETS)}")
+    if noise not in (*NOISE_PRESETS, "realistic"):
+        raise typer.BadParameter(f"--noise must be one of {', '.join(NOISE_PRESETS)}, realistic")
     if hypotheses not in HYPOTHESES:
         raise typer.BadParameter(f"--hypotheses must be one of {', '.join(HYPOTHESES)}")
-    names = [m.strip() for m in methods.split(",") if m.strip()]
-    unknown = [m for m in names if m not in METHODS]
-    if unknown or not names:
-        raise typer.BadParameter(f"--methods: unknown {unknown}; known: {', '.join(METHODS)}")
+    names = _methods(methods)
     cfg = _config(config)
     lib = _library(None, config)
     pictures = {}
@@ -684,7 +781,8 @@ def bench_tower(
             methods=names,
             hypotheses=hypotheses,
             frames_per_step=frames_per_step,
-            noise=noise_preset(noise),
+            noise=RealisticNoise() if noise == "realistic" else noise_preset(noise),
+            realism=SceneRealism(events=()) if noise == "realistic" else None,
             progress=lambda msg: progress.update(task, description=msg),
             on_trial=on_trial,
         )

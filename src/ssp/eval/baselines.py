@@ -13,7 +13,13 @@ label most of the pose's model samples land on).
 * ``bestfit``: among the (at most ``search.hypotheses_per_object``) hypotheses of each object,
   the one with the best data fit (the ``c`` of Eq. 10, camera-facing samples only); no physics.
 * ``temporal_filter``: the estimator smoothed over time per tracked object.
+* ``icp_filter``: ICP-refined hypotheses through a tracker with gating, median and coasting.
+* ``ssp_single``: the scene parser with memory off (each frame parsed alone).
 * ``ssp``: :class:`ssp.parser.SceneParser`.
+
+Each output :class:`Detection` carries the method's confidence (the hypothesis score; for
+ssp the data fit of the object) and, for the methods that track objects over frames
+(``temporal_filter``, ``icp_filter``, ``ssp``), its instance id.
 """
 
 from __future__ import annotations
@@ -42,6 +48,7 @@ from ssp.temporal import (
     associate,
     association_gates,
     default_id_factory,
+    one_object_per_segment,
     same_volume_test,
     snap_symmetric,
 )
@@ -51,9 +58,11 @@ __all__ = [
     "BestFit",
     "Detection",
     "Estimator",
+    "ICPFilter",
     "ICPRefine",
     "Method",
     "SSPMethod",
+    "SSPSingleFrame",
     "TemporalFilter",
     "data_fit",
     "make_method",
@@ -63,10 +72,14 @@ log = logging.getLogger(__name__)
 
 
 class Detection(NamedTuple):
-    """One output object: its class and pose ``T_world_obj`` (4, 4), m."""
+    """One output object: its class and pose ``T_world_obj`` (4, 4), m; the method's
+    confidence ``score`` (higher is better; orders estimates for the BOP metrics) and its
+    instance ``id`` when the method tracks objects over frames (None for memoryless ones)."""
 
     class_name: str
     T_world_obj: np.ndarray
+    score: float = 1.0
+    id: str | None = None
 
 
 class Method(Protocol):
@@ -105,6 +118,8 @@ class Estimator:
     """The pose estimator alone: each object's best-scored hypothesis (no state)."""
 
     name = "estimator"
+    #: Whether the method's detections carry ids that persist over frames.
+    tracks_ids = False
 
     def __init__(self, library: Mapping[str, ObjectModel], config: SSPConfig | None = None):
         self.library = library
@@ -120,8 +135,9 @@ class Estimator:
         self, frame: Frame, previous: Mapping[str, tuple[str, np.ndarray]] | None = None, **kw
     ) -> dict[str, list[Hypothesis]]:
         """The frame's hypotheses per object, best score first, associated as the parser
-        does (clusters whose best poses share a volume are one object)."""
-        return associate(
+        does (clusters whose best poses share a volume are one object; one object per
+        instance segment: a tracked object's class first, else the best-scored one)."""
+        groups = associate(
             frame.hypotheses,
             previous or {},
             self._symmetries,
@@ -129,6 +145,9 @@ class Estimator:
             same_volume=self._same_volume,
             **kw,
         )
+        known = set(previous or ())
+        kept, _ = one_object_per_segment(groups, lambda oid, h: (oid in known, h[0].score))
+        return kept
 
     def _segments(
         self, frame: Frame, poses: Mapping[str, list[np.ndarray]], classes: Mapping[str, str]
@@ -143,7 +162,7 @@ class Estimator:
     def update(self, frame: Frame) -> list[Detection]:
         frame = frame.validate(self.library)
         return [
-            Detection(hyps[0].class_name, np.array(hyps[0].T_world_obj))
+            Detection(hyps[0].class_name, np.array(hyps[0].T_world_obj), hyps[0].score)
             for hyps in self._groups(frame).values()
         ]
 
@@ -186,7 +205,7 @@ class ICPRefine(Estimator):
                 iterations=self.iterations,
                 n_samples=self.config.search.fit_samples,
             )
-            out.append(Detection(classes[oid], T))
+            out.append(Detection(classes[oid], T, hyps[0].score))
         return out
 
 
@@ -225,7 +244,7 @@ class BestFit(Estimator):
                     for h in hyps
                 ]
                 best = hyps[int(np.argmax(fits))]  # first maximum: the higher score
-            out.append(Detection(classes[oid], np.array(best.T_world_obj)))
+            out.append(Detection(classes[oid], np.array(best.T_world_obj), best.score))
         return out
 
 
@@ -252,6 +271,7 @@ class TemporalFilter(Estimator):
     """
 
     name = "temporal_filter"
+    tracks_ids = True
 
     def __init__(
         self,
@@ -305,7 +325,7 @@ class TemporalFilter(Estimator):
             T_out[:3, 3] = np.mean([T[:3, 3] for T in tr.poses], axis=0)
             T_out[:3, :3] = chordal_mean_rotation([T[:3, :3] for T in tr.poses])
             tr.output = T_out
-            out.append(Detection(cls, T_out.copy()))
+            out.append(Detection(cls, T_out.copy(), hyps[0].score, tid))
         for tid in list(self._tracks):
             if tid not in groups:
                 self._tracks[tid].missed += 1
@@ -321,6 +341,7 @@ class SSPMethod:
     is that of the last good frame)."""
 
     name = "ssp"
+    tracks_ids = True
 
     def __init__(self, library, config: SSPConfig | None = None) -> None:
         self.library = library
@@ -341,8 +362,165 @@ class SSPMethod:
             log.warning("ssp: frame at t = %s skipped: %s", frame.stamp, exc)
             return [Detection(d.class_name, d.T_world_obj.copy()) for d in self._last]
         self.last_estimate = est
-        self._last = [Detection(o.class_name, np.array(o.T_world_obj)) for o in est.objects]
+        self._last = [
+            Detection(o.class_name, np.array(o.T_world_obj), float(o.fit), o.id)
+            for o in est.objects
+        ]
         return list(self._last)
+
+
+class SSPSingleFrame(SSPMethod):
+    """ssp without memory: every frame is parsed as the first of a new scene (the parser is
+    reset before it). Physics and data terms choose and correct the hypotheses; nothing is
+    carried from the previous frame (no previous poses, no retained or ephemeral objects, no
+    ids kept). A single-frame physical-plausibility refinement."""
+
+    name = "ssp_single"
+    tracks_ids = False
+
+    def update(self, frame: Frame) -> list[Detection]:
+        self.parser.reset()
+        return [d._replace(id=None) for d in super().update(frame)]
+
+
+@dataclass
+class _GatedTrack:
+    class_name: str
+    poses: deque  # accepted (ICP-refined, snapped) poses, newest last
+    output: np.ndarray
+    score: float
+    missed: int = 0
+    outliers: list = field(default_factory=list)  # consecutive rejected measurements
+
+
+class ICPFilter(ICPRefine):
+    """ICP-refined hypotheses through a tracker with outlier rejection: the strongest
+    temporal baseline a user would build without physics.
+
+    Tracks are associated as in :class:`TemporalFilter`. Per track and frame (*gating*): of the
+    object's hypotheses (the best ``search.hypotheses_per_object``), the one nearest to the
+    track's output (translation + 0.05 m/rad x symmetry-aware rotation) is refined by ICP on the
+    object's segment; it is accepted when within ``gate_translation`` (2 cm) and
+    ``gate_rotation`` (30 deg) of the output, else it is an outlier. The output is the *median*
+    of the last ``window`` accepted poses (per-axis median translation; the rotation of the
+    window's medoid, symmetric equivalents snapped to the output). ``confirm`` consecutive
+    outliers that agree with each other (within the gates) restart the track at them: the
+    object was moved. A track without hypotheses keeps its output for ``max_missed`` frames
+    (coasting, its score halved per frame), then is dropped. New tracks start at the
+    best-scored hypothesis, refined."""
+
+    name = "icp_filter"
+    tracks_ids = True
+
+    def __init__(
+        self,
+        library: Mapping[str, ObjectModel],
+        config: SSPConfig | None = None,
+        *,
+        window: int = 5,
+        gate_translation: float = 0.02,
+        gate_rotation: float = math.radians(30.0),
+        confirm: int = 3,
+        max_missed: int = 3,
+    ) -> None:
+        super().__init__(library, config)
+        self.window = int(window)
+        self.gate_translation = float(gate_translation)
+        self.gate_rotation = float(gate_rotation)
+        self.confirm = int(confirm)
+        self.max_missed = int(max_missed)
+        self.reset()
+
+    def reset(self) -> None:
+        self._tracks: dict[str, _GatedTrack] = {}
+        self._new_id = default_id_factory()
+
+    def _within(self, T_a: np.ndarray, T_b: np.ndarray, sym) -> bool:
+        dt, dth = pose_change(T_a, T_b, sym)
+        return dt <= self.gate_translation and dth <= self.gate_rotation
+
+    @staticmethod
+    def _median(poses, sym) -> np.ndarray:
+        ref = poses[-1]
+        snapped = [snap_symmetric(ref, T, sym) for T in poses]
+        R = [T[:3, :3] for T in snapped]
+        cost = [sum(pose_change(_rot(a), _rot(b))[1] for b in R) for a in R]
+        out = np.eye(4)
+        out[:3, :3] = R[int(np.argmin(cost))]
+        out[:3, 3] = np.median([T[:3, 3] for T in snapped], axis=0)
+        return out
+
+    def update(self, frame: Frame) -> list[Detection]:
+        frame = frame.validate(self.library)
+        k = self.config.search.hypotheses_per_object
+        previous = {tid: (tr.class_name, tr.output) for tid, tr in self._tracks.items()}
+        groups = {
+            oid: hyps[:k]
+            for oid, hyps in self._groups(frame, previous, new_id=self._new_id).items()
+        }
+        classes = {oid: hyps[0].class_name for oid, hyps in groups.items()}
+        segs = self._segments(
+            frame, {oid: [h.T_world_obj for h in hyps] for oid, hyps in groups.items()}, classes
+        )
+        cam = None if frame.T_world_cam is None else frame.T_world_cam[:3, 3]
+
+        def refine(cls: str, T: np.ndarray, oid: str) -> np.ndarray:
+            return icp_refine(
+                self.library[cls], T, segs[oid], cam, max_distance=self.max_distance,
+                iterations=self.iterations, n_samples=self.config.search.fit_samples,
+            )  # fmt: skip
+
+        out = []
+        for tid, hyps in groups.items():
+            cls = classes[tid]
+            sym = self.library[cls].symmetry
+            tr = self._tracks.get(tid)
+            if tr is None:
+                T = refine(cls, hyps[0].T_world_obj, tid)
+                tr = self._tracks[tid] = _GatedTrack(
+                    cls, deque([T], maxlen=self.window), T, hyps[0].score
+                )
+            else:
+
+                def cost(h, tr=tr, sym=sym):
+                    dt, dth = pose_change(tr.output, h.T_world_obj, sym)
+                    return dt + 0.05 * dth
+
+                h = min(hyps, key=cost)
+                T = snap_symmetric(tr.output, refine(cls, h.T_world_obj, tid), sym)
+                tr.missed = 0
+                if self._within(tr.output, T, sym):
+                    tr.poses.append(T)
+                    tr.outliers = []
+                    tr.score = h.score
+                else:
+                    T0 = refine(cls, hyps[0].T_world_obj, tid)
+                    if tr.outliers and not self._within(tr.outliers[-1], T0, sym):
+                        tr.outliers = []
+                    tr.outliers.append(T0)
+                    if len(tr.outliers) >= self.confirm:  # it moved: restart there
+                        tr.poses = deque(tr.outliers, maxlen=self.window)
+                        tr.outliers = []
+                        tr.score = hyps[0].score
+                tr.output = self._median(list(tr.poses), sym)
+            out.append(Detection(cls, tr.output.copy(), tr.score, tid))
+        for tid in list(self._tracks):
+            if tid in groups:
+                continue
+            tr = self._tracks[tid]
+            tr.missed += 1
+            if tr.missed > self.max_missed:
+                del self._tracks[tid]
+            else:  # coasting, with a confidence that halves every frame
+                score = tr.score * 0.5**tr.missed
+                out.append(Detection(tr.class_name, tr.output.copy(), score, tid))
+        return out
+
+
+def _rot(R: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R
+    return T
 
 
 #: Method name -> class (constructed as ``cls(library, config)``), in Table I order.
@@ -352,6 +530,8 @@ METHODS: dict[str, type] = {
     "icp": ICPRefine,
     "bestfit": BestFit,
     "temporal_filter": TemporalFilter,
+    "icp_filter": ICPFilter,
+    "ssp_single": SSPSingleFrame,
 }
 
 

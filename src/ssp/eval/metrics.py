@@ -134,7 +134,7 @@ def match_frame(
     symmetries: Symmetries | None = None,
     gate: float = DEFAULT_GATE,
 ) -> FrameMatch:
-    """Match one frame's estimates ``[(class_name, T_world_obj), ...]`` to the ground truth.
+    """Match one frame's estimates ``[(class_name, T_world_obj, ...), ...]`` to the ground truth.
 
     Per class, a Hungarian assignment on the distance between centres (pairs beyond ``gate``,
     m, forbidden); errors from :func:`pose_error` with the class's symmetry (``symmetries`` maps
@@ -146,7 +146,7 @@ def match_frame(
     used: set[int] = set()
     for cls in sorted({c for c, _ in gt.values()}):
         rows = [g for g in gt_ids if gt[g][0] == cls]
-        cols = [j for j, (c, _) in enumerate(estimates) if c == cls]
+        cols = [j for j, e in enumerate(estimates) if e[0] == cls]
         if not cols:
             continue
         centre = _centre(symmetries, cls)

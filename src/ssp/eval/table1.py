@@ -38,14 +38,18 @@ import numpy as np
 
 from ssp.config import SSPConfig
 from ssp.eval.baselines import METHODS, Detection, make_method
+from ssp.eval.bop_metrics import BopEvaluator
+from ssp.eval.failures import VISIBLE, false_object_cause, object_conditions
 from ssp.eval.metrics import (
     DEFAULT_GATE,
+    FrameMatch,
     hypothesis_errors,
     match_frame,
     plus_minus,
     precision_deviations,
     summarize,
 )
+from ssp.eval.tracking import IdSwitches
 from ssp.library.model import ObjectInstance
 from ssp.physics import World
 from ssp.sim.sequence import SimSequence
@@ -59,7 +63,9 @@ __all__ = [
     "write_table1",
 ]
 
-DEFAULT_METHODS = ("ssp", "estimator", "icp", "bestfit", "temporal_filter")
+DEFAULT_METHODS = (
+    "ssp", "estimator", "icp", "bestfit", "temporal_filter", "icp_filter", "ssp_single",
+)  # fmt: skip
 
 #: The paper's Table I: experiment -> row -> ((trans mm mean, std), (rot deg mean, std)).
 PAPER_TABLE1 = {
@@ -132,6 +138,73 @@ class PhysicsCheck:
         return max(contacts.max_depth, 0.0), len(bad)
 
 
+#: An estimate more than this far (mm, deg) from its object, or none, is a gross error.
+GROSS_MM = 10.0
+GROSS_DEG = 10.0
+
+
+class _Tails:
+    """Per method: gross errors, false objects and id switches, and their causes."""
+
+    def __init__(self) -> None:
+        self.object_frames = 0
+        self.gross = 0
+        self.visible = 0
+        self.gross_visible = 0
+        self.by_condition: dict[str, list[int]] = {}  # condition -> [object-frames, gross]
+        self.fp_causes: dict[str, int] = {}
+        self.switches = 0
+        self.static_switches = 0
+        self.tracked = False
+        self.switch_events: list[dict] = []
+
+    def add(self, sf, fm: FrameMatch, dets, conditions, kinds, gate: float) -> None:
+        by_gt = fm.by_gt()
+        for gid in sf.gt:
+            mt = by_gt.get(gid)
+            bad = mt is None or mt.trans_mm > GROSS_MM or mt.rot_deg > GROSS_DEG
+            self.object_frames += 1
+            self.gross += int(bad)
+            if sf.visib_fract.get(gid, 0.0) >= VISIBLE:
+                self.visible += 1
+                self.gross_visible += int(bad)
+            if conditions is not None:
+                row = self.by_condition.setdefault(conditions[gid], [0, 0])
+                row[0] += 1
+                row[1] += int(bad)
+        for j in fm.false_positives:
+            d = dets[j]
+            cause = false_object_cause(
+                d.T_world_obj, d.class_name, sf.gt, sf.distractors, sf.hypotheses, kinds, gate
+            )
+            self.fp_causes[cause] = self.fp_causes.get(cause, 0) + 1
+
+    def add_ids(self, ids: IdSwitches, tracked: bool) -> None:
+        self.tracked |= tracked
+        self.switches += ids.switches
+        self.static_switches += ids.static_switches
+        self.switch_events += ids.events[:20]
+
+    def result(self) -> dict:
+        n = max(self.object_frames, 1)
+        out = {
+            "gross_rate": self.gross / n,
+            "gross_rate_visible": self.gross_visible / max(self.visible, 1),
+            "gross": self.gross,
+            "id_switches": self.switches if self.tracked else None,
+            "id_switches_static": self.static_switches if self.tracked else None,
+            "false_object_causes": dict(sorted(self.fp_causes.items())),
+        }
+        if self.by_condition:
+            out["gross_by_condition"] = {
+                k: {"object_frames": v[0], "gross": v[1], "rate": v[1] / max(v[0], 1)}
+                for k, v in sorted(self.by_condition.items())
+            }
+        if self.tracked:
+            out["id_switch_examples"] = self.switch_events[:20]
+        return out
+
+
 def _sources(seq: SimSequence) -> list | None:
     """The generator's per-frame source ids of the hypotheses, if recorded and consistent."""
     src = (seq.info or {}).get("hypothesis_sources")
@@ -156,6 +229,7 @@ def run_table1(
     *,
     gate: float = DEFAULT_GATE,
     on_output: Callable[[int, int, str, list[Detection]], None] | None = None,
+    vsd: bool = True,
 ) -> dict:
     """Run every method on every frame of ``sequences``; a JSON-ready dict (module docstring).
 
@@ -169,6 +243,8 @@ def run_table1(
         gate: matching gate, m (:func:`ssp.eval.metrics.match_frame`).
         on_output: called as ``on_output(sequence index, frame index, method, detections)``
             after each method's update (e.g. to draw estimate-vs-truth images).
+        vsd: include VSD in the BOP metrics (one render per estimate-object pair that
+            overlaps in the image).
     """
     config = config if config is not None else SSPConfig()
     methods = tuple(methods)
@@ -192,10 +268,14 @@ def run_table1(
         for m in methods
     }
     total_frames = 0
+    bop = {m: BopEvaluator(library, vsd=vsd) for m in methods}
+    tails = {m: _Tails() for m in methods}
 
     for s, seq in enumerate(sequences):
         runners = {m: make_method(m, library, config) for m in methods}
+        ids = {m: IdSwitches() for m in methods}
         sources = _sources(seq)
+        kinds = (seq.info or {}).get("hypothesis_kinds") if sources is not None else None
         for i, sf in enumerate(seq.frames):
             if progress is not None:
                 progress(f"sequence {s + 1}/{len(sequences)}, frame {i + 1}/{len(seq)}")
@@ -207,6 +287,11 @@ def run_table1(
             hyp_outliers += outliers
             hyp_t.extend(e[0] for e in errs)
             hyp_r.extend(e[1] for e in errs)
+            conditions = None
+            if kinds is not None:
+                conditions = object_conditions(
+                    sf.gt, sf.visib_fract, sf.hypotheses, sources[i], kinds[i]
+                )
             for m, runner in runners.items():
                 t0 = time.perf_counter()
                 dets = runner.update(frame)
@@ -214,6 +299,18 @@ def run_table1(
                 if on_output is not None:
                     on_output(s, i, m, dets)
                 fm = match_frame(sf.gt, dets, library, gate)
+                bop[m].add_frame(
+                    sf.gt,
+                    sf.visib_fract,
+                    [(d.class_name, d.T_world_obj, d.score) for d in dets],
+                    seq.camera,
+                    seq.T_world_cam,
+                    sf.depth,
+                )
+                ids[m].update(
+                    sf.index, sf.gt, {mt.gt_id: dets[mt.est_index].id for mt in fm.matches}
+                )
+                tails[m].add(sf, fm, dets, conditions, kinds[i] if kinds else None, gate)
                 depth, n_unsup = physics(dets)
                 c = counts[m]
                 c["matched"] += len(fm.matches)
@@ -250,6 +347,8 @@ def run_table1(
                     ("sec", wall),
                 ):
                     fr[name].append(value)
+        for m in methods:
+            tails[m].add_ids(ids[m], tracked=getattr(runners[m], "tracks_ids", False))
 
     out_methods = {}
     for m in methods:
@@ -268,6 +367,10 @@ def run_table1(
             "unsupported_total": int(sum(fr["unsupported"])),
             "sec_per_frame": float(sum(fr["sec"]) / n),
             **counts[m],
+            "missed_per_frame": counts[m]["missed"] / n,
+            "false_positives_per_frame": counts[m]["false_positives"] / n,
+            "bop": bop[m].result(),
+            **tails[m].result(),
         }
 
     # accuracy over the object-frames every method matched (methods that keep hard, occluded
@@ -356,6 +459,7 @@ def _markdown(result: dict) -> str:
                 f"{plus_minus(c['rot_deg_mean'], c['rot_deg_std'])} | | | | "
                 f"{d['common_objects']} matched by all |"
             )
+    lines += _tails_markdown(result)
     e = result.get("estimator")
     if e:
         lines += [
@@ -386,6 +490,65 @@ def _markdown(result: dict) -> str:
         "`error_over_frames.png` (mean error per frame index over objects and sequences).",
     ]
     return "\n".join(lines) + "\n"
+
+
+def _tails_markdown(result: dict) -> list[str]:
+    """The tails tables: BOP AR, gross errors, false objects, id switches; on the realistic
+    stream, gross errors by the stream's condition and false objects by cause."""
+    methods = result["methods"]
+    lines = [
+        "",
+        "Tails. AR: BOP19 average recall (mean of VSD, MSSD, MSPD, as the BOP toolkit defines "
+        "them, symmetry-aware; targets: objects at least 10 % visible). Gross: ground-truth "
+        f"object-frames whose estimate is more than {GROSS_MM:.0f} mm or {GROSS_DEG:.0f} deg "
+        "off (at the centre of mass) or missing; visible: of those at least 10 % visible. "
+        "False objects: estimates matched to no object. Id switches: CLEAR-MOT, in brackets "
+        "those of objects that had not moved (methods without ids: -).",
+        "",
+        "| Method | AR | AR VSD / MSSD / MSPD | gross | gross, visible | missed / frame "
+        "| false objects / frame | id switches (static) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for name, d in methods.items():
+        b = d.get("bop")
+        if b is None:
+            continue
+        sw = d.get("id_switches")
+        vsd = f"{b['AR_VSD']:.3f} / " if "AR_VSD" in b else ""
+        lines.append(
+            f"| {name} | {b['AR']:.3f} | {vsd}{b['AR_MSSD']:.3f} / {b['AR_MSPD']:.3f} | "
+            f"{d['gross_rate']:.3f} | {d['gross_rate_visible']:.3f} | "
+            f"{d['missed_per_frame']:.2f} | {d['false_positives_per_frame']:.2f} | "
+            + ("-" if sw is None else f"{sw} ({d['id_switches_static']})")
+            + " |"
+        )
+    conds = sorted({c for d in methods.values() for c in d.get("gross_by_condition", {})})
+    if conds:
+        lines += [
+            "",
+            "Gross object-frames by the stream's condition for the object in that frame "
+            "(`ssp.eval.failures`): gross / object-frames.",
+            "",
+            "| Method | " + " | ".join(conds) + " |",
+            "|---|" + "---|" * len(conds),
+        ]
+        for name, d in methods.items():
+            g = d.get("gross_by_condition", {})
+            cells = [f"{g[c]['gross']} / {g[c]['object_frames']}" if c in g else "" for c in conds]
+            lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    causes = sorted({c for d in methods.values() for c in d.get("false_object_causes", {})})
+    if causes:
+        lines += [
+            "",
+            "False objects (object-frames) by what they lie on.",
+            "",
+            "| Method | " + " | ".join(causes) + " |",
+            "|---|" + "---|" * len(causes),
+        ]
+        for name, d in methods.items():
+            f = d.get("false_object_causes", {})
+            lines.append(f"| {name} | " + " | ".join(str(f.get(c, 0)) for c in causes) + " |")
+    return lines
 
 
 def _object_arrays(rec: dict) -> tuple[np.ndarray, ...]:

@@ -76,8 +76,12 @@ from ssp.geometry import yaw_pose
 from ssp.library.model import ObjectInstance, ObjectModel
 from ssp.physics.world import World
 from ssp.probability import pose_change
+from ssp.sim.distractors import distractor_models
 from ssp.sim.generate import observe_static_scene
 from ssp.sim.hypotheses import HypothesisNoise, draw_hypotheses
+from ssp.sim.masks import add_mask_defects
+from ssp.sim.placement import random_resting
+from ssp.sim.realistic import RealisticNoise, RealisticStream, SceneRealism
 from ssp.sim.render import KINECT_QUANTUM, Camera, add_depth_noise, look_at
 from ssp.sim.robot import grasp, place, release, tilt_deg, upright
 from ssp.sim.sequence import depth_frame
@@ -213,11 +217,54 @@ class TowerTrial:
     frames: list[tuple[dict[str, np.ndarray], list[Detection]]] = field(default_factory=list)
     seconds: list[float] = field(default_factory=list)
     placements: list[dict] = field(default_factory=list)
+    failure_detail: dict | None = None
+
+
+def _distractors(realism: SceneRealism, rng, cubes) -> tuple[dict, dict]:
+    """Distractor models and resting poses for a trial: free spots of :data:`REGION`, at least
+    :data:`MIN_SPACING` from every cube and :data:`SITE_CLEARANCE` from the tower site."""
+    shapes = distractor_models()
+    names = list(shapes)
+    models: dict[str, ObjectModel] = {}
+    poses: dict[str, np.ndarray] = {}
+    taken = [np.asarray(T)[:2, 3] for T in cubes]
+    for j in rng.permutation(len(names))[: realism.distractors]:
+        m = shapes[names[int(j)]]
+        for _ in range(500):
+            T = random_resting(m, rng, REGION)
+            p = T[:2, 3]
+            if np.linalg.norm(p - np.asarray(SITE)) < SITE_CLEARANCE + m.d_max:
+                continue
+            if all(np.linalg.norm(p - q) >= MIN_SPACING + m.d_max for q in taken):
+                oid = f"distractor_{len(models)}"
+                models[oid], poses[oid] = m, T
+                taken.append(p)
+                break
+    return models, poses
+
+
+def _miss_detail(world: World, T_target: np.ndarray, extras, step: int) -> dict:
+    """What a missed grasp reached for: the distance from the perceived target to the nearest
+    cube and to the nearest distractor, m, and whether it was a ghost (no cube within 2 cube
+    sizes)."""
+    p = np.asarray(T_target)[:3, 3]
+    cubes = [world.get_pose(o)[:3, 3] for o in world.ids if o not in extras]
+    others = [world.get_pose(o)[:3, 3] for o in extras]
+    d_cube = min(float(np.linalg.norm(c - p)) for c in cubes)
+    d_other = min((float(np.linalg.norm(c - p)) for c in others), default=None)
+    near = "distractor" if d_other is not None and d_other < d_cube else "cube"
+    return {
+        "pick": step + 1,
+        "nearest_cube_mm": 1000.0 * d_cube,
+        "nearest_distractor_mm": None if d_other is None else 1000.0 * d_other,
+        "reached_for": near if min(d_cube, d_other or np.inf) < 0.1 else "nothing (a ghost)",
+    }
 
 
 class _Camera:
     """The static camera and the hypothesis source of a trial. The scene is ray cast once per
-    static scene; each frame adds its own depth noise and hypotheses."""
+    static scene; each frame adds its own depth noise and hypotheses (and, with ``realism``,
+    mask defects; ``stream`` is then the realistic estimator)."""
 
     def __init__(
         self,
@@ -227,23 +274,31 @@ class _Camera:
         camera: Camera | None,
         noise: HypothesisNoise | None = None,
         stride: int = 1,
+        stream: RealisticStream | None = None,
+        realism: SceneRealism | None = None,
+        extras: Mapping[str, ObjectModel] | None = None,
     ):
         self.library = library
         self.camera = camera or Camera.default()
         self.stride = int(stride)
         self.T_world_cam = camera_pose()
         self.noise = noise if noise is not None else HypothesisNoise.structure()
+        self.stream = stream
+        self.realism = realism
+        self.extras = dict(extras or {})
         self._cache: dict = {}
         self._scene: tuple | None = None  # (poses, render, visib_fract) of the last scene
         self._perception = None
+        self.frames = 0
         if hypotheses == "estimated":
             from ssp.perception.pipeline import Perception
 
             self._perception = Perception(library, config, classes=(CUBE,))
 
     def frame(self, poses: Mapping[str, np.ndarray], rng: np.random.Generator, stamp: float):
-        """The parser's input for the world with true ``poses``."""
-        gt = {oid: (CUBE, T) for oid, T in poses.items()}
+        """The parser's input for the world with true ``poses`` (distractors included)."""
+        gt = {oid: (CUBE, T) for oid, T in poses.items() if oid not in self.extras}
+        extras = {oid: (self.extras[oid], T) for oid, T in poses.items() if oid in self.extras}
         last = self._scene
         if (
             last is None
@@ -251,21 +306,31 @@ class _Camera:
             or not all(np.array_equal(last[0][k], T) for k, T in poses.items())
         ):
             scene, visib, _, _ = observe_static_scene(
-                self.library, gt, self.T_world_cam, self.camera, self.stride, self._cache
+                self.library, gt, self.T_world_cam, self.camera, self.stride, self._cache, extras
             )
             self._scene = last = (dict(poses), scene, visib)
         _, scene, visib = last
         depth = add_depth_noise(scene.depth, rng, quantum=KINECT_QUANTUM)
-        if self._perception is None:
-            hyps, _ = draw_hypotheses(gt, visib, self.library, self.noise, rng)
-        else:
-            mask = np.asarray(scene.instance, dtype=np.int64)
+        instance = scene.instance
+        if self.realism is not None and self.realism.mask_defects is not None:
+            depth, instance, _ = add_mask_defects(
+                depth, instance, rng, fraction=self.realism.mask_defects
+            )
+        if self._perception is not None:
+            mask = np.asarray(instance, dtype=np.int64)
             mask[mask < -1] = -1
             res = self._perception.from_depth(
                 depth, scene.camera, stamp=stamp, T_world_cam=self.T_world_cam, mask=mask
             )
             hyps = list(res.frame.hypotheses)
-        return depth_frame(depth, scene.instance, scene.camera, self.T_world_cam, hyps, stamp)
+        elif self.stream is not None:
+            labels = {oid: k for k, oid in enumerate([*gt, *extras])}
+            drawn = self.stream.draw(self.frames, gt, visib, segments=labels, distractors=extras)
+            hyps = [d.hypothesis for d in drawn]
+        else:
+            hyps, _ = draw_hypotheses(gt, visib, self.library, self.noise, rng)
+        self.frames += 1
+        return depth_frame(depth, instance, scene.camera, self.T_world_cam, hyps, stamp)
 
 
 def _horizontal(T: np.ndarray) -> float:
@@ -285,6 +350,7 @@ def run_trial(
     noise: HypothesisNoise | None = None,
     blocks: int = BLOCKS,
     stride: int = 1,
+    realism: SceneRealism | None = None,
     progress: Callable[[str], None] | None = None,
 ) -> TowerTrial:
     """One trial of one method (module docstring).
@@ -298,20 +364,38 @@ def run_trial(
         frames_per_step: frames the method sees before each pick.
         camera: full-resolution intrinsics (:meth:`Camera.default`), rendered every
             ``stride``-th pixel.
-        noise: the noisy hypotheses' model (default :meth:`HypothesisNoise.structure`).
+        noise: the noisy hypotheses' model (default :meth:`HypothesisNoise.structure`); a
+            :class:`~ssp.sim.realistic.RealisticNoise` draws the realistic estimator stream.
         blocks: cubes on the table (and most stacks).
+        realism: distractors on the table and mask defects (its events are not used: the
+            robot's picks and placements are the dynamic events here).
     """
     model: ObjectModel = library[CUBE]
     size = float(model.mesh.extents[2])
+    start = _layout(np.random.default_rng([seed, trial, 0]), size, blocks)
+    cube_ids = [f"b{i}" for i in range(blocks)]
+    extras: dict[str, ObjectModel] = {}
+    placed: dict[str, np.ndarray] = {}
+    if realism is not None:
+        extras, placed = _distractors(realism, np.random.default_rng([seed, trial, 2]), start)
     world = World(
-        [ObjectInstance(f"b{i}", model) for i in range(blocks)],
+        [ObjectInstance(oid, model) for oid in cube_ids]
+        + [ObjectInstance(oid, m) for oid, m in extras.items()],
         table=True,
         config=config.physics,
     )
-    start = _layout(np.random.default_rng([seed, trial, 0]), size, blocks)
-    world.set_poses(dict(zip(world.ids, start, strict=True)))
+    world.set_poses({**dict(zip(cube_ids, start, strict=True)), **placed})
     world.settle()
-    cam = _Camera(library, config, hypotheses, camera, noise, stride)
+    stream = None
+    if isinstance(noise, RealisticNoise):
+        stream = RealisticStream(
+            library,
+            noise,
+            int(np.random.SeedSequence([seed, trial]).generate_state(1)[0]),
+            classes=(CUBE,),
+            resting_pose=lambda m, r: random_resting(m, r, REGION),
+        )
+    cam = _Camera(library, config, hypotheses, camera, noise, stride, stream, realism, extras)
     method = make_method(method_name, library, config)
     out = TowerTrial()
     n_frames = 0
@@ -326,7 +410,7 @@ def run_trial(
             t0 = time.perf_counter()
             dets = method.update(frame)
             out.seconds.append(time.perf_counter() - t0)
-            out.frames.append((poses, list(dets)))
+            out.frames.append(({o: poses[o] for o in cube_ids}, list(dets)))
             n_frames += 1
         return dets
 
@@ -339,6 +423,7 @@ def run_trial(
             target = yaw_pose(0.0, (SITE[0], SITE[1], size / 2))
         elif not tower_dets:
             out.failure = "tower not perceived"
+            out.failure_detail = {"pick": step + 1}
             break
         else:
             top = max(tower_dets, key=lambda d: d.T_world_obj[2, 3])
@@ -351,13 +436,15 @@ def run_trial(
         )
         if not candidates:
             out.failure = "no cube perceived to pick"
+            out.failure_detail = {"pick": step + 1}
             break
-        free = tuple(oid for oid in world.ids if oid not in out.tower)
+        free = tuple(oid for oid in cube_ids if oid not in out.tower)
         held = grasp(
             world, model, candidates[0].T_world_obj, candidates=free, tolerance=GRASP_TOLERANCE
         )
         if held is None:
             out.failure = "grasp missed"
+            out.failure_detail = _miss_detail(world, candidates[0].T_world_obj, extras, step)
             break
         before = {oid: world.get_pose(oid) for oid in out.tower}
         stop = place(world, held, target)
@@ -374,6 +461,7 @@ def run_trial(
         reason = _judge(world, model, size, out.tower, before, held.oid)
         if reason is not None:
             out.failure = reason
+            out.failure_detail = {"pick": step + 1, **out.placements[-1]}
             break
         out.tower.append(held.oid)
         out.stacks += 1
@@ -467,6 +555,7 @@ def run_tower(
     noise: HypothesisNoise | None = None,
     blocks: int = BLOCKS,
     stride: int = 1,
+    realism: SceneRealism | None = None,
     progress: Callable[[str], None] | None = None,
     on_trial: Callable[[str, int, TowerTrial], None] | None = None,
 ) -> dict:
@@ -489,7 +578,7 @@ def run_tower(
             tr = run_trial(
                 name, t, seed, library, config, hypotheses=hypotheses,
                 frames_per_step=frames_per_step, noise=noise, blocks=blocks, stride=stride,
-                progress=progress,
+                realism=realism, progress=progress,
             )  # fmt: skip
             if on_trial is not None:
                 on_trial(name, t, tr)
@@ -508,6 +597,7 @@ def run_tower(
                     "trial": t,
                     "stacks": tr.stacks,
                     "failure": tr.failure,
+                    "failure_detail": tr.failure_detail,
                     "straightness_mm": _mean_std(a)[0],
                     "straightness_deg": _mean_std(b)[0],
                     "consistency_mm": _mean_std(c)[0],
@@ -544,6 +634,7 @@ def run_tower(
         "noise": (noise if noise is not None else HypothesisNoise.structure()).to_dict()
         if hypotheses == "noisy"
         else None,
+        "realism": None if realism is None else realism.to_dict(),
         "methods": out_methods,
         "trials_detail": detail,
         "wall_s": time.perf_counter() - t_start,
@@ -610,6 +701,24 @@ def _markdown(result: dict) -> str:
             + " | ".join(str(r["stacks"]) for r in result["trials_detail"][m])
             + " |"
         )
+    failed = [
+        (m, r) for m in methods for r in result["trials_detail"][m] if r.get("failure") is not None
+    ]
+    if failed:
+        lines += ["", "First failure of each trial that failed:", ""]
+        for m, r in failed:
+            d = dict(r.get("failure_detail") or {})
+            pick = d.pop("pick", None)
+            extra = ", ".join(
+                f"{k} {v:.1f}" if isinstance(v, float) else f"{k} {v}"
+                for k, v in d.items()
+                if v is not None
+            )
+            where = f" at pick {pick}" if pick is not None else ""
+            lines.append(
+                f"- {m}, trial {r['trial']}: {r['failure']}{where}"
+                + (f" ({extra})" if extra else "")
+            )
     return "\n".join(lines) + "\n"
 
 

@@ -1,0 +1,52 @@
+"""Id switches (CLEAR MOT) and the stream conditions behind failures."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ssp.eval.failures import false_object_cause, object_conditions
+from ssp.eval.tracking import IdSwitches
+from ssp.scene import Hypothesis
+
+
+def _T(x: float) -> np.ndarray:
+    T = np.eye(4)
+    T[0, 3] = x
+    return T
+
+
+def test_id_switches_count_swaps_losses_and_static_ones():
+    gt = {"a": ("cube", _T(0.0)), "b": ("cube", _T(0.1))}
+    ids = IdSwitches()
+    ids.update(0, gt, {"a": "cube_0", "b": "cube_1"})
+    ids.update(1, gt, {"a": "cube_0", "b": "cube_1"})
+    assert ids.switches == 0
+    ids.update(2, gt, {"a": "cube_1", "b": "cube_0"})  # a swap: two switches, both static
+    assert (ids.switches, ids.static_switches) == (2, 2)
+    ids.update(3, gt, {"a": None})  # lost: no switch, and the memory stays
+    moved = {"a": ("cube", _T(0.05)), "b": gt["b"]}
+    ids.update(4, moved, {"a": "cube_7"})  # found again under a new id after moving
+    assert (ids.switches, ids.static_switches) == (3, 2)
+    assert ids.events[-1] == {"frame": 4, "object": "a", "from": "cube_1", "to": "cube_7",
+                              "static": False}  # fmt: skip
+
+
+def test_object_conditions_and_false_object_causes():
+    gt = {"a": ("cube", _T(0.0)), "b": ("cube", _T(0.2)), "c": ("block", _T(0.4))}
+    visib = {"a": 1.0, "b": 0.05, "c": 0.9}
+    hyps = [Hypothesis("cube", _T(0.0), 0.9), Hypothesis("block", _T(0.41), 0.8),
+            Hypothesis("cube", _T(0.6), 0.5)]  # fmt: skip
+    sources = ["a", "c", None]
+    kinds = ["nominal", "flip", "false_positive"]
+    cond = object_conditions(gt, visib, hyps, sources, kinds)
+    assert cond == {"a": "nominal", "b": "hidden", "c": "top1_flip"}
+    assert object_conditions(gt, visib, hyps[:1], sources[:1], kinds[:1])["c"] == "dropout"
+    distractors = {"d": ("distractor_can", _T(0.8))}
+    cause = lambda x, cls="cube": false_object_cause(  # noqa: E731
+        _T(x), cls, gt, distractors, hyps, kinds
+    )
+    assert cause(0.61) == "false_positive"
+    assert cause(0.79) == "distractor"
+    assert cause(0.39, "cube") == "class_confusion"
+    assert cause(0.01) == "duplicate"
+    assert cause(1.5) == "elsewhere"
