@@ -108,8 +108,8 @@ class RealisticNoise:
     figures side by side). Built-in estimator, then this stream, structure / isolated:
 
     * ``sigma_t``, ``sigma_r_deg``, ``growth``: the best-scored hypothesis, when not gross, is
-      off by 0.68 / 0.47 mm and 0.78 / 0.51 deg on average (the stream: 0.5 / 0.45 mm,
-      0.5 / 0.5 deg);
+      off by 0.68 / 0.47 mm and 0.78 / 0.51 deg on average (the stream: 0.52 / 0.46 mm,
+      0.56 / 0.38 deg);
     * ``bias_share``, ``bias_rho``: 50 / 62 % of that error over a static scene is a
       persistent bias (40 / 57 %);
     * ``gross_rate``, ``flip_*``, ``mode_persistence``, ``confusion_*``: the best-scored
