@@ -251,8 +251,8 @@ class TemporalConfig(_Section):
         ge=0,
         le=1,
         description=(
-            "An undetected object whose data fit c / C_max at its previous pose is at least "
-            "this is still there (missed detection): it stays."
+            "An undetected object whose previous pose explains at least this fraction of its "
+            "visible surface (ssp.verification) is still there (missed detection): it stays."
         ),
     )
     occluded_fraction: float = Field(
@@ -269,9 +269,18 @@ class TemporalConfig(_Section):
         ge=0,
         le=1,
         description=(
-            "An undetected object whose camera-facing surface is seen through (observed depth "
-            "behind it) at least this much is logged as seen empty; it is removed unless it "
-            "carries load."
+            "An object whose camera-facing surface is seen through (observed depth behind it) "
+            "at least this much lies in space the camera sees empty: an undetected known one "
+            "is removed unless it carries load, a new one is rejected (ssp.verification)."
+        ),
+    )
+    retain_acceleration: float = Field(
+        0.1,
+        gt=0,
+        description=(
+            "An undetected object is support-retained when, without it, an object it carries "
+            "would accelerate from rest by more than this fraction of g (or of its largest "
+            "angular acceleration under gravity): it would fall."
         ),
     )
     replaced_overlap: float = Field(
@@ -306,6 +315,36 @@ class TemporalConfig(_Section):
     )
 
 
+class VerificationConfig(_Section):
+    """Hypothesis verification (``ssp.verification``; DESIGN section 6): an object the parser
+    has not seen before is kept only if the data supports it."""
+
+    min_fit: float = Field(
+        0.3,
+        ge=0,
+        le=1,
+        description=(
+            "A new object must explain at least this fraction of its visible surface (the "
+            "camera-facing samples the camera could see, with a segment point within the "
+            "inlier radius)."
+        ),
+    )
+    min_explained: float = Field(
+        0.5,
+        ge=0,
+        le=1,
+        description=(
+            "... and account for at least this fraction of the points of its instance segment "
+            "(with instance labels)."
+        ),
+    )
+    min_visible_samples: int = Field(
+        10,
+        ge=1,
+        description="Fewer visible surface samples than this: nothing to verify an object by.",
+    )
+
+
 class SearchConfig(_Section):
     """Simulation windows and budgets of the search (Alg. 1, 3; DESIGN section 4).
 
@@ -325,9 +364,6 @@ class SearchConfig(_Section):
     )
     final_settle: float = Field(
         0.2, ge=0, description="Settle of the whole chosen scene, with forces, s."
-    )
-    retain_settle: float = Field(
-        0.1, ge=0, description="Settle without an undetected object to test its support, s."
     )
     hypotheses_per_object: int = Field(5, ge=1, description="k: hypotheses kept per object.")
     reach: float = Field(
@@ -473,6 +509,7 @@ class SSPConfig(_Section):
     transition: TransitionConfig = Field(default_factory=TransitionConfig)
     temporal: TemporalConfig = Field(default_factory=TemporalConfig)
     search: SearchConfig = Field(default_factory=SearchConfig)
+    verification: VerificationConfig = Field(default_factory=VerificationConfig)
     perception: PerceptionConfig = Field(default_factory=PerceptionConfig)
     seed: int = Field(0, description="Seed for everything random in ssp.")
 

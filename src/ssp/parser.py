@@ -1,32 +1,41 @@
-"""The scene parser: ``SceneParser.update(frame) -> SceneEstimate`` (DESIGN section 1).
+"""The scene parser: ``SceneParser.update(frame) -> SceneEstimate`` (DESIGN sections 1, 6).
 
-One frame, in order (paper sections IV-V; DESIGN section 4):
+:meth:`SceneParser.update` runs these stages, each in the module of its concept:
 
 1. **Validate** the frame (:meth:`Frame.validate`); a bad frame raises :class:`FrameError` and
    leaves the parser's state untouched.
 2. **Associate** hypotheses with known objects (:func:`ssp.temporal.associate`: instance ids,
-   else a globally optimal assignment on class and pose distance, with a gate of at most
-   ``association_size_fraction`` of the class's smallest extent). The best ``k`` per object
-   are kept. A new group whose segment an undetected object explains where it was is that
-   object's duplicate and is dropped (``temporal.explained_fraction``).
-3. **Segments** per object (:func:`ssp.segments.object_segments`) and the data forces.
-4. **Undetected objects** (known, no hypothesis this frame): *replaced* (another object's best
-   hypothesis fills ``replaced_overlap`` of its volume) -> removed; *still visible* (data fit at
-   its old pose >= ``visible_fit``) -> kept; *seen through* (the camera sees depth behind its
-   surface: its volume is empty) -> removed; *occluded* (its surface lies behind observed
-   depth) -> kept as **ephemeral**; otherwise a removal candidate.
-5. **First guess and support graph**: every object at the pose among its previous pose and
+   else a globally optimal assignment on class and pose distance measured at the centre of
+   mass, with a gate of at most ``association_size_fraction`` of the class's median extent);
+   one object per instance segment (:func:`ssp.temporal.one_object_per_segment`: a known
+   object's class first, else the best-scored); the best ``k`` per object are kept; a new
+   group whose segment an undetected object explains where it was is that object's duplicate
+   (:func:`ssp.temporal.duplicates_of_undetected`).
+3. **Segments** per object (:func:`ssp.segments.object_segments`).
+4. **Verify** new objects (:mod:`ssp.verification`): one the data does not support at any of
+   its hypotheses (not visible, its volume seen empty, or explaining almost nothing) is
+   rejected before the search.
+5. **Undetected objects** (:func:`ssp.retention.triage`): replaced, still visible, seen empty,
+   hidden (ephemeral) or unseen.
+6. **First guess and support graph**: every object at the pose among its previous pose and
    its hypotheses with the best terms that need no simulation (data fit and transition,
    :meth:`SceneScorer.unsimulated`), settled with data forces; support graph and layers
-   (Alg. 2). A removal candidate that carries objects which move without it is
-   **support-retained**; the others are removed.
-6. **Layered search** (Alg. 3, :func:`ssp.search.layered_search`) over the candidates: the
-   frame's hypotheses, the previous pose, the current pose.
-7. **Transition modes** and symmetric snapping (the output orientation is the symmetric
-   equivalent closest to the previous one), then the state is committed.
+   (Alg. 2). An undetected object seen empty or unseen that holds up objects which would fall
+   without it (:func:`ssp.retention.carries_load`) is **support-retained**; the others are
+   removed.
+7. **Layered search** (Alg. 3, :func:`ssp.search.layered_search`) over the candidates: the
+   frame's hypotheses, the previous pose, the current pose; then the ICP polish.
+8. **Verify** the new objects again at their final poses (:func:`ssp.verification.check_new`);
+   an object rejected there is left out unless it holds others up (then kept, with a warning).
+9. **Transition modes**, symmetric snapping (the output orientation is the symmetric
+   equivalent closest to the previous one), and **re-identification**: a new object where a
+   known one of its class vanished this frame is that object, moved
+   (:func:`ssp.temporal.reidentify`). Every object, removed object, rejected object and
+   instance segment gets its reason; scene-level doubts become warnings. The state is
+   committed.
 
 When nothing changed (every known object has a hypothesis within the static thresholds of its
-previous pose, no object appeared or vanished) step 6 is replaced by a settle of the previous
+previous pose, no object appeared or vanished) step 7 is replaced by a settle of the previous
 scene (``search.unchanged_shortcut``).
 """
 
@@ -35,22 +44,23 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 
 from ssp.config import SSPConfig, TemporalConfig
 from ssp.errors import InvalidPoseError, PhysicsError, SSPError, UnknownObjectError
+from ssp.estimate import ObjectEstimate, Rejected, SceneEstimate, SupportEdge
 from ssp.forces import SegmentField
-from ssp.geometry import transform_points, validate_pose
+from ssp.geometry import validate_pose
 from ssp.library.library import ObjectLibrary
 from ssp.library.model import ObjectInstance, ObjectModel
 from ssp.library.symmetry import Symmetry
-from ssp.overlap import overlap_fractions
 from ssp.physics import World
-from ssp.probability import ObjectTerms, data_fit_fraction, pose_change
+from ssp.probability import pose_change
 from ssp.registration import icp_refine
+from ssp.retention import REMOVABLE, Triage, support_retained, triage
 from ssp.scene import Frame, FrameError, Hypothesis, TransitionMode
 from ssp.scoring import SceneScore, SceneScorer
 from ssp.search import Candidate, Simulator, layered_search
@@ -60,14 +70,19 @@ from ssp.temporal import (
     associate,
     association_gates,
     classify,
+    duplicates_of_undetected,
+    one_object_per_segment,
+    reidentify,
     same_volume_test,
     snap_symmetric,
 )
 from ssp.timing import StageTimer
+from ssp.verification import Evidence, check_new, evidence
 from ssp.visibility import CameraView
 
 __all__ = [
     "ObjectEstimate",
+    "Rejected",
     "SceneEstimate",
     "SceneParser",
     "SupportEdge",
@@ -82,126 +97,6 @@ STATE_FORMAT = "ssp-scene-state"
 STATE_VERSION = 1
 #: Name of the ground in support edges.
 TABLE = "table"
-
-
-# ------------------------------------------------------------------------------ results
-@dataclass(frozen=True, eq=False)
-class ObjectEstimate:
-    """One object of a :class:`SceneEstimate`.
-
-    Attributes:
-        id: instance id (stable across frames).
-        class_name: model name in the library.
-        T_world_obj: (4, 4) pose, m (for removed objects: the last known pose).
-        mode: transition mode since the previous frame.
-        ephemeral: kept although undetected, because the camera could not see it.
-        terms: the five log-probability terms (None for removed objects).
-        source: which candidate the search kept (``hypothesis``, ``previous``, ``current``,
-            ``unchanged``, ``retained``), or ``removed``.
-        fit: data fit fraction c at the output pose (0..1).
-    """
-
-    id: str
-    class_name: str
-    T_world_obj: np.ndarray
-    mode: TransitionMode
-    ephemeral: bool = False
-    terms: ObjectTerms | None = None
-    source: str = ""
-    fit: float = 0.0
-
-    @property
-    def log_prob(self) -> float:
-        """Sum of the terms (``-inf`` for a removed object)."""
-        return self.terms.total if self.terms is not None else -math.inf
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready dict (pose as a nested list)."""
-        return {
-            "id": self.id,
-            "class": self.class_name,
-            "T_world_obj": np.asarray(self.T_world_obj).tolist(),
-            "mode": str(self.mode),
-            "ephemeral": self.ephemeral,
-            "terms": self.terms.as_dict() if self.terms is not None else None,
-            "log_prob": self.log_prob if self.terms is not None else None,
-            "source": self.source,
-            "fit": self.fit,
-        }
-
-
-@dataclass(frozen=True)
-class SupportEdge:
-    """``supporter`` (an id, or ``"table"``) carries ``fraction`` of ``supported``'s weight."""
-
-    supporter: str
-    supported: str
-    fraction: float
-
-
-@dataclass(frozen=True, eq=False)
-class SceneEstimate:
-    """The parser's answer for one frame.
-
-    Attributes:
-        stamp: the frame's time stamp, s.
-        frame_index: 0-based count of frames this parser accepted.
-        objects: the objects in the scene, by id.
-        removed: objects removed in this frame (mode ``REMOVED``, last known pose).
-        support: support edges with the fraction of the supported object's weight.
-        log_prob: ``log Pr(s | C, D)``, the sum of every object's terms.
-        timings: wall seconds per stage (``association``, ``segments``, ``world``,
-            ``forces``, ``stepping``, ``contacts``, ``scoring``, ``total``).
-        hypotheses_tested: candidate simulations run by the search.
-        unchanged: the frame took the unchanged-scene shortcut.
-    """
-
-    stamp: float
-    frame_index: int
-    objects: tuple[ObjectEstimate, ...]
-    removed: tuple[ObjectEstimate, ...] = ()
-    support: tuple[SupportEdge, ...] = ()
-    log_prob: float = 0.0
-    timings: dict[str, float] = field(default_factory=dict)
-    hypotheses_tested: int = 0
-    unchanged: bool = False
-
-    def __getitem__(self, oid: str) -> ObjectEstimate:
-        for o in self.objects:
-            if o.id == oid:
-                return o
-        raise KeyError(oid)
-
-    def __contains__(self, oid: object) -> bool:
-        return any(o.id == oid for o in self.objects)
-
-    def __len__(self) -> int:
-        return len(self.objects)
-
-    @property
-    def ids(self) -> tuple[str, ...]:
-        return tuple(o.id for o in self.objects)
-
-    def poses(self) -> dict[str, np.ndarray]:
-        """``id -> T_world_obj`` of the objects in the scene."""
-        return {o.id: o.T_world_obj for o in self.objects}
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready dict of the whole estimate."""
-        return {
-            "stamp": self.stamp,
-            "frame_index": self.frame_index,
-            "log_prob": self.log_prob,
-            "objects": [o.to_dict() for o in self.objects],
-            "removed": [o.to_dict() for o in self.removed],
-            "support": [
-                {"supporter": e.supporter, "supported": e.supported, "fraction": e.fraction}
-                for e in self.support
-            ],
-            "timings": dict(self.timings),
-            "hypotheses_tested": self.hypotheses_tested,
-            "unchanged": self.unchanged,
-        }
 
 
 @dataclass
@@ -396,56 +291,117 @@ class SceneParser:
                 self._world, self._world_key = None, None  # never reuse a half-used world
                 raise
         commit()
-        return _with_timings(estimate, timer)
+        return replace(estimate, timings=dict(timer.seconds))
+
+    def _associate(self, frame: Frame) -> _Association:
+        """Stage 2: hypotheses grouped per object (module docstring)."""
+        cfg = self.config
+        previous = {oid: (k.class_name, k.T_world_obj) for oid, k in self._known.items()}
+        counters = dict(self._counters)
+        taken = set(previous) | {h.instance_id for h in frame.hypotheses if h.instance_id}
+        groups = associate(
+            frame.hypotheses,
+            previous,
+            {n: m.symmetry for n, m in self.library.items()},
+            max_distance=association_gates(self.library, cfg.temporal),
+            same_volume=same_volume_test(self.library, cfg.temporal.merge_overlap),
+            new_id=self._id_factory(counters, taken),
+            centres={n: m.center_of_mass for n, m in self.library.items()},
+        )
+        for oid, hyps in groups.items():
+            known = self._known.get(oid)
+            if known is not None and known.class_name != hyps[0].class_name:
+                raise FrameError(
+                    f"instance id {oid!r} is a {known.class_name!r} but this frame's "
+                    f"hypothesis calls it a {hyps[0].class_name!r}"
+                )
+        groups, confused = one_object_per_segment(
+            groups, lambda oid, hyps: (oid in self._known, float(hyps[0].score))
+        )
+        k_max = cfg.search.hypotheses_per_object
+        groups = {oid: hyps[:k_max] for oid, hyps in groups.items()}
+        claimed: dict[str, int] = {}
+        duplicates: dict[str, str] = {}
+        if frame.labels is not None:
+            labels = np.asarray(frame.labels)
+            # a scene point on the surface lies up to about one sample spacing from a sample
+            radius = cfg.data.inlier_radius + cfg.library.surface_spacing
+
+            def explained(u: str, points: np.ndarray) -> float:
+                k = self._known[u]
+                return explained_fraction(points, self.library[k.class_name], k.T_world_obj, radius)
+
+            groups, claimed, duplicates = duplicates_of_undetected(
+                groups,
+                previous,
+                lambda seg: frame.points[labels == seg],
+                explained,
+                cfg.temporal.explained_fraction,
+            )
+            for oid, u in duplicates.items():
+                log.info("new %s: its segment lies on %s where it was; a duplicate", oid, u)
+        for oid, winner in confused.items():
+            log.info("%s dropped: its segment is %s's (one object per segment)", oid, winner)
+        return _Association(groups, counters, claimed, confused, duplicates)
+
+    def _verify_new(
+        self,
+        new: Sequence[str],
+        groups: Mapping[str, list[Hypothesis]],
+        models: Mapping[str, ObjectModel],
+        segments: Mapping[str, np.ndarray],
+        owner: Mapping[str, int],
+        view: CameraView | None,
+    ) -> dict[str, Rejected]:
+        """Stage 4: new objects the data does not support at any of their hypotheses
+        (:func:`ssp.verification.check_new` with ``loose``: the raw hypotheses may be a few
+        millimetres off)."""
+        out: dict[str, Rejected] = {}
+        for oid in new:
+            best: tuple[tuple, Evidence, Hypothesis] | None = None
+            for h in groups[oid]:
+                ev = evidence(
+                    models[oid], h.T_world_obj, segments.get(oid), view, self.config,
+                    own_segment=oid in owner,
+                )  # fmt: skip
+                key = (check_new(ev, self.config, loose=True).keep, ev.fit, -ev.seen_through)
+                if best is None or key > best[0]:
+                    best = (key, ev, h)
+            _, ev, h = best
+            verdict = check_new(ev, self.config, loose=True)
+            if not verdict.keep:
+                out[oid] = Rejected(
+                    oid, h.class_name, np.array(h.T_world_obj), verdict.reason, ev.as_dict(),
+                    h.segment,
+                )  # fmt: skip
+                log.info("%s (%s) rejected: %s", oid, h.class_name, verdict.reason)
+        return out
 
     def _update(self, frame: Frame, timer: StageTimer):
         cfg = self.config
         lib = self.library
-        k_max = cfg.search.hypotheses_per_object
 
         with timer("association"):
-            previous = {oid: (k.class_name, k.T_world_obj) for oid, k in self._known.items()}
-            counters = dict(self._counters)
-            taken = set(previous) | {h.instance_id for h in frame.hypotheses if h.instance_id}
-            groups = associate(
-                frame.hypotheses,
-                previous,
-                {n: m.symmetry for n, m in lib.items()},
-                max_distance=association_gates(self.library, cfg.temporal),
-                same_volume=same_volume_test(self.library, cfg.temporal.merge_overlap),
-                new_id=self._id_factory(counters, taken),
-            )
-            for oid, hyps in groups.items():
-                known = self._known.get(oid)
-                if known is not None and known.class_name != hyps[0].class_name:
-                    raise FrameError(
-                        f"instance id {oid!r} is a {known.class_name!r} but this frame's "
-                        f"hypothesis calls it a {hyps[0].class_name!r}"
-                    )
-            groups = {oid: hyps[:k_max] for oid, hyps in groups.items()}
-            groups, claimed = self._explained_by_undetected(frame, groups)
-            detected = sorted(groups)
-            missing = sorted(set(self._known) - set(groups))
-
-        classes = {oid: groups[oid][0].class_name for oid in detected}
-        classes.update({oid: self._known[oid].class_name for oid in missing})
+            assoc = self._associate(frame)
+        groups, claimed = assoc.groups, assoc.claimed
+        classes = {oid: hyps[0].class_name for oid, hyps in groups.items()}
+        classes.update({oid: k.class_name for oid, k in self._known.items() if oid not in groups})
         models: dict[str, ObjectModel] = {oid: lib[c] for oid, c in classes.items()}
         prev_pose = {oid: self._known[oid].T_world_obj for oid in self._known}
 
         # Provisional pose per detected object (segment vote, triage of undetected objects);
         # replaced by the first guess once the scorer can weigh the candidates.
         first = {
-            oid: first_guess(groups[oid], prev_pose.get(oid), models[oid].symmetry, cfg.temporal)
-            for oid in detected
+            oid: first_guess(hyps, prev_pose.get(oid), models[oid].symmetry, cfg.temporal)
+            for oid, hyps in groups.items()
         }
-
         with timer("segments"):
             cand_poses = {
-                oid: [first[oid], *(h.T_world_obj for h in groups[oid])] for oid in detected
+                oid: [first[oid], *(h.T_world_obj for h in groups[oid])] for oid in groups
             }
-            cand_poses.update({oid: [prev_pose[oid]] for oid in missing})
+            cand_poses.update({oid: [T] for oid, T in prev_pose.items() if oid not in groups})
             # the segment each object's hypotheses came from, and those undetected objects took
-            segment_labels = {oid: groups[oid][0].segment for oid in detected}
+            segment_labels = {oid: hyps[0].segment for oid, hyps in groups.items()}
             segment_labels = {oid: s for oid, s in segment_labels.items() if s is not None}
             segment_labels.update(claimed)
             segments, owner = object_segments(
@@ -463,17 +419,26 @@ class SceneParser:
                     labels=frame.labels,
                     depth_tolerance=cfg.temporal.depth_tolerance,
                 )
-            verdicts = self._triage_missing(
-                view,
+        with timer("verification"):
+            rejected = self._verify_new(
+                [oid for oid in groups if oid not in self._known],
+                groups, models, segments, owner, view,
+            )  # fmt: skip
+            for oid in rejected:
+                del groups[oid], first[oid], classes[oid]
+            missing = sorted(set(self._known) - set(groups))
+            verdicts = triage(
                 [oid for oid in missing if oid not in claimed],
-                models,
-                prev_pose,
-                first,
-                segments,
+                models, prev_pose, first, segments, owner, view, cfg,
+            )  # fmt: skip
+            verdicts.update(
+                {
+                    oid: Triage("visible", "undetected; its segment's points lie on it")
+                    for oid in claimed
+                }
             )
-            verdicts.update({oid: "visible" for oid in claimed})
-
-        removed = {oid for oid, v in verdicts.items() if v == "removed"}
+        detected = sorted(groups)
+        removed = {oid for oid, v in verdicts.items() if v.state == "replaced"}
         present = [oid for oid in sorted(classes) if oid not in removed]
         with timer("world"):
             world = self._world_for({oid: classes[oid] for oid in present})
@@ -491,7 +456,7 @@ class SceneParser:
                     return ~view.hidden_by_others(pts, own[k])
 
             # Data forces and fit: detected objects and undetected ones still seen.
-            with_data = {oid for oid in ids if oid in groups or verdicts.get(oid) == "visible"}
+            with_data = {oid for oid in ids if oid in groups or verdicts[oid].state == "visible"}
             fields = [
                 SegmentField(segments[oid], cfg.forces.max_distance)
                 if oid in with_data and len(segments[oid])
@@ -519,7 +484,7 @@ class SceneParser:
                 for oid in detected
             )
         )
-        retained: set[str] = set()
+        retained: dict[str, list[str]] = {}
         tested = 0
         chosen: dict[str, str] = {}
         if unchanged:
@@ -546,11 +511,11 @@ class SceneParser:
                 world.restore_state(base)
             score0 = scorer.evaluate(world, timer)
             graph0 = score0.graph
-            undecided = [oid for oid, v in verdicts.items() if v == "candidate"]
-            for oid in undecided:
-                if self._carries_load(world, sim, graph0, oid):
-                    retained.add(oid)
-                else:
+            retained = support_retained(
+                world, graph0, [o for o, v in verdicts.items() if v.state in REMOVABLE], cfg
+            )
+            for oid in sorted(o for o, v in verdicts.items() if v.state in REMOVABLE):
+                if oid not in retained:
                     world.set_enabled(oid, False)
                     removed.add(oid)
             index = {oid: i for i, oid in enumerate(ids)}
@@ -578,75 +543,38 @@ class SceneParser:
         if unchanged or cfg.forces.final_icp:
             score = scorer.evaluate(world, timer)
 
+        with timer("verification"):
+            final = {
+                oid: evidence(
+                    models[oid],
+                    score.poses[world.index(oid)],
+                    segments.get(oid),
+                    view,
+                    cfg,
+                    own_segment=oid in owner,
+                )  # fmt: skip
+                for oid in ids
+                if oid not in removed
+            }
         return self._finish(
             frame,
-            score,
-            models,
-            prev_pose,
-            removed,
-            retained,
-            verdicts,
-            chosen,
-            tested,
-            unchanged,
-            counters,
+            _Outcome(
+                score=score,
+                models=models,
+                prev_pose=prev_pose,
+                groups=groups,
+                removed=removed,
+                retained=retained,
+                verdicts=verdicts,
+                chosen=chosen,
+                tested=tested,
+                unchanged=unchanged,
+                evidence=final,
+                rejected=rejected,
+                owner=owner,
+                association=assoc,
+            ),
         )
-
-    def _explained_by_undetected(
-        self, frame: Frame, groups: dict[str, list[Hypothesis]]
-    ) -> tuple[dict[str, list[Hypothesis]], dict[str, int]]:
-        """Drop the new objects whose hypotheses duplicate an undetected object.
-
-        A new hypothesis group (no known object took it) estimated from segment ``s`` of
-        ``frame.labels`` is the same object as an undetected known one when that object's
-        previous pose explains at least ``temporal.explained_fraction`` of the points of ``s``
-        (:func:`ssp.segments.explained_fraction`, within the data fit's inlier radius plus
-        the surface-sample spacing): typically a mostly hidden object for which the estimator
-        proposed only a wrong class. The group is dropped, and the undetected object takes the
-        segment and counts as still visible (its data forces hold it where it is seen).
-
-        Returns:
-            the remaining groups, and ``undetected id -> label`` of the segments taken.
-        """
-        t = self.config.temporal
-        undetected = sorted(set(self._known) - set(groups))
-        if frame.labels is None or t.explained_fraction >= 1 or not undetected:
-            return groups, {}
-        labels = np.asarray(frame.labels)
-        # a scene point on the surface lies up to about one sample spacing from a sample
-        radius = self.config.data.inlier_radius + self.config.library.surface_spacing
-        kept = dict(groups)
-        claimed: dict[str, int] = {}
-        for oid in sorted(groups):
-            seg = groups[oid][0].segment
-            if oid in self._known or seg is None:
-                continue
-            points = frame.points[labels == seg]
-            best, best_fraction = None, t.explained_fraction
-            for u in undetected:
-                if claimed.get(u, seg) != seg:
-                    continue
-                known = self._known[u]
-                f = explained_fraction(
-                    points,
-                    self.library[known.class_name],
-                    known.T_world_obj,
-                    radius,
-                )
-                if f >= best_fraction:
-                    best, best_fraction = u, f
-            if best is not None:
-                log.info(
-                    "new %s (segment %d): %.0f %% of its points lie on %s where it was; "
-                    "a duplicate, dropped",
-                    oid,
-                    seg,
-                    100 * best_fraction,
-                    best,
-                )
-                del kept[oid]
-                claimed[best] = seg
-        return kept, claimed
 
     def _unchanged(self, scorer: SceneScorer, i: int, known: _Known, hyps) -> bool:
         """Is object ``i`` where it was? Its hypotheses agree (their per-axis median position
@@ -706,155 +634,142 @@ class SceneParser:
         for k in range(len(world.ids)):
             forces.set_pose_target(k, None)
 
-    # -------------------------------------------------------------- undetected objects
-    def _triage_missing(
-        self,
-        view: CameraView | None,
-        missing: list[str],
-        models: Mapping[str, ObjectModel],
-        prev_pose: Mapping[str, np.ndarray],
-        first: Mapping[str, np.ndarray],
-        segments: Mapping[str, np.ndarray],
-    ) -> dict[str, str]:
-        """Verdict per undetected object, in the paper's order (section V-C): ``removed``
-        (another object's best hypothesis fills its volume), ``visible`` (still fits the data:
-        kept), ``ephemeral`` (hidden behind observed depth: kept) or ``candidate``: removed
-        unless objects it supports move without it (support-retained), which is decided after
-        the first settle. Physics wins over a contradictory view: an object seen through but
-        carrying load is retained (and the contradiction logged)."""
-        t = self.config.temporal
-        verdicts: dict[str, str] = {}
-        if not missing:
-            return verdicts
-        det_ids = sorted(first)
-        for oid in missing:
-            model, T = models[oid], prev_pose[oid]
-            if det_ids:
-                members = [oid, *det_ids]
-                frac = overlap_fractions(
-                    [models[m] for m in members],
-                    np.stack([T, *(first[m] for m in det_ids)]),
-                    table=False,
-                    pairs=[(0, j) for j in range(1, len(members))],
-                )[0]
-                if frac >= t.replaced_overlap:
-                    log.info("%s: its volume is taken by another object: removed", oid)
-                    verdicts[oid] = "removed"
-                    continue
-            seg = segments.get(oid)
-            c = 0.0
-            if seg is not None and len(seg):
-                c = data_fit_fraction(
-                    transform_points(T, model.surface_points), seg, self.config.data.inlier_radius
-                )
-            if min(c / self.config.data.c_max, 1.0) >= t.visible_fit:
-                verdicts[oid] = "visible"
-                continue
-            verdicts[oid] = "candidate"
-            if view is not None:
-                rep = view.report_pose(model.surface_points, model.surface_normals, T)
-                if rep.n_facing and rep.seen_through >= t.seen_through_fraction:
-                    log.info("%s: its volume is seen empty (%.0f %%)", oid, 100 * rep.seen_through)
-                elif rep.n_facing and rep.occluded >= t.occluded_fraction:
-                    verdicts[oid] = "ephemeral"
-        return verdicts
-
-    def _carries_load(self, world: World, sim: Simulator, graph, oid: str) -> bool:
-        """Would the objects ``oid`` supports move without it? (support-retained test)"""
-        k = world.index(oid)
-        kids = [world.ids[c] for c in graph.children(k)]
-        if not kids:
-            return False
-        t = self.config.temporal
-        state = world.save_state()
-        before = {c: world.get_pose(c) for c in kids}
-        world.set_enabled(oid, False)
-        moved = False
-        try:
-            sim.settle(self.config.search.retain_settle, with_forces=False)
-            for c in kids:
-                dt, dth = pose_change(before[c], world.get_pose(c), world.model_of(c).symmetry)
-                moved |= dt >= t.static_translation or dth >= t.static_rotation
-        except PhysicsError:
-            moved = True
-        world.restore_state(state)
-        log.info(
-            "%s undetected; objects it supports %s without it", oid, "move" if moved else "stay"
-        )
-        return moved
-
     # -------------------------------------------------------------- output
-    def _finish(
-        self,
-        frame: Frame,
-        score: SceneScore,
-        models: Mapping[str, ObjectModel],
-        prev_pose: Mapping[str, np.ndarray],
-        removed: set[str],
-        retained: set[str],
-        verdicts: Mapping[str, str],
-        chosen: Mapping[str, str],
-        tested: int,
-        unchanged: bool,
-        counters: dict[str, int],
-    ):
+    def _finish(self, frame: Frame, out: _Outcome):
+        """Stages 8-9: final verification, modes, re-identification, reasons, warnings."""
         cfg = self.config
+        score, models, prev_pose = out.score, out.models, out.prev_pose
+        ids = score.ids
+        warnings: list[str] = []
+        rejected = dict(out.rejected)
+        reasons: dict[str, str] = {}
+        for oid in ids:
+            if oid in out.removed or oid in prev_pose:
+                continue
+            i = ids.index(oid)
+            verdict = check_new(out.evidence[oid], cfg)
+            if verdict.keep:
+                reasons[oid] = verdict.reason
+                continue
+            holds = [ids[c] for c in score.graph.children(i) if ids[c] not in out.removed]
+            if holds:
+                reasons[oid] = f"unverified ({verdict.reason}) but holds up {', '.join(holds)}"
+                warnings.append(f"{oid}: {reasons[oid]}")
+            else:
+                seg = out.groups[oid][0].segment if oid in out.groups else None
+                rejected[oid] = Rejected(
+                    oid, models[oid].name, score.poses[i].copy(), verdict.reason,
+                    out.evidence[oid].as_dict(), seg,
+                )  # fmt: skip
+                log.info("%s (%s) rejected at its final pose: %s", oid, models[oid].name,
+                         verdict.reason)  # fmt: skip
+        gone = set(out.removed) | set(rejected)
+
+        # a new object where a known one of its class just vanished is that object, moved
+        vanished = {
+            oid: (models[oid].name, prev_pose[oid])
+            for oid in out.removed
+            if out.verdicts.get(oid) is not None
+            and out.verdicts[oid].state in ("replaced", "seen_empty")
+        }
+        added = {
+            oid: (models[oid].name, score.poses[ids.index(oid)])
+            for oid in ids
+            if oid not in gone and oid not in prev_pose
+        }
+        renamed = reidentify(vanished, added)
+        old_of = dict(renamed)  # new id -> old id
+        moved_away = set(renamed.values())
+
         objects: list[ObjectEstimate] = []
         known: dict[str, _Known] = {}
-        ids = score.ids
         for i, oid in enumerate(ids):
-            if oid in removed:
+            if oid in gone:
                 continue
             model = models[oid]
             T = score.poses[i]
-            prev = prev_pose.get(oid)
+            out_id = old_of.get(oid, oid)
+            prev = prev_pose.get(out_id)
             if prev is not None:
                 T = snap_symmetric(prev, T, model.symmetry)
-            ephemeral = verdicts.get(oid) == "ephemeral"
+            v = out.verdicts.get(oid)
+            ephemeral = v is not None and v.state == "ephemeral"
             supports = bool(score.graph.children(i))
-            mode = classify(
-                prev,
-                T,
-                model.symmetry,
-                cfg.temporal,
-                retained=oid in retained or (ephemeral and supports),
-            )
+            retained = oid in out.retained or (ephemeral and supports)
+            mode = classify(prev, T, model.symmetry, cfg.temporal, retained=retained)
+            terms = score.object_terms(i)
+            if oid in old_of:
+                dist = np.linalg.norm(T[:3, 3] - prev[:3, 3])
+                reason = f"moved {1000 * dist:.0f} mm (re-identified: {oid} is {out_id})"
+            elif oid in out.retained:
+                reason = f"support-retained: holds up {', '.join(out.retained[oid])}"
+            elif v is not None:
+                reason = v.reason
+            elif oid in reasons:
+                reason = reasons[oid]
+            else:
+                src = out.chosen.get(oid, "current")
+                reason = f"detected; the search kept its {src} pose"
+            ev = out.evidence.get(oid)
+            through = cfg.temporal.seen_through_fraction
+            if ev is not None and ev.facing and ev.seen_through >= through:
+                warnings.append(
+                    f"{out_id}: the camera sees through {100 * ev.seen_through:.0f} % of it"
+                )
+            if terms.stability < STABILITY_WARNING:
+                warnings.append(f"{out_id}: would fall (stability term {terms.stability:.1f})")
             objects.append(
                 ObjectEstimate(
-                    oid,
+                    out_id,
                     model.name,
                     T,
                     mode,
                     ephemeral=ephemeral,
-                    terms=score.object_terms(i),
-                    source=chosen.get(oid, "current"),
+                    terms=terms,
+                    source=out.chosen.get(oid, "current"),
                     fit=float(score.fit[i]),
+                    reason=reason,
                 )
             )
-            known[oid] = _Known(model.name, T, ephemeral, float(score.fit[i]))
-        gone = tuple(
+            known[out_id] = _Known(model.name, T, ephemeral, float(score.fit[i]))
+        removed = tuple(
             ObjectEstimate(
-                oid, models[oid].name, prev_pose[oid], TransitionMode.REMOVED, source="removed"
-            )
-            for oid in sorted(removed)
+                oid,
+                models[oid].name,
+                prev_pose[oid],
+                TransitionMode.REMOVED,
+                source="removed",
+                reason=out.verdicts[oid].reason if oid in out.verdicts else "",
+            )  # fmt: skip
+            for oid in sorted(out.removed)
+            if oid not in moved_away
         )
         support = []
         g = score.graph
         for a, b, f in zip(g.supporter, g.supported, g.edge_fraction, strict=True):
-            if ids[b] in removed or (a != GROUND and ids[a] in removed):
+            if ids[b] in gone or (a != GROUND and ids[a] in gone):
                 continue
-            support.append(SupportEdge(TABLE if a == GROUND else ids[a], ids[b], float(f)))
-        log_prob = float(sum(o.log_prob for o in objects))
+            sup = TABLE if a == GROUND else old_of.get(ids[a], ids[a])
+            support.append(SupportEdge(sup, old_of.get(ids[b], ids[b]), float(f)))
+        segments = _segment_verdicts(
+            frame, out.owner, {o.id for o in objects}, old_of, rejected, out.association
+        )
         estimate = SceneEstimate(
             stamp=frame.stamp,
             frame_index=self._frame_index,
             objects=tuple(objects),
-            removed=gone,
+            removed=removed,
+            rejected=tuple(rejected[k] for k in sorted(rejected)),
+            segments=segments,
+            warnings=tuple(warnings),
             support=tuple(support),
-            log_prob=log_prob,
-            hypotheses_tested=tested,
-            unchanged=unchanged,
+            log_prob=float(sum(o.log_prob for o in objects)),
+            hypotheses_tested=out.tested,
+            unchanged=out.unchanged,
         )
+        for w in warnings:
+            log.warning("frame %d: %s", self._frame_index, w)
+        counters = out.association.counters
 
         def commit() -> None:
             self._known = known
@@ -865,10 +780,66 @@ class SceneParser:
         return estimate, commit
 
 
-def _with_timings(estimate: SceneEstimate, timer: StageTimer) -> SceneEstimate:
-    from dataclasses import replace
+#: A stability term (log P_B) below this says the object would fall: the output is doubtful.
+STABILITY_WARNING = -5.0
 
-    return replace(estimate, timings=dict(timer.seconds))
+
+def _segment_verdicts(
+    frame: Frame,
+    owner: Mapping[str, int],
+    kept: set[str],
+    old_of: Mapping[str, str],
+    rejected: Mapping[str, Rejected],
+    assoc: _Association,
+) -> dict[int, str]:
+    """Instance label -> what became of it: the object it is, or why none (every label of
+    the cloud that is not the table or background)."""
+    if frame.labels is None:
+        return {}
+    out: dict[int, str] = {}
+    for oid, label in owner.items():
+        out_id = old_of.get(oid, oid)
+        if out_id in kept:
+            out[int(label)] = f"object {out_id}"
+    for r in rejected.values():
+        if r.segment is not None and int(r.segment) not in out:
+            out[int(r.segment)] = f"rejected {r.class_name} {r.id}: {r.reason}"
+    for label in np.unique(np.asarray(frame.labels)):
+        if label >= 0 and int(label) not in out:
+            out[int(label)] = "no object: no hypothesis was given for it"
+    return dict(sorted(out.items()))
+
+
+@dataclass
+class _Association:
+    """What stage 2 found: the groups per object id, the id counters after it, the segments
+    undetected objects took, and the groups dropped (class confusions, duplicates)."""
+
+    groups: dict[str, list[Hypothesis]]
+    counters: dict[str, int]
+    claimed: dict[str, int]
+    confused: dict[str, str]
+    duplicates: dict[str, str]
+
+
+@dataclass
+class _Outcome:
+    """Everything the output stage needs from the frame's stages."""
+
+    score: SceneScore
+    models: Mapping[str, ObjectModel]
+    prev_pose: Mapping[str, np.ndarray]
+    groups: Mapping[str, list[Hypothesis]]
+    removed: set[str]
+    retained: Mapping[str, list[str]]
+    verdicts: Mapping[str, Triage]
+    chosen: Mapping[str, str]
+    tested: int
+    unchanged: bool
+    evidence: Mapping[str, Evidence]
+    rejected: Mapping[str, Rejected]
+    owner: Mapping[str, int]
+    association: _Association
 
 
 def parse_sequence(

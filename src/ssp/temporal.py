@@ -33,7 +33,9 @@ __all__ = [
     "associate",
     "classify",
     "default_id_factory",
+    "duplicates_of_undetected",
     "one_object_per_segment",
+    "reidentify",
     "same_volume_test",
     "snap_symmetric",
 ]
@@ -118,6 +120,7 @@ def associate(
     rotation_weight: float = 0.05,
     new_id: Callable[[str], str] | None = None,
     same_volume: Callable[[Hypothesis, Hypothesis], bool] | None = None,
+    centres: Mapping[str, np.ndarray] | None = None,
 ) -> dict[str, list[Hypothesis]]:
     """Group a frame's hypotheses by object instance id.
 
@@ -160,6 +163,10 @@ def associate(
             that they must be one object (see step 2b); None: no merging.
         new_id: fresh-id factory; default :func:`default_id_factory` over the previous ids and
             the given ids (``f"{class}_{k}"``).
+        centres: class name -> model point (model frame, m; the centre of mass) at which
+            distances are measured; classes missing from it, or None: the model origin (a mesh
+            whose origin lies far from its body would otherwise split into several objects
+            when its hypotheses' orientations differ).
 
     Returns:
         ``instance_id -> hypotheses`` (each with ``instance_id`` set, best score first), in the
@@ -182,6 +189,13 @@ def associate(
 
     if new_id is None:
         new_id = default_id_factory([*previous, *given_ids])
+    centres = dict(centres or {})
+
+    def at(class_name: str, T: np.ndarray) -> np.ndarray:
+        """World position of the class's centre at pose ``T``."""
+        T = np.asarray(T, dtype=float)
+        c = centres.get(class_name)
+        return T[:3, 3] if c is None else T[:3, :3] @ np.asarray(c, dtype=float) + T[:3, 3]
 
     order = sorted(range(len(hypotheses)), key=lambda i: (-float(hypotheses[i].score), i))
     clusters: list[_Cluster] = []
@@ -199,7 +213,7 @@ def associate(
         h = hypotheses[i]
         if h.instance_id is not None:
             continue
-        t = np.asarray(h.T_world_obj, dtype=float)[:3, 3]
+        t = at(h.class_name, h.T_world_obj)
         best, best_d = None, np.inf
         if h.segment is not None:  # one instance segment is one object, however spread
             best = next(
@@ -213,7 +227,7 @@ def associate(
         for c in clusters if best is None else ():
             if c.best.class_name != h.class_name or not c.accepts(h.segment):
                 continue
-            d = float(np.linalg.norm(np.asarray(c.best.T_world_obj)[:3, 3] - t))
+            d = float(np.linalg.norm(at(h.class_name, c.best.T_world_obj) - t))
             if d <= gate(h.class_name) and d < best_d:
                 best, best_d = c, d
         if best is None:
@@ -252,15 +266,18 @@ def associate(
         )
         if cols:
             sym = symmetries.get(class_name)
+            centre = centres.get(class_name)
             cost = np.full((len(rows), len(cols)), _FORBIDDEN)
             for r, c in enumerate(rows):
                 for j, k in enumerate(cols):
                     T_prev = previous[k][1]
+                    p_prev = at(class_name, T_prev)
                     for h in c.members:
-                        t_h = np.asarray(h.T_world_obj)[:3, 3]
-                        if np.linalg.norm(t_h - np.asarray(T_prev)[:3, 3]) > gate(class_name):
+                        if np.linalg.norm(at(class_name, h.T_world_obj) - p_prev) > gate(
+                            class_name
+                        ):
                             continue  # gated out: skip the (costlier) symmetric rotation
-                        dt, dth = pose_change(T_prev, h.T_world_obj, sym)
+                        dt, dth = pose_change(T_prev, h.T_world_obj, sym, centre)
                         if dt <= gate(class_name):
                             cost[r, j] = min(cost[r, j], dt + rotation_weight * dth)
             for r, j in zip(*linear_sum_assignment(cost), strict=True):
@@ -307,6 +324,81 @@ def one_object_per_segment(
         dropped.update({o: keep for o in oids if o != keep})
     kept = {oid: hyps for oid, hyps in groups.items() if oid not in dropped}
     return kept, dropped
+
+
+def duplicates_of_undetected(
+    groups: Mapping[str, list[Hypothesis]],
+    known: Mapping[str, tuple[object, np.ndarray]],
+    points_of: Callable[[int], np.ndarray],
+    explained: Callable[[str, np.ndarray], float],
+    fraction: float,
+) -> tuple[dict[str, list[Hypothesis]], dict[str, int], dict[str, str]]:
+    """New objects whose segment an undetected known object explains where it was.
+
+    A new group (no known object took it) estimated from instance segment ``s`` is the same
+    object as an undetected known one when ``explained(known id, points of s)`` (the fraction
+    of the segment's points its previous pose accounts for) is at least ``fraction``:
+    typically a mostly hidden object for which the estimator proposed only a wrong class. The
+    group is dropped and the known object takes the segment (it counts as still visible, so
+    its data forces hold it where it is seen).
+
+    Args:
+        groups: this frame's groups; known ids are ``known``'s keys.
+        known: the previous objects, ``id -> (class, T_world_obj)``.
+        points_of: instance label -> its points ``(K, 3)``.
+        explained: ``(known id, points) -> fraction``.
+        fraction: the threshold; 1 or more disables the rule.
+
+    Returns:
+        the remaining groups, ``undetected id -> label`` of the segments they take, and
+        ``dropped group id -> the known id it duplicates``.
+    """
+    undetected = sorted(set(known) - set(groups))
+    if fraction >= 1 or not undetected:
+        return dict(groups), {}, {}
+    kept = dict(groups)
+    claimed: dict[str, int] = {}
+    dropped: dict[str, str] = {}
+    for oid in sorted(groups):
+        seg = groups[oid][0].segment
+        if oid in known or seg is None:
+            continue
+        points = points_of(int(seg))
+        best, best_fraction = None, fraction
+        for u in undetected:
+            if claimed.get(u, seg) != seg:
+                continue
+            f = explained(u, points)
+            if f >= best_fraction:
+                best, best_fraction = u, f
+        if best is not None:
+            del kept[oid]
+            claimed[best] = int(seg)
+            dropped[oid] = best
+    return kept, claimed, dropped
+
+
+def reidentify(
+    gone: Mapping[str, tuple[str, np.ndarray]],
+    new: Mapping[str, tuple[str, np.ndarray]],
+) -> dict[str, str]:
+    """A new object where a known one of its class just vanished is that object, moved.
+
+    ``gone``: objects removed this frame because their place is seen empty or taken,
+    ``id -> (class, last pose)``; ``new``: objects added this frame, ``id -> (class, pose)``.
+    Per class, the pairs of a globally optimal assignment on the distance between positions
+    (:func:`scipy.optimize.linear_sum_assignment`) are matched. Returns ``new id -> old id``.
+    """
+    out: dict[str, str] = {}
+    for cls in sorted({c for c, _ in gone.values()} & {c for c, _ in new.values()}):
+        a = sorted(k for k, (c, _) in gone.items() if c == cls)
+        b = sorted(k for k, (c, _) in new.items() if c == cls)
+        cost = np.array(
+            [[float(np.linalg.norm(gone[i][1][:3, 3] - new[j][1][:3, 3])) for j in b] for i in a]
+        )
+        for r, c in zip(*linear_sum_assignment(cost), strict=True):
+            out[b[c]] = a[r]
+    return out
 
 
 def classify(

@@ -66,6 +66,9 @@ RESOLUTION_FACTOR = 1.5
 #: Largest number of rays whose nearest-neighbour distance enters the estimate (a strided subset).
 ESTIMATE_MAX_QUERIES = 20_000
 
+#: Sample states of :meth:`CameraView.classify`.
+NOT_FACING, SEEN, OCCLUDED, SEEN_THROUGH, UNKNOWN = 0, 1, 2, 3, 4
+
 #: Lookup radius (normalised image coordinates, ~rad) used when the cloud has too few points
 #: (fewer than 2 distinct rays) to estimate one: about one pixel of a 640 px wide, 60 deg camera.
 FALLBACK_ANGULAR_RESOLUTION = 0.002
@@ -205,8 +208,10 @@ class CameraView:
         """Camera pose (4, 4), a copy."""
         return self._T_world_cam.copy()
 
-    def report(self, points_world: np.ndarray, normals_world: np.ndarray) -> VisibilityReport:
-        """Classify model samples already placed in the world.
+    def classify(self, points_world: np.ndarray, normals_world: np.ndarray) -> np.ndarray:
+        """Per-sample state ``(M,)`` int8 of model samples placed in the world:
+        :data:`NOT_FACING` (facing away or behind the camera), :data:`SEEN`,
+        :data:`OCCLUDED`, :data:`SEEN_THROUGH` or :data:`UNKNOWN` (module docstring).
 
         Args:
             points_world: (M, 3) surface samples (m, world frame).
@@ -219,30 +224,42 @@ class CameraView:
             raise ValueError(
                 f"normals_world: shape {nrm.shape} does not match points_world {pts.shape}"
             )
+        out = np.full(len(pts), NOT_FACING, dtype=np.int8)
         cam_centre = self._T_world_cam[:3, 3]
         facing = np.einsum("ij,ij->i", nrm, cam_centre - pts) > 0.0
         p_cam = pts @ self._T_cam_world[:3, :3].T + self._T_cam_world[:3, 3]
         facing &= p_cam[:, 2] > MIN_DEPTH
-        p_cam = p_cam[facing]
-        n = int(len(p_cam))
-        if n == 0:
-            return VisibilityReport(0, 0.0, 0.0, 0.0, 0.0)
+        if not facing.any():
+            return out
         if self._tree is None:
-            return VisibilityReport(n, 0.0, 0.0, 0.0, 1.0)
-
+            out[facing] = UNKNOWN
+            return out
+        p_cam = p_cam[facing]
         depth = p_cam[:, 2]
         rays = p_cam[:, :2] / depth[:, None]
         # Nearest ray in angle, not the smallest depth: a depth image holds one depth per pixel.
         dist, idx = self._tree.query(rays, k=1, distance_upper_bound=self._resolution, workers=1)
         found = np.isfinite(dist)
-        diff = np.full(n, np.nan)
+        diff = np.full(len(depth), np.nan)
         diff[found] = self._depths[idx[found]] - depth[found]
         tol = self._depth_tolerance
-        n_seen = int(np.count_nonzero(found & (np.abs(diff) <= tol)))
-        n_occluded = int(np.count_nonzero(found & (diff < -tol)))
-        n_through = int(np.count_nonzero(found & (diff > tol)))
-        n_unknown = n - n_seen - n_occluded - n_through
-        return VisibilityReport(n, n_seen / n, n_occluded / n, n_through / n, n_unknown / n)
+        state = np.full(len(depth), UNKNOWN, dtype=np.int8)
+        state[found & (np.abs(diff) <= tol)] = SEEN
+        state[found & (diff < -tol)] = OCCLUDED
+        state[found & (diff > tol)] = SEEN_THROUGH
+        out[facing] = state
+        return out
+
+    def report(self, points_world: np.ndarray, normals_world: np.ndarray) -> VisibilityReport:
+        """Fractions of the facing model samples in each state (:meth:`classify`)."""
+        state = self.classify(points_world, normals_world)
+        n = int(np.count_nonzero(state != NOT_FACING))
+        if n == 0:
+            return VisibilityReport(0, 0.0, 0.0, 0.0, 0.0)
+        counts = [int(np.count_nonzero(state == k)) for k in (SEEN, OCCLUDED, SEEN_THROUGH)]
+        return VisibilityReport(
+            n, counts[0] / n, counts[1] / n, counts[2] / n, (n - sum(counts)) / n
+        )
 
     def hidden_by_others(self, points_world: np.ndarray, own_label: int) -> np.ndarray:
         """(M,) bool: the sample's ray meets an observed point clearly in front of it

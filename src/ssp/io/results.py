@@ -54,7 +54,8 @@ def frame_record(
     """JSON-ready record of one frame's estimate.
 
     Everything in ``estimate.to_dict()``, plus ``name`` (the frame's name) and ``index`` (its
-    0-based position in the input), plus for each object (also the removed ones) ``R`` (3x3),
+    0-based position in the input), plus for each object (also the removed and rejected ones)
+    ``R`` (3x3),
     ``t`` (m) and ``quat_xyzw`` of ``T_world_obj``. ``extra`` keys are added at the top level.
 
     Raises:
@@ -62,7 +63,7 @@ def frame_record(
     """
     rec: dict[str, Any] = {"name": str(name), "index": int(index)}
     rec.update(estimate.to_dict())
-    for key in ("objects", "removed"):
+    for key in ("objects", "removed", "rejected"):
         rec[key] = [_with_pose_parts(o) for o in rec[key]]
     for key, value in (extra or {}).items():
         if key in rec:

@@ -1,0 +1,162 @@
+"""Known objects without a hypothesis this frame: kept, or removed, and why (paper V-C).
+
+An estimator misses objects: hidden ones, and visible ones too (a dropout). :func:`triage`
+decides, for each undetected known object at its previous pose, in this order:
+
+``replaced``
+    another object's first guess fills ``temporal.replaced_overlap`` of its volume: removed;
+``visible``
+    still visible (:func:`ssp.verification.still_visible`: its visible surface explained,
+    its volume not seen empty): kept where it was (a missed detection);
+``seen_empty``
+    its camera-facing surface is seen through (``temporal.seen_through_fraction``): the
+    camera sees empty space where it was; removed unless it holds others up;
+``ephemeral``
+    hidden behind observed depth (``temporal.occluded_fraction``): kept, as the camera could
+    not have seen it;
+``unseen``
+    none of these (no data either way): removed unless it holds others up.
+
+:func:`support_retained` is the *support-retained* test of the last two: would the objects
+that stay, and that it holds up in the settled first-guess scene, fall without it
+(:func:`carries_load`)? Read from the contact forces: with the
+object disabled, the acceleration from rest of each object it supports
+(:meth:`ssp.physics.World.acceleration_from_rest`) exceeds ``temporal.retain_acceleration``
+of ``g`` (linear) or of its largest angular acceleration under gravity. An unsupported cube
+falls at ``g`` at once, however short a quasi-static settle would have been.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from ssp.config import SSPConfig
+from ssp.library.model import ObjectModel
+from ssp.overlap import overlap_fractions
+from ssp.physics import World
+from ssp.verification import Evidence, evidence, still_visible
+from ssp.visibility import CameraView
+
+__all__ = ["REMOVABLE", "Triage", "carries_load", "support_retained", "triage"]
+
+log = logging.getLogger(__name__)
+
+#: Triage states whose objects are removed unless they hold others up.
+REMOVABLE = ("seen_empty", "unseen")
+
+
+@dataclass(frozen=True)
+class Triage:
+    """The state of an undetected known object (module docstring) and the reason, in words."""
+
+    state: str
+    reason: str
+    evidence: Evidence | None = None
+
+
+def triage(
+    missing: Sequence[str],
+    models: Mapping[str, ObjectModel],
+    prev_pose: Mapping[str, np.ndarray],
+    first: Mapping[str, np.ndarray],
+    segments: Mapping[str, np.ndarray],
+    owner: Mapping[str, int],
+    view: CameraView | None,
+    config: SSPConfig,
+) -> dict[str, Triage]:
+    """State of each undetected object in ``missing`` (module docstring).
+
+    Args:
+        models, prev_pose: every object's model and previous pose.
+        first: the detected objects' provisional poses.
+        segments: each object's segment (world points), ``owner`` the instance label it came
+            from when it is an instance segment.
+        view: the frame's camera view (None without a camera pose).
+    """
+    t = config.temporal
+    out: dict[str, Triage] = {}
+    det_ids = sorted(first)
+    for oid in missing:
+        model, T = models[oid], prev_pose[oid]
+        if det_ids:
+            members = [oid, *det_ids]
+            frac = overlap_fractions(
+                [models[m] for m in members],
+                np.stack([T, *(first[m] for m in det_ids)]),
+                table=False,
+                pairs=[(0, j) for j in range(1, len(members))],
+            )[0]
+            if frac >= t.replaced_overlap:
+                out[oid] = Triage("replaced", f"another object fills {100 * frac:.0f} % of it")
+                continue
+        ev = evidence(model, T, segments.get(oid), view, config, own_segment=oid in owner)
+        if still_visible(ev, config):
+            reason = f"undetected but still visible: explains {100 * ev.fit:.0f} % of its surface"
+            out[oid] = Triage("visible", reason, ev)
+        elif view is not None and ev.facing and ev.seen_through >= t.seen_through_fraction:
+            reason = f"its volume is seen empty ({100 * ev.seen_through:.0f} % seen through)"
+            out[oid] = Triage("seen_empty", reason, ev)
+        elif view is not None and ev.facing and ev.occluded >= t.occluded_fraction:
+            reason = f"hidden behind observed surfaces ({100 * ev.occluded:.0f} % occluded)"
+            out[oid] = Triage("ephemeral", reason, ev)
+        else:
+            out[oid] = Triage("unseen", "undetected and no data either way", ev)
+        log.info("%s: %s", oid, out[oid].reason)
+    return out
+
+
+def support_retained(
+    world: World, graph, candidates: Sequence[str], config: SSPConfig
+) -> dict[str, list[str]]:
+    """The removal ``candidates`` (seen empty or unseen) that must stay because objects that
+    stay would fall without them: ``id -> those objects``. Objects that are candidates
+    themselves do not need holding up (a tower the camera sees empty goes as a whole), so the
+    test runs to a fixed point: a candidate found needed stays, and its supporters are tested
+    again with it among the objects that stay.
+
+    Args:
+        world: the frame's world in the settled first-guess scene.
+        graph: its support graph (:class:`ssp.support.SupportGraph`, world order).
+        candidates: the removal candidates' ids.
+    """
+    ids = world.ids
+    pending = set(candidates)
+    kept: dict[str, list[str]] = {}
+    changed = True
+    while changed:
+        changed = False
+        for oid in sorted(pending):
+            kids = [ids[c] for c in graph.children(world.index(oid)) if ids[c] not in pending]
+            falling = carries_load(world, kids, oid, config)
+            if falling:
+                kept[oid] = falling
+                pending.discard(oid)
+                changed = True
+                log.info("%s undetected; without it %s would fall", oid, ", ".join(falling))
+    return kept
+
+
+def carries_load(world: World, kids: Sequence[str], oid: str, config: SSPConfig) -> list[str]:
+    """The objects among ``kids`` (those ``oid`` holds up) that would fall without ``oid``
+    (module docstring); the world is left as it was."""
+    if not kids:
+        return []
+    g = float(config.physics.gravity)
+    lim = float(config.temporal.retain_acceleration)
+    was = world.is_enabled(oid)
+    world.set_enabled(oid, False)
+    try:
+        lin, ang = world.acceleration_from_rest()
+    finally:
+        world.set_enabled(oid, was)
+    falling = []
+    for k in kids:
+        i = world.index(k)
+        a_max = world.model_of(k).max_angular_acceleration(g)
+        if np.linalg.norm(lin[i]) > lim * g or np.linalg.norm(ang[i]) > lim * a_max:
+            falling.append(k)
+    return falling

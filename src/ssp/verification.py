@@ -1,0 +1,184 @@
+"""Hypothesis verification: does an object explain its data, and is its volume not seen empty?
+
+The role of global hypothesis verification (Aldoma et al., ECCV 2012; DESIGN section 6): a pose
+estimator proposes objects; only those the data supports become part of the scene. Per object
+at a pose, :func:`evidence` compares the model's surface samples with the frame:
+
+* the camera classifies every camera-facing sample (:meth:`ssp.visibility.CameraView.classify`):
+  *seen* (observed depth at the sample), *occluded* (something observed in front of it: the
+  data says nothing about it), *seen through* (observed depth behind it: that space is empty),
+  or *unknown* (no depth along its ray);
+* ``fit``: of the samples the camera could have seen (seen or seen through), the fraction with a
+  point of the object's segment within the inlier radius (model to data; Eq. 10's ``c`` on the
+  visible surface only, so a cube in full view scores near 1 and a half-hidden one too);
+* ``explained``: the fraction of the segment's points within the inlier radius plus the sample
+  spacing of the model surface (data to model), when the segment is the object's own instance
+  segment;
+* ``seen_through``: the fraction of the camera-facing samples whose ray sees past them.
+
+Without a camera pose every sample counts as visible and nothing is seen through.
+:func:`check_new` turns the evidence into a verdict for an object the parser has not seen
+before; :func:`still_visible` decides whether an undetected known object is still where it was.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ssp.config import SSPConfig
+from ssp.geometry import transform_points
+from ssp.library.model import ObjectModel
+from ssp.segments import explained_fraction
+from ssp.visibility import NOT_FACING, OCCLUDED, SEEN, SEEN_THROUGH, CameraView
+
+__all__ = ["Evidence", "Verdict", "check_new", "evidence", "still_visible"]
+
+
+@dataclass(frozen=True)
+class Evidence:
+    """What the frame says about an object at one pose (module docstring).
+
+    Attributes:
+        facing: camera-facing samples (all samples without a camera).
+        visible: facing samples the camera could have seen (seen or seen through).
+        fit: fraction of the visible samples with a segment point within the inlier radius.
+        explained: fraction of the instance segment's points the model accounts for, or None.
+        seen_through: fraction of the facing samples whose ray sees past them.
+        occluded: fraction of the facing samples hidden behind observed points.
+    """
+
+    facing: int
+    visible: int
+    fit: float
+    explained: float | None
+    seen_through: float
+    occluded: float
+
+    def as_dict(self) -> dict:
+        return {
+            "facing": self.facing,
+            "visible": self.visible,
+            "fit": round(self.fit, 4),
+            "explained": None if self.explained is None else round(self.explained, 4),
+            "seen_through": round(self.seen_through, 4),
+            "occluded": round(self.occluded, 4),
+        }
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """Whether an object is kept, and why (a short sentence for people)."""
+
+    keep: bool
+    reason: str
+    evidence: Evidence | None = None
+
+
+def _samples(model: ObjectModel, n: int) -> tuple[np.ndarray, np.ndarray]:
+    p = np.asarray(model.surface_points, dtype=float)
+    nrm = np.asarray(model.surface_normals, dtype=float)
+    if len(p) > n:
+        sel = np.linspace(0, len(p) - 1, n).astype(int)
+        p, nrm = p[sel], nrm[sel]
+    return p, nrm
+
+
+def evidence(
+    model: ObjectModel,
+    T_world_obj: np.ndarray,
+    segment: np.ndarray | cKDTree | None,
+    view: CameraView | None,
+    config: SSPConfig,
+    *,
+    own_segment: bool = False,
+) -> Evidence:
+    """The :class:`Evidence` for ``model`` at ``T_world_obj`` (4x4, m): ``segment`` ``(K, 3)``
+    (or its KD-tree) is the object's part of the cloud, ``own_segment`` True when it is the
+    object's instance segment (then ``explained`` is computed)."""
+    pts, nrm = _samples(model, int(config.search.fit_samples))
+    T = np.asarray(T_world_obj, dtype=float)
+    pw = transform_points(T, pts)
+    if view is not None:
+        state = view.classify(pw, nrm @ T[:3, :3].T)
+        facing = state != NOT_FACING
+        visible = (state == SEEN) | (state == SEEN_THROUGH)
+        n_facing = int(np.count_nonzero(facing))
+        through = int(np.count_nonzero(state == SEEN_THROUGH)) / n_facing if n_facing else 0.0
+        occluded = int(np.count_nonzero(state == OCCLUDED)) / n_facing if n_facing else 0.0
+    else:
+        facing = visible = np.ones(len(pw), dtype=bool)
+        n_facing, through, occluded = len(pw), 0.0, 0.0
+    n_visible = int(np.count_nonzero(visible))
+    fit = 0.0
+    tree = None
+    if segment is not None:
+        tree = segment if isinstance(segment, cKDTree) else None
+        if tree is None and len(segment):
+            tree = cKDTree(np.asarray(segment, dtype=float))
+    if tree is not None and n_visible:
+        d, _ = tree.query(pw[visible], k=1, distance_upper_bound=config.data.inlier_radius)
+        fit = float(np.count_nonzero(np.isfinite(d))) / n_visible
+    explained = None
+    if own_segment and tree is not None:
+        radius = config.data.inlier_radius + config.library.surface_spacing
+        explained = explained_fraction(tree.data, model, T, radius)
+    return Evidence(n_facing, n_visible, fit, explained, through, occluded)
+
+
+#: Loose check (raw hypotheses, before the search): the seen-through limit is at least this,
+#: and the fit limit this fraction of ``verification.min_fit``.
+LOOSE_SEEN_THROUGH = 0.6
+LOOSE_FIT = 1.0 / 3.0
+
+
+def check_new(ev: Evidence, config: SSPConfig, *, loose: bool = False) -> Verdict:
+    """Verdict on an object not seen before, at its best pose: kept only if the camera could
+    see enough of it (``verification.min_visible_samples``), its visible surface is explained
+    (``fit >= verification.min_fit``), it explains its instance segment
+    (``explained >= verification.min_explained``) and its volume is not seen empty
+    (``seen_through < temporal.seen_through_fraction``).
+
+    ``loose``: the check of a raw hypothesis, which may be a few millimetres off (a face 5 mm
+    too close to the camera is seen through): the seen-through limit is at least
+    :data:`LOOSE_SEEN_THROUGH`, the fit limit :data:`LOOSE_FIT` of ``min_fit``, and the
+    segment is not checked."""
+    v = config.verification
+    through = config.temporal.seen_through_fraction
+    min_fit = v.min_fit
+    if loose:
+        through, min_fit = max(through, LOOSE_SEEN_THROUGH), LOOSE_FIT * min_fit
+    if ev.visible < v.min_visible_samples:
+        if ev.facing == 0:
+            return Verdict(False, "not in the camera's view: no data to support it", ev)
+        return Verdict(False, "nothing of it is visible: no data to support it", ev)
+    if ev.seen_through >= through:
+        return Verdict(
+            False, f"its volume is seen empty ({100 * ev.seen_through:.0f} % seen through)", ev
+        )
+    if ev.fit < min_fit:
+        pct, lim = 100 * ev.fit, 100 * min_fit
+        return Verdict(False, f"explains {pct:.0f} % of its visible surface (< {lim:.0f})", ev)
+    if loose:
+        return Verdict(True, "plausible", ev)
+    if ev.explained is not None and ev.explained < v.min_explained:
+        return Verdict(
+            False,
+            f"accounts for {100 * ev.explained:.0f} % of its segment "
+            f"(< {100 * v.min_explained:.0f})",
+            ev,
+        )
+    return Verdict(True, f"verified: explains {100 * ev.fit:.0f} % of its visible surface", ev)
+
+
+def still_visible(ev: Evidence, config: SSPConfig) -> bool:
+    """An undetected known object is still there when enough of it is visible
+    (``verification.min_visible_samples``) and explained (``fit >= temporal.visible_fit``)
+    with its volume not seen empty."""
+    return (
+        ev.visible >= config.verification.min_visible_samples
+        and ev.fit >= config.temporal.visible_fit
+        and ev.seen_through < config.temporal.seen_through_fraction
+    )
