@@ -231,10 +231,16 @@ def test_transition_hand_values():
     np.testing.assert_allclose(out, [-((5 / 18) ** 2) / 2, -0.125], rtol=1e-12)
 
 
-def test_transition_decreasing():
+def test_transition_decreasing_down_to_its_floor():
     d = np.linspace(0, 0.1, 20)
-    assert np.all(np.diff(log_transition(d, 0.0, TRANS)) < 0)
-    assert np.all(np.diff(log_transition(0.0, d * 10, TRANS)) < 0)
+    for out in (log_transition(d, 0.0, TRANS), log_transition(0.0, d * 20, TRANS)):
+        above = out > TRANS.floor
+        assert np.all(np.diff(out[above]) < 0)  # strictly decreasing above the floor
+        assert np.all(out >= TRANS.floor) and out[-1] == TRANS.floor
+    # a half turn costs the floor, not -(pi / sigma_r)^2 / 2 = -50: the data can overturn it
+    assert log_transition(0.0, math.pi, TRANS) == pytest.approx(-8.0)
+    gauss = TRANS.model_copy(update={"floor": -1e9})
+    assert log_transition(0.0, math.pi, gauss) == pytest.approx(-50.0)
 
 
 def test_transition_new_object_is_zero():

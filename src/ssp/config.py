@@ -222,10 +222,19 @@ class DataConfig(_Section):
 
 
 class TransitionConfig(_Section):
-    """Transition term P_T = exp(-|dt|^2/2 s_t^2) exp(-dtheta^2/2 s_r^2) (Eq. 4)."""
+    """Transition term P_T = exp(-|dt|^2/2 s_t^2) exp(-dtheta^2/2 s_r^2) (Eq. 4), with a floor."""
 
     sigma_translation: float = Field(0.01, gt=0, description="sigma_t, m.")
     sigma_rotation: float = Field(math.radians(18.0), gt=0, description="sigma_r, rad (18 deg).")
+    floor: float = Field(
+        -8.0,
+        le=0,
+        description=(
+            "log P_T never falls below this: the transition is a mixture of the Gaussian and "
+            "a small uniform part (e^floor), so an orientation the data keeps contradicting "
+            "can be given up (a half turn costs -50 without it); -1e9: the paper's Gaussian."
+        ),
+    )
 
 
 class TemporalConfig(_Section):
@@ -330,18 +339,37 @@ class VerificationConfig(_Section):
         ),
     )
     min_explained: float = Field(
-        0.5,
+        0.85,
         ge=0,
         le=1,
         description=(
             "... and account for at least this fraction of the points of its instance segment "
-            "(with instance labels)."
+            "(with instance labels; real objects account for 95-100 % of theirs, stray mask "
+            "pixels included, a cube proposed on a ball for about 70 %)."
         ),
     )
     min_visible_samples: int = Field(
         10,
         ge=1,
         description="Fewer visible surface samples than this: nothing to verify an object by.",
+    )
+    fall_stability: float = Field(
+        -5.0,
+        le=0,
+        description=(
+            "An object whose stability term (log P_B) is below this would fall where it is: "
+            "the scene says so in its warnings."
+        ),
+    )
+    stand_explained: float = Field(
+        0.8,
+        ge=0,
+        le=1,
+        description=(
+            "A new object that would fall where the data puts it is kept only if it accounts "
+            "for at least this fraction of its instance segment (of its visible surface "
+            "without one): then it is there, held by something undetected."
+        ),
     )
 
 

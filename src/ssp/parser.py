@@ -77,7 +77,7 @@ from ssp.temporal import (
     snap_symmetric,
 )
 from ssp.timing import StageTimer
-from ssp.verification import Evidence, check_new, evidence
+from ssp.verification import Evidence, check_new, evidence, verify_final
 from ssp.visibility import CameraView
 
 __all__ = [
@@ -114,6 +114,7 @@ def first_guess(
     T_prev: np.ndarray | None,
     symmetry: Symmetry,
     config: TemporalConfig,
+    centre: np.ndarray | None = None,
 ) -> np.ndarray:
     """An object's provisional pose (4x4, m), before its segment is known: its previous pose
     ``T_prev`` when one of its ``hypotheses`` (best first) lies within the static thresholds of
@@ -122,7 +123,7 @@ def first_guess(
     per object, the best of this pose and the hypotheses by data fit and transition."""
     if T_prev is not None:
         for h in hypotheses:
-            dt, dth = pose_change(T_prev, h.T_world_obj, symmetry)
+            dt, dth = pose_change(T_prev, h.T_world_obj, symmetry, centre)
             if dt < config.static_translation and dth < config.static_rotation:
                 return T_prev
     return hypotheses[0].T_world_obj
@@ -362,7 +363,7 @@ class SceneParser:
             for h in groups[oid]:
                 ev = evidence(
                     models[oid], h.T_world_obj, segments.get(oid), view, self.config,
-                    own_segment=oid in owner,
+                    own_label=owner.get(oid),
                 )  # fmt: skip
                 key = (check_new(ev, self.config, loose=True).keep, ev.fit, -ev.seen_through)
                 if best is None or key > best[0]:
@@ -392,7 +393,13 @@ class SceneParser:
         # Provisional pose per detected object (segment vote, triage of undetected objects);
         # replaced by the first guess once the scorer can weigh the candidates.
         first = {
-            oid: first_guess(hyps, prev_pose.get(oid), models[oid].symmetry, cfg.temporal)
+            oid: first_guess(
+                hyps,
+                prev_pose.get(oid),
+                models[oid].symmetry,
+                cfg.temporal,
+                models[oid].center_of_mass,
+            )  # fmt: skip
             for oid, hyps in groups.items()
         }
         with timer("segments"):
@@ -551,7 +558,7 @@ class SceneParser:
                     segments.get(oid),
                     view,
                     cfg,
-                    own_segment=oid in owner,
+                    own_label=owner.get(oid),
                 )  # fmt: skip
                 for oid in ids
                 if oid not in removed
@@ -573,6 +580,8 @@ class SceneParser:
                 rejected=rejected,
                 owner=owner,
                 association=assoc,
+                segments=segments,
+                view=view,
             ),
         )
 
@@ -583,8 +592,11 @@ class SceneParser:
         (``c_now >= ratio c_then - tolerance``)."""
         s = self.config.search
         cfg_t = self.config.temporal
-        centre = np.median([h.T_world_obj[:3, 3] for h in hyps], axis=0)  # per-axis median
-        if np.linalg.norm(centre - known.T_world_obj[:3, 3]) >= cfg_t.static_translation:
+        c = np.asarray(self.library[known.class_name].center_of_mass, dtype=float)
+        at = [h.T_world_obj[:3, :3] @ c + h.T_world_obj[:3, 3] for h in hyps]
+        centre = np.median(at, axis=0)  # per-axis median of the hypotheses' centres of mass
+        was = known.T_world_obj[:3, :3] @ c + known.T_world_obj[:3, 3]
+        if np.linalg.norm(centre - was) >= cfg_t.static_translation:
             return False
         c_now = scorer.fit_fraction(i, known.T_world_obj)
         return c_now >= s.unchanged_fit_ratio * known.fit - s.unchanged_fit_tolerance
@@ -620,7 +632,7 @@ class SceneParser:
                     camera_position,
                     max_distance=cfg.forces.icp_max_distance,
                 )
-                dt, dth = pose_change(T, T_icp)
+                dt, dth = pose_change(T, T_icp, None, world.model_of(oid).center_of_mass)
                 if dt < 0.02 and dth < math.radians(20.0):
                     forces.set_pose_target(k, T_icp)
         forces.reset()
@@ -647,7 +659,16 @@ class SceneParser:
             if oid in out.removed or oid in prev_pose:
                 continue
             i = ids.index(oid)
-            verdict = check_new(out.evidence[oid], cfg)
+            verdict = verify_final(
+                models[oid],
+                score.poses[i],
+                [h.T_world_obj for h in out.groups.get(oid, ())],
+                out.segments.get(oid),
+                out.view,
+                cfg,
+                own_label=out.owner.get(oid),
+                stability=float(score.terms[i, 0]),
+            )
             if verdict.keep:
                 reasons[oid] = verdict.reason
                 continue
@@ -659,7 +680,7 @@ class SceneParser:
                 seg = out.groups[oid][0].segment if oid in out.groups else None
                 rejected[oid] = Rejected(
                     oid, models[oid].name, score.poses[i].copy(), verdict.reason,
-                    out.evidence[oid].as_dict(), seg,
+                    verdict.evidence.as_dict(), seg,
                 )  # fmt: skip
                 log.info("%s (%s) rejected at its final pose: %s", oid, models[oid].name,
                          verdict.reason)  # fmt: skip
@@ -696,7 +717,7 @@ class SceneParser:
             ephemeral = v is not None and v.state == "ephemeral"
             supports = bool(score.graph.children(i))
             retained = oid in out.retained or (ephemeral and supports)
-            mode = classify(prev, T, model.symmetry, cfg.temporal, retained=retained)
+            mode = classify(prev, T, model.symmetry, cfg.temporal, retained, model.center_of_mass)
             terms = score.object_terms(i)
             if oid in old_of:
                 dist = np.linalg.norm(T[:3, 3] - prev[:3, 3])
@@ -716,7 +737,7 @@ class SceneParser:
                 warnings.append(
                     f"{out_id}: the camera sees through {100 * ev.seen_through:.0f} % of it"
                 )
-            if terms.stability < STABILITY_WARNING:
+            if terms.stability < cfg.verification.fall_stability:
                 warnings.append(f"{out_id}: would fall (stability term {terms.stability:.1f})")
             objects.append(
                 ObjectEstimate(
@@ -780,10 +801,6 @@ class SceneParser:
         return estimate, commit
 
 
-#: A stability term (log P_B) below this says the object would fall: the output is doubtful.
-STABILITY_WARNING = -5.0
-
-
 def _segment_verdicts(
     frame: Frame,
     owner: Mapping[str, int],
@@ -840,6 +857,8 @@ class _Outcome:
     rejected: Mapping[str, Rejected]
     owner: Mapping[str, int]
     association: _Association
+    segments: Mapping[str, np.ndarray]
+    view: CameraView | None
 
 
 def parse_sequence(

@@ -304,12 +304,14 @@ def pose_change(
 def log_transition(
     dt: np.ndarray | float, dtheta: np.ndarray | float, cfg: TransitionConfig
 ) -> np.ndarray | float:
-    """``log P_T = -dt^2 / (2 s_t^2) - dtheta^2 / (2 s_r^2)``, paper Eq. 4 (DESIGN section 4).
+    """``log P_T = max(-dt^2 / (2 s_t^2) - dtheta^2 / (2 s_r^2), floor)``, paper Eq. 4
+    (DESIGN section 4) with a floor: a Gaussian mixed with a small uniform part, so that no
+    transition is impossible and the data can overturn an orientation it keeps contradicting.
 
     Args:
         dt: translation since the previous frame's best pose, m (scalar or ``(n,)``).
         dtheta: symmetry-aware rotation angle since then, rad (scalar or ``(n,)``).
-        cfg: ``sigma_t`` (m) and ``sigma_r`` (rad).
+        cfg: ``sigma_t`` (m), ``sigma_r`` (rad), ``floor``.
 
     Returns:
         Natural-log probability (``<= 0``), same shape as the broadcast inputs.
@@ -317,6 +319,7 @@ def log_transition(
     dt = np.asarray(dt, dtype=float)
     dtheta = np.asarray(dtheta, dtype=float)
     out = -(dt**2) / (2.0 * cfg.sigma_translation**2) - dtheta**2 / (2.0 * cfg.sigma_rotation**2)
+    out = np.maximum(out, cfg.floor)
     return float(out) if out.ndim == 0 else out
 
 
@@ -325,6 +328,7 @@ def log_transition_from_poses(
     T_cur: np.ndarray,
     cfg: TransitionConfig,
     symmetry: Symmetry | None = None,
+    centre: np.ndarray | None = None,
 ) -> float:
     """``log P_T`` of one object from its previous best pose (Eq. 4); 0.0 for a new object.
 
@@ -332,12 +336,13 @@ def log_transition_from_poses(
         T_prev: ``(4, 4)`` previous frame's best world pose, or None when the object is new in
             this frame (``P_T = 1``, DESIGN section 4).
         T_cur: ``(4, 4)`` current hypothesis pose, m.
-        cfg: transition widths.
+        cfg: transition widths and floor.
         symmetry: the model's symmetries (see :func:`pose_change`).
+        centre: the model point whose motion counts (the centre of mass; None: the origin).
     """
     if T_prev is None:
         return 0.0
-    dt, dtheta = pose_change(T_prev, T_cur, symmetry)
+    dt, dtheta = pose_change(T_prev, T_cur, symmetry, centre)
     return float(log_transition(dt, dtheta, cfg))
 
 

@@ -93,7 +93,7 @@ def triage(
             if frac >= t.replaced_overlap:
                 out[oid] = Triage("replaced", f"another object fills {100 * frac:.0f} % of it")
                 continue
-        ev = evidence(model, T, segments.get(oid), view, config, own_segment=oid in owner)
+        ev = evidence(model, T, segments.get(oid), view, config, own_label=owner.get(oid))
         if still_visible(ev, config):
             reason = f"undetected but still visible: explains {100 * ev.fit:.0f} % of its surface"
             out[oid] = Triage("visible", reason, ev)

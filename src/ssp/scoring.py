@@ -165,7 +165,11 @@ class SceneScorer:
         cfg = self.config
         log_d = float(log_data(np.array([self.fit_fraction(i, T_world_obj)]), cfg.data)[0])
         return log_d + log_transition_from_poses(
-            self.previous[i], T_world_obj, cfg.transition, self.models[i].symmetry
+            self.previous[i],
+            T_world_obj,
+            cfg.transition,
+            self.models[i].symmetry,
+            self.models[i].center_of_mass,
         )
 
     def evaluate(self, world: World, timer: StageTimer | None = None) -> SceneScore:
@@ -214,6 +218,10 @@ class SceneScorer:
 
         for i in idx:
             terms[i, 4] = log_transition_from_poses(
-                self.previous[i], poses[i], cfg.transition, self.models[i].symmetry
+                self.previous[i],
+                poses[i],
+                cfg.transition,
+                self.models[i].symmetry,
+                self.models[i].center_of_mass,
             )
         return SceneScore(self.ids, on, terms, fit, graph, poses)

@@ -407,6 +407,7 @@ def classify(
     symmetry: Symmetry | None,
     cfg: TemporalConfig,
     retained: bool = False,
+    centre: np.ndarray | None = None,
 ) -> TransitionMode:
     """Transition mode of one object between the previous and the current frame.
 
@@ -415,8 +416,9 @@ def classify(
       unstable without it; its current pose, if any, is the one the search kept):
       ``SUPPORT_RETAINED``;
     * no current pose: ``REMOVED``;
-    * moved less than ``cfg.static_translation`` *and* rotated (symmetry-aware) less than
-      ``cfg.static_rotation``, both strictly: ``STATIC``; else ``PERTURBED``.
+    * moved less than ``cfg.static_translation`` (at the model point ``centre``, the centre of
+      mass; None: the origin) *and* rotated (symmetry-aware) less than ``cfg.static_rotation``,
+      both strictly: ``STATIC``; else ``PERTURBED``.
 
     Raises:
         SSPError: both poses are None, or ``retained`` for an object with no previous pose.
@@ -431,7 +433,7 @@ def classify(
         return TransitionMode.SUPPORT_RETAINED
     if cur_pose is None:
         return TransitionMode.REMOVED
-    dt, dtheta = pose_change(prev_pose, cur_pose, symmetry)
+    dt, dtheta = pose_change(prev_pose, cur_pose, symmetry, centre)
     if dt < cfg.static_translation and dtheta < cfg.static_rotation:
         return TransitionMode.STATIC
     return TransitionMode.PERTURBED

@@ -5,12 +5,14 @@ estimator proposes objects; only those the data supports become part of the scen
 at a pose, :func:`evidence` compares the model's surface samples with the frame:
 
 * the camera classifies every camera-facing sample (:meth:`ssp.visibility.CameraView.classify`):
-  *seen* (observed depth at the sample), *occluded* (something observed in front of it: the
-  data says nothing about it), *seen through* (observed depth behind it: that space is empty),
-  or *unknown* (no depth along its ray);
-* ``fit``: of the samples the camera could have seen (seen or seen through), the fraction with a
-  point of the object's segment within the inlier radius (model to data; Eq. 10's ``c`` on the
-  visible surface only, so a cube in full view scores near 1 and a half-hidden one too);
+  *seen* (observed depth at the sample), *occluded* (another object observed in front of it:
+  the data says nothing about it), *behind its own surface* (the object's own segment observed
+  in front of it: the model is too small there, or inside what was seen), *seen through*
+  (observed depth behind it: that space is empty), or *unknown* (no depth along its ray);
+* ``fit``: of the samples the camera could have seen (seen, seen through, or behind its own
+  surface), the fraction with a point of the object's segment within the inlier radius (model
+  to data; Eq. 10's ``c`` on the visible surface only, so a cube in full view scores near 1
+  and a half-hidden one too, and a cube proposed inside a ball does not);
 * ``explained``: the fraction of the segment's points within the inlier radius plus the sample
   spacing of the model surface (data to model), when the segment is the object's own instance
   segment;
@@ -23,6 +25,7 @@ before; :func:`still_visible` decides whether an undetected known object is stil
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,9 +35,9 @@ from ssp.config import SSPConfig
 from ssp.geometry import transform_points
 from ssp.library.model import ObjectModel
 from ssp.segments import explained_fraction
-from ssp.visibility import NOT_FACING, OCCLUDED, SEEN, SEEN_THROUGH, CameraView
+from ssp.visibility import BEHIND_OWN, NOT_FACING, OCCLUDED, SEEN, SEEN_THROUGH, CameraView
 
-__all__ = ["Evidence", "Verdict", "check_new", "evidence", "still_visible"]
+__all__ = ["Evidence", "Verdict", "check_new", "evidence", "still_visible", "verify_final"]
 
 
 @dataclass(frozen=True)
@@ -93,18 +96,19 @@ def evidence(
     view: CameraView | None,
     config: SSPConfig,
     *,
-    own_segment: bool = False,
+    own_label: int | None = None,
 ) -> Evidence:
     """The :class:`Evidence` for ``model`` at ``T_world_obj`` (4x4, m): ``segment`` ``(K, 3)``
-    (or its KD-tree) is the object's part of the cloud, ``own_segment`` True when it is the
-    object's instance segment (then ``explained`` is computed)."""
+    (or its KD-tree) is the object's part of the cloud, ``own_label`` the instance label it
+    came from when it is the object's instance segment (then ``explained`` is computed)."""
+    own_segment = own_label is not None
     pts, nrm = _samples(model, int(config.search.fit_samples))
     T = np.asarray(T_world_obj, dtype=float)
     pw = transform_points(T, pts)
     if view is not None:
-        state = view.classify(pw, nrm @ T[:3, :3].T)
+        state = view.classify(pw, nrm @ T[:3, :3].T, own_label)
         facing = state != NOT_FACING
-        visible = (state == SEEN) | (state == SEEN_THROUGH)
+        visible = (state == SEEN) | (state == SEEN_THROUGH) | (state == BEHIND_OWN)
         n_facing = int(np.count_nonzero(facing))
         through = int(np.count_nonzero(state == SEEN_THROUGH)) / n_facing if n_facing else 0.0
         occluded = int(np.count_nonzero(state == OCCLUDED)) / n_facing if n_facing else 0.0
@@ -170,7 +174,49 @@ def check_new(ev: Evidence, config: SSPConfig, *, loose: bool = False) -> Verdic
             f"(< {100 * v.min_explained:.0f})",
             ev,
         )
-    return Verdict(True, f"verified: explains {100 * ev.fit:.0f} % of its visible surface", ev)
+    text = f"verified: explains {100 * ev.fit:.0f} % of its visible surface"
+    if ev.explained is not None:
+        text += f" and accounts for {100 * ev.explained:.0f} % of its segment"
+    return Verdict(True, text, ev)
+
+
+def verify_final(
+    model: ObjectModel,
+    T_final: np.ndarray,
+    hypotheses: Sequence[np.ndarray],
+    segment: np.ndarray | None,
+    view: CameraView | None,
+    config: SSPConfig,
+    *,
+    own_label: int | None,
+    stability: float,
+) -> Verdict:
+    """The verdict on a new object after the search: :func:`check_new` at the best of its
+    final pose ``T_final`` and its ``hypotheses`` (physics may have moved it off its data when
+    what holds it is undetected; the data decides whether it is there), and, when its
+    ``stability`` term at the final pose says it would fall (below
+    ``verification.fall_stability``), kept only if its data is strong
+    (``verification.stand_explained``): a cube proposed on a ball explains half of the ball
+    and cannot rest on it."""
+    tree = None if segment is None or not len(segment) else cKDTree(segment)
+    best: tuple[tuple, Verdict] | None = None
+    for T in (T_final, *hypotheses):
+        ev = evidence(model, T, tree, view, config, own_label=own_label)
+        verdict = check_new(ev, config)
+        key = (verdict.keep, ev.fit if ev.explained is None else ev.explained, ev.fit)
+        if best is None or key > best[0]:
+            best = (key, verdict)
+    key, verdict = best
+    v = config.verification
+    if verdict.keep and stability < v.fall_stability and key[1] < v.stand_explained:
+        what = "of its visible surface" if verdict.evidence.explained is None else "of its segment"
+        return Verdict(
+            False,
+            f"would fall where the data puts it (stability term {stability:.0f}) and accounts "
+            f"for only {100 * key[1]:.0f} % {what}",
+            verdict.evidence,
+        )
+    return verdict
 
 
 def still_visible(ev: Evidence, config: SSPConfig) -> bool:

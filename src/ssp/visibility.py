@@ -67,7 +67,7 @@ RESOLUTION_FACTOR = 1.5
 ESTIMATE_MAX_QUERIES = 20_000
 
 #: Sample states of :meth:`CameraView.classify`.
-NOT_FACING, SEEN, OCCLUDED, SEEN_THROUGH, UNKNOWN = 0, 1, 2, 3, 4
+NOT_FACING, SEEN, OCCLUDED, SEEN_THROUGH, UNKNOWN, BEHIND_OWN = 0, 1, 2, 3, 4, 5
 
 #: Lookup radius (normalised image coordinates, ~rad) used when the cloud has too few points
 #: (fewer than 2 distinct rays) to estimate one: about one pixel of a 640 px wide, 60 deg camera.
@@ -208,15 +208,21 @@ class CameraView:
         """Camera pose (4, 4), a copy."""
         return self._T_world_cam.copy()
 
-    def classify(self, points_world: np.ndarray, normals_world: np.ndarray) -> np.ndarray:
+    def classify(
+        self, points_world: np.ndarray, normals_world: np.ndarray, own_label: int | None = None
+    ) -> np.ndarray:
         """Per-sample state ``(M,)`` int8 of model samples placed in the world:
         :data:`NOT_FACING` (facing away or behind the camera), :data:`SEEN`,
-        :data:`OCCLUDED`, :data:`SEEN_THROUGH` or :data:`UNKNOWN` (module docstring).
+        :data:`OCCLUDED`, :data:`SEEN_THROUGH` or :data:`UNKNOWN` (module docstring); with
+        ``own_label`` (the object's instance label; needs ``labels``), a sample hidden only
+        by points of that label is :data:`BEHIND_OWN`: the object's own observed surface lies
+        in front of it, so the model is too small there or placed inside what was seen.
 
         Args:
             points_world: (M, 3) surface samples (m, world frame).
             normals_world: (M, 3) their outward normals (world frame; need not be unit length;
                 a zero normal never faces the camera).
+            own_label: the object's label in the cloud, or None.
         """
         pts = _as_points(points_world, "points_world")
         nrm = _as_points(normals_world, "normals_world")
@@ -247,6 +253,9 @@ class CameraView:
         state[found & (np.abs(diff) <= tol)] = SEEN
         state[found & (diff < -tol)] = OCCLUDED
         state[found & (diff > tol)] = SEEN_THROUGH
+        if own_label is not None and self._labels is not None:
+            j = np.where(found, idx, 0)
+            state[found & (diff < -tol) & (self._labels[j] == own_label)] = BEHIND_OWN
         out[facing] = state
         return out
 

@@ -42,7 +42,7 @@ def object_conditions(
     """Ground-truth id -> the stream's condition for it in this frame (module docstring);
     ``hypotheses`` best score first, aligned with ``sources`` and ``kinds``."""
     best: dict[str, str] = {}
-    for h, src, kind in zip(hypotheses, sources, kinds, strict=True):
+    for _h, src, kind in zip(hypotheses, sources, kinds, strict=True):
         if src is not None and src not in best:
             best[src] = kind
     out = {}
