@@ -50,3 +50,18 @@ def test_object_conditions_and_false_object_causes():
     assert cause(0.39, "cube") == "class_confusion"
     assert cause(0.01) == "duplicate"
     assert cause(1.5) == "elsewhere"
+
+
+def test_never_detected_objects_are_told_from_dropouts():
+    from ssp.eval.failures import DetectionHistory
+
+    gt = {"a": ("cube", _T(0.0)), "b": ("cube", _T(0.2))}
+    h = DetectionHistory()
+    assert h.update(gt, {"a"}) == {"a"}  # b appeared in a dropout
+    assert h.update(gt, set()) == {"a"}  # a is in a dropout now, b still never seen
+    assert object_conditions(gt, {"a": 1.0, "b": 1.0}, [], [], [], {"a"}) == {
+        "a": "dropout", "b": "never_detected",
+    }  # fmt: skip
+    moved = {"a": ("cube", _T(0.05)), "b": gt["b"]}
+    assert h.update(moved, set()) == set()  # a moved while undetected: never seen there
+    assert h.update(moved, {"b"}) == {"b"}

@@ -39,7 +39,12 @@ import numpy as np
 from ssp.config import SSPConfig
 from ssp.eval.baselines import METHODS, Detection, make_method
 from ssp.eval.bop_metrics import BopEvaluator
-from ssp.eval.failures import VISIBLE, false_object_cause, object_conditions
+from ssp.eval.failures import (
+    VISIBLE,
+    DetectionHistory,
+    false_object_cause,
+    object_conditions,
+)
 from ssp.eval.metrics import (
     DEFAULT_GATE,
     FrameMatch,
@@ -276,6 +281,7 @@ def run_table1(
         ids = {m: IdSwitches() for m in methods}
         sources = _sources(seq)
         kinds = (seq.info or {}).get("hypothesis_kinds") if sources is not None else None
+        history = DetectionHistory()
         for i, sf in enumerate(seq.frames):
             if progress is not None:
                 progress(f"sequence {s + 1}/{len(sequences)}, frame {i + 1}/{len(seq)}")
@@ -289,8 +295,9 @@ def run_table1(
             hyp_r.extend(e[1] for e in errs)
             conditions = None
             if kinds is not None:
+                seen = history.update(sf.gt, {g for g in sources[i] if g is not None})
                 conditions = object_conditions(
-                    sf.gt, sf.visib_fract, sf.hypotheses, sources[i], kinds[i]
+                    sf.gt, sf.visib_fract, sf.hypotheses, sources[i], kinds[i], seen
                 )
             for m, runner in runners.items():
                 t0 = time.perf_counter()
