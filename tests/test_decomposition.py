@@ -15,7 +15,7 @@ import trimesh
 from ssp.config import DecompositionConfig, LibraryConfig
 from ssp.library import ObjectLibrary, build_model
 from ssp.library import decomposition as dec
-from ssp.library.decomposition import decompose, hull_iou, merge_parts
+from ssp.library.decomposition import decompose, hull_iou
 
 IOU = 20_000  # Monte Carlo points of the IoU checks here
 
@@ -215,6 +215,8 @@ def test_per_model_decomposition_settings_in_models_yaml(tmp_path):
 
 def test_merge_parts_is_bounded_by_the_tolerance():
     """Two boxes side by side merge (their hull is their union); an L's arms do not."""
+    from ssp.library.decomposition import merge_parts
+
     a = trimesh.creation.box([0.02] * 3)
     b = a.copy()
     b.apply_translation([0.02, 0, 0])

@@ -496,11 +496,12 @@ def _experiment_library(
     lib = _library(models, config, cache)
     missing = [c for c in ("cube", "block") if c not in lib]
     if experiment == "structure" and missing:
-        raise typer.BadParameter(
-            f"the structure experiment builds towers of 'cube' and 'block', and {models} has "
-            f"no {' or '.join(repr(m) for m in missing)}; use the built-in models (no --models) "
-            "or add those models to the folder",
-            param_hint="--experiment structure",
+        from ssp.errors import UnknownObjectError
+
+        raise UnknownObjectError(
+            f"--experiment structure builds its scenes of the classes 'cube' and 'block', and "
+            f"{models} has no {' or '.join(repr(m) for m in missing)}: use the built-in models "
+            "(no --models) or add those models to the folder"
         )
     return lib
 

@@ -173,11 +173,16 @@ class ObjectLibrary(Mapping[str, ObjectModel]):
         for entry in entries:
             try:
                 models.append(build_entry(entry, cfg, cache_dir, status=status))
-            except Exception as exc:
-                if on_error == "raise" or not isinstance(exc, (ModelError, ValueError)):
+            except Exception as exc:  # in "skip" mode one bad model must not stop the others
+                if on_error == "raise":
                     raise
                 skipped[entry.name] = _error_text(exc)
-                log.warning("skipping model %r: %s", entry.name, skipped[entry.name])
+                log.warning(
+                    "skipping model %r: %s",
+                    entry.name,
+                    skipped[entry.name],
+                    exc_info=not isinstance(exc, ModelError),
+                )
             if progress is not None:
                 progress(entry.name)
         if entries and not models:
