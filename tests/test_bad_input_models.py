@@ -103,6 +103,10 @@ def case_planar_holes_of_a_mug_handle(tmp_path, monkeypatch, caplog):
     handle, closed_volume = bent_tube()
     assert not handle.is_watertight
     (tmp_path / "handle.obj").write_text(obj_text(handle))
+    # (one hull: this case is about the holes, not the decomposition)
+    (tmp_path / "models.yaml").write_text(
+        "objects:\n  handle: {decomposition: {mode: convex-hull}}\n"
+    )
     with caplog.at_level(logging.WARNING, logger="ssp.library.mesh"):
         model = ObjectLibrary.from_folder(tmp_path, cfg(tmp_path))["handle"]
     assert model.mesh.is_watertight

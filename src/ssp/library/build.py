@@ -265,7 +265,7 @@ def _check_iou(
 
 
 #: Bump when the symmetry detection or its cache layout changes.
-SYMMETRY_CACHE_VERSION = 1
+SYMMETRY_CACHE_VERSION = 2
 
 
 def _translate(T: np.ndarray, offset: np.ndarray) -> np.ndarray:
@@ -318,6 +318,7 @@ def cached_symmetry_detection(
                     int(a["order"]),
                     float(a["mssd"]),
                     bool(a["near_continuous"]),
+                    tuple(float(x) for x in a.get("order_mssd", ())),
                 )
                 for a in meta["axes"]
             )
@@ -336,6 +337,7 @@ def cached_symmetry_detection(
                 "order": a.order,
                 "mssd": a.mssd,
                 "near_continuous": a.near_continuous,
+                "order_mssd": list(a.order_mssd),
             }
             for a in result.axes
         ],

@@ -69,6 +69,24 @@ def _same(A: np.ndarray, B: np.ndarray) -> bool:
     )
 
 
+def _already_closed(transforms) -> np.ndarray | None:
+    """The set with the identity first when it already is a group (vectorised check), else
+    None. Keeps the common case (a declared group, e.g. a cube's 24) cheap."""
+    d = np.asarray(transforms, dtype=float).reshape(-1, 4, 4)
+    ident = np.array([_same(T, np.eye(4)) for T in d])
+    d = np.concatenate([np.eye(4)[None], d[~ident]])
+    prod = np.einsum("aij,bjk->abik", d, d).reshape(-1, 1, 4, 4)
+    rot = np.linalg.norm(prod[..., :3, :3] - d[None, :, :3, :3], axis=(2, 3))
+    trans = np.linalg.norm(prod[..., :3, 3] - d[None, :, :3, 3], axis=2)
+    found = (rot < SAME_ROTATION) & (trans < SAME_TRANSLATION)
+    if not found.any(axis=1).all():
+        return None
+    # and no duplicates among the elements themselves
+    if (found.reshape(len(d), len(d), len(d)).sum(axis=2) > 1).any():
+        return None
+    return d
+
+
 def close_group(
     transforms: Sequence[np.ndarray] | np.ndarray,
     what: str = "symmetries",
@@ -84,6 +102,9 @@ def close_group(
             elements (an angle that is not 360/n degrees, or generators of an infinite group).
     """
     cap = MAX_GROUP if max_elements is None else int(max_elements)
+    closed = _already_closed(transforms)
+    if closed is not None:
+        return closed
     gens = [
         np.asarray(T, dtype=float).reshape(4, 4) for T in np.asarray(transforms).reshape(-1, 16)
     ]
@@ -270,12 +291,15 @@ class AxisSymmetry:
     order: int
     mssd: float
     near_continuous: bool
+    #: Worst MSSD (m) of the turns of every order in ``orders``, same order.
+    order_mssd: tuple[float, ...] = ()
 
     def to_dict(self) -> dict:
         return {
             "axis": [round(float(x), 6) for x in self.axis],
             "label": self.label,
             "orders_within_tolerance": list(self.orders),
+            "mssd_mm_by_order": [round(1000 * m, 3) for m in self.order_mssd],
             "order": self.order,
             "mssd_mm": round(1000 * self.mssd, 3),
             "near_continuous": self.near_continuous,
@@ -403,6 +427,7 @@ def detect_symmetries(
             order=order,
             mssd=worst[order],
             near_continuous=len(worst) == len(DETECT_ORDERS),
+            order_mssd=tuple(worst[n] for n in sorted(worst)),
         )
         axes.append((info, cyclic))
     axes.sort(key=lambda a: (a[0].mssd, -a[0].order))
