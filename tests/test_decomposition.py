@@ -295,6 +295,25 @@ def test_iou_of_a_many_facet_hull_has_bounded_memory():
     assert peak < 200 * 2**20
 
 
+def test_plane_tests_are_chunked(monkeypatch):
+    """inside_convex never holds more than IOU_CHUNK_ENTRIES distances at once."""
+    from ssp.library.decomposition import inside_convex
+
+    hull = trimesh.creation.icosphere(subdivisions=3, radius=0.05)
+    planes = np.hstack(
+        [
+            hull.face_normals,
+            -np.einsum("ij,ij->i", hull.face_normals, hull.triangles[:, 0])[:, None],
+        ]
+    )
+    pts = np.random.default_rng(0).uniform(-0.06, 0.06, (4000, 3))
+    whole = inside_convex(pts, planes)
+    monkeypatch.setattr(dec, "IOU_CHUNK_ENTRIES", 10 * len(planes))
+    chunked = inside_convex(pts, planes)
+    assert np.array_equal(whole, chunked) and 0.3 < whole.mean() < 0.4
+    assert dec._chunk_rows(len(planes)) * len(planes) <= 10 * len(planes)
+
+
 def test_huge_mesh_is_decimated_at_load(tmp_path, caplog):
     sphere = trimesh.creation.icosphere(subdivisions=6, radius=0.05)
     cfg = LibraryConfig(cache_dir=tmp_path, max_mesh_faces=20_000)

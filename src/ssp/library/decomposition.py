@@ -79,6 +79,9 @@ CACHE_TOLERANCE = 1e-6
 IOU_CHUNK_ENTRIES = 1 << 22
 #: Points per ``mesh.contains`` call of the IoU check.
 CONTAINS_CHUNK = 20_000
+#: Convex parts with more facets are tested by ray casting (O(log F) per point) instead of
+#: one plane test per facet (the convex hull of a huge mesh can have 10^5-10^6 facets).
+RAY_TEST_FACETS = 5000
 #: Called with a one-line status text while a decomposition runs.
 Status = Callable[[str], Any]
 #: Parts smaller than this (m^3), or than this fraction of the mesh volume, are dropped.
@@ -213,6 +216,12 @@ def inside_union(points: np.ndarray, parts: Sequence[trimesh.Trimesh]) -> np.nda
         lo, hi = part.bounds
         cand = np.flatnonzero(~inside & np.all((points >= lo) & (points <= hi), axis=1))
         if len(cand) == 0:
+            continue
+        if len(eq) > RAY_TEST_FACETS:
+            hull = trimesh.convex.convex_hull(np.asarray(part.vertices, dtype=np.float64))
+            for a in range(0, len(cand), CONTAINS_CHUNK):
+                idx = cand[a : a + CONTAINS_CHUNK]
+                inside[idx[hull.contains(points[idx])]] = True
             continue
         tol = 1e-12 * max(1.0, float(np.abs(hi - lo).max()))
         inside[cand[inside_convex(points[cand], eq, tol)]] = True
