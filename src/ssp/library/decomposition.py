@@ -9,10 +9,12 @@ Policy (``DecompositionConfig.mode = "auto"``), first match wins:
    tolerance: those shells' hulls, no CoACD (they already are an exact decomposition).
 3. ``"coacd"``: CoACD with ``threshold``, ``max_convex_hull``, ``preprocess_mode``,
    ``resolution``, ``seed`` on the mesh (decimated to ``max_faces`` first when it has more, with
-   fast-simplification's quadric decimation). If that run fails (non-zero exit, signal, timeout,
-   out of memory, no usable part), one retry with ``fallback_threshold`` /
-   ``fallback_max_convex_hull`` (``"coacd-coarse"``); if that fails too, the single convex hull
-   (``"convex-hull"``) with a logged warning and the reasons in ``DecompositionInfo.note``.
+   fast-simplification's quadric decimation; when the decimated mesh is not watertight or its
+   volume is off by more than 1 %, CoACD's own manifold preprocessing instead). If that run
+   fails (non-zero exit, signal, timeout, out of memory, no usable part), one retry with
+   ``fallback_threshold`` / ``fallback_max_convex_hull`` (``"coacd-coarse"``); if that fails
+   too, the single convex hull (``"convex-hull"``) with a logged warning and the reasons in
+   ``DecompositionInfo.note``.
 
 Then, whatever the source (CoACD or shells), neighbouring parts are merged while the merged
 part stays convex within the tolerance (the hull of the pair holds at most ``convex_tolerance``
@@ -47,6 +49,7 @@ seconds=0``.
 from __future__ import annotations
 
 import hashlib
+import heapq
 import json
 import logging
 import os
@@ -388,45 +391,71 @@ def merge_parts(
         hi.append(hull_vertices.max(axis=0))
         return len(verts) - 1
 
-    alive = list(range(len(verts)))
+    alive = set(range(len(verts)))
+    heap: list[tuple[float, int, int]] = []
+
+    def push_pairs(k: int, others) -> None:
+        for j in sorted(others):
+            if j != k and near(k, j):
+                pair = (min(j, k), max(j, k))
+                heapq.heappush(heap, (cost(pair)[0], *pair))
+
+    for i in sorted(alive):
+        push_pairs(i, [j for j in alive if j > i])
     # 1. clusters of cheap pairs, merged whole when the cluster itself is nearly convex
     import networkx as nx
 
     graph = nx.Graph()
     graph.add_nodes_from(alive)
-    for a, i in enumerate(alive):
-        for j in alive[a + 1 :]:
-            if near(i, j) and cost((i, j))[0] <= tolerance:
-                graph.add_edge(i, j)
+    graph.add_edges_from((i, j) for c, i, j in heap if c <= tolerance)
     for component in sorted(nx.connected_components(graph), key=min):
         group = tuple(sorted(component))
         if len(group) > 1 and cost(group)[0] <= tolerance:
             k = add(cost(group)[1], group)
-            alive = [x for x in alive if x not in component] + [k]
+            alive -= component
+            push_pairs(k, alive)
+            alive.add(k)
     # 2. pairs, cheapest first; beyond the cap whatever the cost
     while len(alive) > 1:
-        pairs = [(i, j) for a, i in enumerate(alive) for j in alive[a + 1 :] if near(i, j)]
+        while heap and not (heap[0][1] in alive and heap[0][2] in alive):
+            heapq.heappop(heap)
         over = len(alive) > max_parts
-        if not pairs and over:
-            pairs = [(i, j) for a, i in enumerate(alive) for j in alive[a + 1 :]]
-        if not pairs:
-            break
-        c, i, j = min((cost((i, j))[0], i, j) for i, j in pairs)
+        if not heap:
+            if not over:
+                break
+            for i in sorted(alive):  # far apart parts: only the cap merges them
+                for j in sorted(alive):
+                    if j > i:
+                        heapq.heappush(heap, (cost((i, j))[0], i, j))
+            continue
+        c, i, j = heap[0]
         if not (c <= tolerance or over):
             break
+        heapq.heappop(heap)
         k = add(cost((i, j))[1], (i, j))
-        alive = [x for x in alive if x not in (i, j)] + [k]
+        alive -= {i, j}
+        push_pairs(k, alive)
+        alive.add(k)
     return tuple(
-        parts[k] if k < len(parts) else trimesh.convex.convex_hull(verts[k]) for k in alive
+        parts[k] if k < len(parts) else trimesh.convex.convex_hull(verts[k]) for k in sorted(alive)
     )
 
 
-def simplified(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh:
-    """``mesh`` decimated to at most ``max_faces`` faces (fast-simplification's quadric
-    decimation, through trimesh), or ``mesh`` itself when it is small enough."""
+#: A decimated mesh is used only if its volume is within this fraction of the original's.
+DECIMATION_VOLUME_TOLERANCE = 0.01
+
+
+def simplified(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh | None:
+    """``mesh`` decimated to at most about ``max_faces`` faces (fast-simplification's quadric
+    decimation, through trimesh), ``mesh`` itself when it is small enough, or None when the
+    decimation fails its check (not watertight, or the volume off by more than
+    :data:`DECIMATION_VOLUME_TOLERANCE`: quadric decimation can fold very regular meshes)."""
     if len(mesh.faces) <= max_faces:
         return mesh
-    return mesh.simplify_quadric_decimation(face_count=int(max_faces))
+    out = mesh.simplify_quadric_decimation(face_count=int(max_faces))
+    with np.errstate(all="ignore"):
+        change = abs(float(out.volume) / float(mesh.volume) - 1.0)
+    return out if out.is_watertight and change <= DECIMATION_VOLUME_TOLERANCE else None
 
 
 def _pack(parts: Sequence[trimesh.Trimesh]) -> dict[str, np.ndarray]:
@@ -672,13 +701,19 @@ def _coacd_parts(
     notes: list[str] = []
     source = simplified(mesh, config.max_faces)
     primary = _coacd_params(config)
-    if source is not mesh:
+    if source is None:  # decimation failed its check: CoACD's own manifold remeshing instead
+        source = mesh
+        primary["preprocess_mode"] = "on"
+        notes.append(
+            f"the mesh has {len(mesh.faces)} faces (> max_faces {config.max_faces}) and does "
+            "not decimate cleanly; CoACD ran with its manifold preprocessing on"
+        )
+        log.info("convex decomposition: %s", notes[-1])
+    elif source is not mesh:
         notes.append(
             f"CoACD ran on the mesh decimated from {len(mesh.faces)} to {len(source.faces)} faces"
         )
         log.info("convex decomposition: %s", notes[-1])
-        if not source.is_watertight and primary["preprocess_mode"] == "off":
-            primary["preprocess_mode"] = "auto"
     coarse = {
         **primary,
         "threshold": config.fallback_threshold,

@@ -271,7 +271,18 @@ def validate_mesh(
     if len(m.faces) > config.max_mesh_faces:
         n_faces = len(m.faces)
         m.merge_vertices()
+        with np.errstate(all="ignore"):
+            volume_before = abs(float(m.volume))
         m = m.simplify_quadric_decimation(face_count=int(config.max_mesh_faces))
+        with np.errstate(all="ignore"):
+            change = abs(abs(float(m.volume)) / volume_before - 1.0) if volume_before else 0.0
+        if change > 0.01:
+            raise GeometryError(
+                f"{who}: {n_faces} faces (more than library.max_mesh_faces "
+                f"{config.max_mesh_faces}), and decimating it changed its volume by "
+                f"{100 * change:.1f} %; decimate the mesh in a mesh editor, or raise "
+                "library.max_mesh_faces"
+            )
         log.warning(
             "%s: %d faces decimated to %d (library.max_mesh_faces) to bound memory and time",
             who,
