@@ -266,19 +266,38 @@ def test_cube_and_block_symmetry_groups():
 
 @pytest.mark.parametrize("name", NAMES)
 def test_declared_symmetries_map_the_mesh_onto_itself(name):
+    """Exact symmetries within 0.1 mm; declared approximate ones within their tolerance."""
     s = SPECS[name]
     m = s.mesh
     pts = _samples(m)
+    tol = max(SURFACE_TOL, s.symmetry_tolerance)
     for T in s.symmetry.transforms():
         assert _is_proper_rotation(T)
         moved = pts @ T[:3, :3].T + T[:3, 3]
-        assert _surface_distance(m, moved).max() < SURFACE_TOL
+        assert _surface_distance(m, moved).max() < tol
+    if s.symmetry_tolerance:
+        return
     # and the parts' union is symmetric too (the physics shape)
     probe = np.random.default_rng(2).uniform(*m.bounds, size=(3000, 3))
     inside = _inside_any_part(s.parts, probe)
     for T in s.symmetry.discrete[1:]:
         moved = probe @ T[:3, :3].T + T[:3, 3]
         assert (_inside_any_part(s.parts, moved) == inside).mean() > 0.999
+
+
+def test_screwdriver_declares_its_approximate_six_fold_symmetry():
+    """The decision of docs/models.md: the six 60-degree turns about the handle (x) axis; only
+    the half turn is exact, the others move the blade end by more than 1 mm and under 2 mm."""
+    s = SPECS["screwdriver"]
+    assert len(s.symmetry.discrete) == 6 and s.symmetry_tolerance == 0.002
+    m = s.mesh
+    pts = _samples(m)
+    dists = []
+    for T in s.symmetry.discrete[1:]:
+        assert np.allclose(T[:3, :3] @ [1, 0, 0], [1, 0, 0])  # about the handle axis
+        dists.append(_surface_distance(m, pts @ T[:3, :3].T + T[:3, 3]).max())
+    assert sorted(dists)[0] < SURFACE_TOL  # the half turn
+    assert 0.001 < min(sorted(dists)[1:]) and max(dists) < 0.002
 
 
 @pytest.mark.parametrize("name", NAMES)
@@ -289,6 +308,11 @@ def test_no_undeclared_axis_symmetry(name):
     m = s.mesh
     pts = _samples(m, 200, seed=3)
     declared = {tuple(np.round(T, 9).ravel()) for T in s.symmetry.discrete}
+    if s.symmetry_tolerance:  # approximate ones are not axis-aligned turns (screwdriver: 60 deg)
+        axis_turns = {
+            tuple(np.round(_about_bbox_centre(R, m), 9).ravel()) for R in _axis_rotations()
+        }
+        declared &= axis_turns
     found = set()
     for R in _axis_rotations():
         T = _about_bbox_centre(R, m)

@@ -498,3 +498,64 @@ def test_collision_geometry_follows_the_model_frame(make_box):
     footprint = verts[verts[:, 2] < 1e-3, :2]
     assert np.all(c.position[:, :2] >= footprint.min(0) - 1e-6)
     assert np.all(c.position[:, :2] <= footprint.max(0) + 1e-6)
+
+
+# --------------------------------------------------------------------------- many-part models
+@pytest.fixture(scope="module")
+def grid_model():
+    """A 50 x 50 x 40 mm box as 100 touching 10 mm convex parts (a many-part model)."""
+    import trimesh
+
+    from ssp.config import LibraryConfig
+    from ssp.library import build_model
+
+    parts = [
+        trimesh.creation.box(
+            (0.0102,) * 3,
+            trimesh.transformations.translation_matrix(
+                ((i - 2) * 0.01, (j - 2) * 0.01, (k - 1.5) * 0.01)
+            ),
+        )
+        for i in range(5)
+        for j in range(5)
+        for k in range(4)
+    ]
+    mesh = trimesh.creation.box((0.0502, 0.0502, 0.0402))
+    return build_model("grid", mesh, config=LibraryConfig(), convex_parts=parts)
+
+
+def test_many_part_world_builds_and_overlaps_without_mujoco_warnings(
+    grid_model, tmp_path, monkeypatch
+):
+    monkeypatch.chdir(tmp_path)
+    w = World([ObjectInstance(f"g{i}", grid_model) for i in range(3)])
+    # the identity-pose forward at construction computed no contacts (3 x 100 parts overlap)
+    assert all(int(x.number) == 0 for x in w.data.warning)
+    # two of them pushed fully into each other and into the table: still within the arena
+    w.set_pose("g0", make_pose(t=[0, 0, 0.01]))
+    w.set_pose("g1", make_pose(t=[0, 0, 0.01]))
+    w.set_pose("g2", make_pose(t=[0.2, 0, 0.0201]))
+    c = w.contacts()
+    assert len(c.between(0, 1)) > 5000
+    w.acceleration_from_rest()
+    w.step(2)
+    assert all(int(x.number) == 0 for x in w.data.warning)
+    assert not (tmp_path / "MUJOCO_LOG.TXT").exists()
+
+
+def test_contact_overflow_raises_physics_error_and_logs_not_to_a_file(
+    grid_model, tmp_path, monkeypatch, caplog
+):
+    import ssp.physics.world as world_module
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(world_module, "_logged_warnings", set())  # each text is logged once
+    w = World([ObjectInstance(f"g{i}", grid_model) for i in range(4)])
+    w.set_poses({f"g{i}": make_pose(t=[0, 0, 0.01]) for i in range(4)})  # 4 deep overlaps
+    with caplog.at_level("WARNING", logger="ssp.physics.mujoco"):
+        with pytest.raises(PhysicsError, match="buffer full"):
+            w.contacts()
+        with pytest.raises(PhysicsError, match="buffer full"):
+            w.acceleration_from_rest()
+    assert any("MuJoCo" in r.message for r in caplog.records)
+    assert not (tmp_path / "MUJOCO_LOG.TXT").exists()

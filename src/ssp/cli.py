@@ -107,46 +107,86 @@ def dump_config_cmd(
         console.print(f"wrote {out}")
 
 
-def _library(models: Path | None, config: Path | None):
-    """The built-in library, or the model folder ``models``, with a progress bar."""
-    from rich.progress import Progress
+CacheOption = typer.Option(
+    None, "--cache", help="Hull cache folder (default: $SSP_CACHE_DIR, else ~/.cache/ssp)."
+)
 
-    from ssp.library import ObjectLibrary
 
+def _library_config(config: Path | None, cache: Path | None):
     cfg = _config(config).library
+    return cfg if cache is None else cfg.model_copy(update={"cache_dir": cache})
+
+
+def _library(models: Path | None, config: Path | None, cache: Path | None = None):
+    """The built-in library, or the model folder ``models``, with a progress bar.
+
+    Models of the folder that cannot be built are skipped, each with its reason printed."""
+    from ssp.library import ObjectLibrary
+    from ssp.library.properties import read_folder
+
+    cfg = _library_config(config, cache)
     if models is None:
         return ObjectLibrary.builtin(cfg)
-    with Progress(console=err_console, transient=True) as progress:
-        task = progress.add_task(f"loading {models}", total=None)
+    with _bar() as progress:
+        task = progress.add_task(f"loading {models}", total=len(read_folder(models)))
         lib = ObjectLibrary.from_folder(
-            models, cfg, progress=lambda name: progress.update(task, description=f"model {name}")
+            models,
+            cfg,
+            progress=lambda name: progress.update(task, advance=1),
+            status=lambda text: progress.update(task, description=text[:70]),
+            on_error="skip",
         )
+    for name, why in lib.skipped.items():
+        err_console.print(f"[yellow]skipped model {name}:[/] {why}")
     return lib
 
 
 ModelsArg = typer.Argument(None, help="Model folder (default: the built-in models).")
+JsonOption = typer.Option(False, "--json", help="Machine-readable output.")
 
 
 @models_app.command("list")
 @_friendly
-def models_list(models: Path | None = ModelsArg, config: Path | None = ConfigOption) -> None:
-    """One line per model: size, mass, convex parts, symmetries."""
-    lib = _library(models, config)
+def models_list(
+    models: Path | None = ModelsArg,
+    config: Path | None = ConfigOption,
+    cache: Path | None = CacheOption,
+    as_json: bool = JsonOption,
+) -> None:
+    """One line per model: size, mass, convex parts, symmetries (skipped models with why)."""
+    lib = _library(models, config, cache)
+    if as_json:
+        out = {
+            "models": [
+                {
+                    **lib[n].summary(),
+                    "decomposition_seconds": round(lib[n].decomposition.seconds, 3),
+                    "decomposition_cached": lib[n].decomposition.cached,
+                }
+                for n in lib.names
+            ],
+            "skipped": lib.skipped,
+        }
+        print(json.dumps(out, indent=2))
+        return
     table = Table(title=f"models ({'built-in' if models is None else models})")
     for col in ("name", "extents mm", "mass kg", "parts", "decomposition", "hull IoU", "sym"):
         table.add_column(col, justify="left" if col in ("name", "decomposition") else "right")
     for name in lib.names:
         s = lib[name].summary()
         sym = f"{s['discrete_symmetries']}" + ("+cont" if s["continuous_symmetries"] else "")
+        iou = f"{s['hull_iou']:.3f}" + (" [yellow](low)[/]" if s["decomposition_warnings"] else "")
         table.add_row(
             name,
             " x ".join(f"{x:.1f}" for x in s["extents_mm"]),
             f"{s['mass_kg']:.3f}",
             str(s["convex_parts"]),
             s["decomposition"],
-            f"{s['hull_iou']:.3f}",
+            iou,
             sym,
         )
+    for name in lib.skipped:
+        table.add_row(f"[red]{name}[/]", "", "", "", "[red]skipped[/]", "", "")
     console.print(table)
 
 
@@ -156,10 +196,19 @@ def models_show(
     name: str = typer.Argument(..., help="Model name."),
     models: Path | None = ModelsArg,
     config: Path | None = ConfigOption,
-    as_json: bool = typer.Option(False, "--json", help="Machine-readable output."),
+    cache: Path | None = CacheOption,
+    as_json: bool = JsonOption,
+    tolerance: float = typer.Option(
+        0.002, min=0.0, help="MSSD tolerance (m) of the listed approximate symmetries."
+    ),
 ) -> None:
-    """Everything about one model: mass properties, samples, decomposition, symmetries."""
-    model = _library(models, config)[name]
+    """Everything about one model: mass properties, samples, decomposition, symmetries
+    (declared, and approximate ones detected within --tolerance)."""
+    from ssp.library.build import cached_symmetry_detection
+    from ssp.library.decomposition import default_cache_dir
+
+    cfg = _library_config(config, cache)
+    model = _library(models, config, cache)[name]
     summary = model.summary()
     summary["max_angular_acceleration_rad_s2"] = round(
         model.max_angular_acceleration(_config(config).physics.gravity), 2
@@ -168,6 +217,12 @@ def models_show(
     summary["decomposition_cached"] = model.decomposition.cached
     if model.decomposition.note:
         summary["decomposition_note"] = model.decomposition.note
+    detected = model.detected_symmetry
+    if detected is None or abs(detected.tolerance - tolerance) > 1e-12:
+        detected = cached_symmetry_detection(
+            model.mesh, model.center_of_mass, model.inertia, tolerance, default_cache_dir(cfg)
+        )
+    summary["detected_symmetries"] = detected.to_dict()
     if as_json:
         print(json.dumps(summary, indent=2))
         return
@@ -182,41 +237,55 @@ def models_show(
 def models_prepare(
     folder: Path = typer.Argument(..., help="Folder of meshes (+ optional models.yaml)."),
     config: Path | None = ConfigOption,
-    cache: Path | None = typer.Option(None, "--cache", help="Hull cache folder."),
+    cache: Path | None = CacheOption,
+    as_json: bool = JsonOption,
 ) -> None:
-    """Validate every model of a folder and pre-compute its convex decomposition (cached).
+    """Validate every model of a folder, pre-compute its convex decomposition and detect its
+    approximate symmetries (both cached).
 
     Exits with code 1 when any model failed; the others are still prepared.
     """
-    from rich.progress import Progress
-
     from ssp.library import prepare_folder
+    from ssp.library.properties import read_folder
 
-    cfg = _config(config).library
-    if cache is not None:
-        cfg = cfg.model_copy(update={"cache_dir": cache})
-    with Progress(console=err_console, transient=True) as progress:
-        task = progress.add_task(f"preparing {folder}", total=None)
+    cfg = _library_config(config, cache)
+    with _bar() as progress:
+        task = progress.add_task(f"preparing {folder}", total=len(read_folder(folder)))
         rows = prepare_folder(
-            folder, cfg, progress=lambda n: progress.update(task, description=f"model {n}")
+            folder,
+            cfg,
+            progress=lambda n: progress.update(task, advance=1),
+            status=lambda text: progress.update(task, description=text[:70]),
         )
-    table = Table(title=f"prepared {folder}")
-    for col in ("name", "parts", "method", "hull IoU", "seconds", "cached", "error"):
-        table.add_column(col)
-    failed = 0
-    for r in rows:
-        err = r.get("error") or ""
-        failed += bool(err)
-        table.add_row(
-            r["name"],
-            str(r.get("n_parts", "")),
-            str(r.get("method", "")),
-            f"{r['iou']:.3f}" if r.get("iou") is not None else "",
-            f"{r['seconds']:.2f}" if r.get("seconds") is not None else "",
-            str(r.get("cached", "")),
-            f"[red]{err}[/]" if err else "",
-        )
-    console.print(table)
+    failed = sum(bool(r.get("error")) for r in rows)
+    if as_json:
+        print(json.dumps({"folder": str(folder), "models": rows}, indent=2, default=str))
+    else:
+        table = Table(title=f"prepared {folder}")
+        for col in ("name", "parts", "method", "hull IoU", "seconds", "cached", "sym", "error"):
+            table.add_column(col)
+        for r in rows:
+            err = r.get("error") or ""
+            det = r.get("detected_symmetries") or {}
+            iou = f"{r['iou']:.3f}" if r.get("iou") is not None else ""
+            if r.get("warnings"):
+                iou += " [yellow](low)[/]"
+            table.add_row(
+                r["name"],
+                str(r.get("n_parts", "")),
+                str(r.get("method", "")),
+                iou,
+                f"{r['seconds']:.2f}" if r.get("seconds") is not None else "",
+                str(r.get("cached", "")),
+                f"{r['symmetries']} ({det.get('discrete_symmetries', '?')} detected)"
+                if r.get("symmetries") is not None
+                else "",
+                f"[red]{err}[/]" if err else "",
+            )
+        console.print(table)
+        for r in rows:
+            for w in r.get("warnings") or ():
+                err_console.print(f"[yellow]warning[/] {r['name']}: {w}")
     if failed:
         err_console.print(f"[bold red]{failed} of {len(rows)} models failed[/]")
         raise typer.Exit(1)
@@ -420,6 +489,23 @@ def _experiment(name: str) -> str:
     return name
 
 
+def _experiment_library(
+    experiment: str, models: Path | None, config: Path | None, cache: Path | None
+):
+    """The library of a synthetic experiment; a one-line error when it cannot be run on it."""
+    lib = _library(models, config, cache)
+    missing = [c for c in ("cube", "block") if c not in lib]
+    if experiment == "structure" and missing:
+        from ssp.errors import UnknownObjectError
+
+        raise UnknownObjectError(
+            f"--experiment structure builds its scenes of the classes 'cube' and 'block', and "
+            f"{models} has no {' or '.join(repr(m) for m in missing)}: use the built-in models "
+            "(no --models) or add those models to the folder"
+        )
+    return lib
+
+
 @app.command()
 @_friendly
 def simulate(
@@ -434,12 +520,13 @@ def simulate(
     frames_per_stage: int = FramesOption,
     stride: int = StrideOption,
     config: Path | None = ConfigOption,
+    cache: Path | None = CacheOption,
 ) -> None:
     """Write synthetic sequences (depth, masks, ground truth, hypotheses) in BOP layout."""
     from ssp.sim.bop import simulate_to_disk
 
     experiment = _experiment(experiment)
-    lib = _library(models, config)
+    lib = _experiment_library(experiment, models, config, cache)
     with _bar() as progress:
         task = progress.add_task(f"simulating {experiment}", total=sequences)
         paths = simulate_to_disk(
@@ -538,6 +625,7 @@ def bench_table1(
     frames_per_stage: int = FramesOption,
     stride: int = StrideOption,
     config: Path | None = ConfigOption,
+    cache: Path | None = CacheOption,
     hypotheses: str = typer.Option(
         "noisy",
         "--hypotheses",
@@ -575,7 +663,7 @@ def bench_table1(
     names = _methods(methods) if methods else list(DEFAULT_METHODS)
     experiment = _experiment(experiment)
     cfg = _config(config)
-    lib = _library(models, config)
+    lib = _experiment_library(experiment, models, config, cache)
     realistic = noise == "realistic"
     seqs = []
     with _bar() as progress:
@@ -825,6 +913,7 @@ def run_cmd(
     ),
     method: str = typer.Option("ssp", help="BOP method name in the CSV file name (no '_')."),
     config: Path | None = ConfigOption,
+    cache: Path | None = CacheOption,
 ) -> None:
     """Perception and scene parsing over recorded frames: per-frame JSON, a BOP19 CSV and a
     summary (formats: docs/formats.md)."""
@@ -833,7 +922,7 @@ def run_cmd(
     if hypotheses not in HYPOTHESES_MODES:
         raise typer.BadParameter(f"--hypotheses must be one of {', '.join(HYPOTHESES_MODES)}")
     cfg = _config(config)
-    lib = _library(models, config)
+    lib = _library(models, config, cache)
     with _bar() as progress:
         task = progress.add_task("frames", total=None)
 

@@ -86,6 +86,36 @@ class DecompositionConfig(_Section):
     iou_samples: int = Field(
         100_000, ge=1000, description="Monte Carlo points for the hull-vs-mesh volume IoU."
     )
+    mode: Literal["auto", "coacd", "convex-hull"] = Field(
+        "auto",
+        description=(
+            "auto: one hull for a mesh convex within convex_tolerance, its shells for a mesh "
+            "of convex shells, else CoACD; coacd: always CoACD; convex-hull: always the single "
+            "convex hull."
+        ),
+    )
+    convex_tolerance: float = Field(
+        0.04,
+        ge=0,
+        lt=1,
+        description=(
+            "A mesh, shell or merged pair of parts counts as convex when its convex hull "
+            "holds at most this fraction of empty volume; nearly convex neighbouring parts "
+            "are merged up to it."
+        ),
+    )
+    max_parts: int = Field(
+        32, ge=1, description="Most convex parts of a model (cheapest merges beyond it)."
+    )
+    max_faces: int = Field(
+        50_000, ge=100, description="Meshes with more faces are decimated before CoACD."
+    )
+    min_iou: float = Field(
+        0.8,
+        ge=0,
+        le=1,
+        description="Warn (log and DecompositionInfo.warnings) when the parts' IoU is lower.",
+    )
 
 
 class LibraryConfig(_Section):
@@ -106,6 +136,25 @@ class LibraryConfig(_Section):
     )
     max_interior_points: int = Field(4000, ge=10, description="Cap on interior samples.")
     sample_seed: int = Field(0, description="Seed of surface sampling (determinism).")
+    max_mesh_faces: int = Field(
+        300_000,
+        ge=100,
+        description=(
+            "Meshes with more faces are decimated to this many when loaded (quadric "
+            "decimation; bounds the memory of validation, samples and decomposition)."
+        ),
+    )
+    max_hand_extent: float = Field(
+        1.0,
+        gt=0,
+        description=(
+            "A model larger than this (m) is loaded but logged as implausible for a "
+            "hand-held object (check units/scale)."
+        ),
+    )
+    max_hand_mass: float = Field(
+        25.0, gt=0, description="A heavier model (kg) is loaded but logged as implausible."
+    )
     cache_dir: Path | None = Field(
         None, description="Hull cache folder; default $SSP_CACHE_DIR or ~/.cache/ssp."
     )

@@ -1,16 +1,21 @@
 """Loading and validating object meshes: metres, watertight, positive volume.
 
-:func:`load_mesh` reads any format trimesh reads (scenes are concatenated into one mesh);
-:func:`validate_mesh` applies a unit scale, checks the size against the plausible range of
+:func:`load_mesh` reads any format trimesh reads (scenes are concatenated into one mesh), as
+is: no vertex is merged or dropped at reading (a NaN vertex is reported by validation, never
+silently removed). Text formats in another encoding than UTF-8 (a Latin-1 comment in an OBJ)
+are decoded by trimesh with charset-normalizer, a dependency for that reason.
+:func:`validate_mesh` applies a unit scale (uniform or per axis), decimates meshes of more than
+``LibraryConfig.max_mesh_faces`` faces, checks the size against the plausible range of
 :class:`~ssp.config.LibraryConfig` (the usual mistake is a mesh in millimetres), repairs what can
-be repaired (duplicate vertices, degenerate and duplicate faces, small holes, inconsistent
-winding, inside-out bodies) and raises a typed error naming the model for the rest.
+be repaired (duplicate vertices, degenerate and duplicate faces, planar holes, inconsistent
+winding, inside-out bodies) and raises a typed error naming the model and its file for the rest.
 :func:`load_convex_parts` reads a file of convex parts (one per OBJ object/group).
 """
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +28,10 @@ log = logging.getLogger(__name__)
 
 #: Unit names accepted in models.yaml and their scale to metres.
 UNIT_SCALES: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001}
+
+#: A hole is filled when its boundary loop lies within this fraction of the loop's size of
+#: its best-fit plane (a cut-off handle end, a missing cap); other holes are errors.
+PLANAR_HOLE_TOLERANCE = 0.05
 
 _OPEN_SURFACE_WHY = (
     "volume, centre of mass, inertia and interior samples are undefined for an open surface"
@@ -41,7 +50,7 @@ def load_mesh(path: str | Path) -> trimesh.Trimesh:
     if not path.is_file():
         raise ModelFileError(f"mesh path is not a file: {path}")
     try:
-        loaded = trimesh.load(path, force="mesh")
+        loaded = trimesh.load(path, force="mesh", process=False)
     except Exception as exc:  # trimesh raises many types for bad files
         raise ModelFileError(f"cannot read mesh file {path}: {type(exc).__name__}: {exc}") from exc
     if not isinstance(loaded, trimesh.Trimesh):
@@ -51,6 +60,64 @@ def load_mesh(path: str | Path) -> trimesh.Trimesh:
     if len(loaded.faces) == 0 or len(loaded.vertices) == 0:
         raise ModelFileError(f"{path} contains no triangles (empty or unreadable mesh file)")
     return loaded
+
+
+def describe(name: str, source: str | Path | None = None) -> str:
+    """``model 'name'`` or ``model 'name' (file)`` for messages."""
+    return f"model {name!r}" + (f" ({source})" if source is not None else "")
+
+
+def _boundary_loops(mesh: trimesh.Trimesh) -> list[np.ndarray]:
+    """Vertex indices of each boundary loop (edges used by one face only)."""
+    import networkx as nx
+
+    counts = np.bincount(mesh.edges_unique_inverse, minlength=len(mesh.edges_unique))
+    edges = mesh.edges_unique[counts == 1]
+    graph = nx.Graph()
+    graph.add_edges_from(edges.tolist())
+    return [np.array(sorted(c)) for c in nx.connected_components(graph)]
+
+
+def _loop_flatness(points: np.ndarray) -> float:
+    """Largest distance of ``points`` (n, 3) from their best-fit plane over their size."""
+    centred = points - points.mean(axis=0)
+    _, sv, vt = np.linalg.svd(centred, full_matrices=False)
+    size = float(np.ptp(centred @ vt[0])) if len(sv) else 0.0
+    if size <= 0:
+        return 0.0
+    return float(np.abs(centred @ vt[-1]).max()) / size
+
+
+def fill_planar_holes(mesh: trimesh.Trimesh) -> tuple[trimesh.Trimesh, int, int] | None:
+    """Close every hole of ``mesh`` if all of them are planar (:data:`PLANAR_HOLE_TOLERANCE`).
+
+    The holes are filled by MeshFix (pymeshfix ``fill_small_boundaries``, no refinement),
+    which triangulates holes of any number of edges (trimesh's own ``fill_holes`` only closes
+    triangles and quads). Returns ``(mesh, holes, new_faces)``, or None when a hole is not
+    planar, an edge is shared by more than two faces, or the result is still open.
+    """
+    from pymeshfix import PyTMesh
+
+    counts = np.bincount(mesh.edges_unique_inverse, minlength=len(mesh.edges_unique))
+    if (counts > 2).any():
+        return None
+    loops = _boundary_loops(mesh)
+    if not loops or any(
+        _loop_flatness(mesh.vertices[loop]) > PLANAR_HOLE_TOLERANCE for loop in loops
+    ):
+        return None
+    fixer = PyTMesh()
+    fixer.set_quiet(True)
+    fixer.load_array(
+        np.ascontiguousarray(mesh.vertices, dtype=np.float64),
+        np.ascontiguousarray(mesh.faces, dtype=np.int32),
+    )
+    fixer.fill_small_boundaries(nbe=0, refine=False)
+    vertices, faces = fixer.return_arrays()
+    filled = trimesh.Trimesh(vertices, faces, process=False)
+    if not filled.is_watertight:
+        return None
+    return filled, len(loops), len(filled.faces) - len(mesh.faces)
 
 
 def _units_hint(extent: float, scale: float, config: LibraryConfig) -> str:
@@ -146,13 +213,33 @@ def _open_edges_description(mesh: trimesh.Trimesh) -> str:
     return ", ".join(parts)
 
 
+def scale_vector(scale: float | Sequence[float], who: str = "model") -> np.ndarray:
+    """``scale`` (a number or 3 per-axis factors) as a positive, finite (3,) array."""
+    try:
+        v = np.broadcast_to(np.asarray(scale, dtype=np.float64), (3,)).copy()
+    except (TypeError, ValueError):
+        raise GeometryError(
+            f"{who}: scale must be a number or 3 numbers (x, y, z), got {scale!r}"
+        ) from None
+    if not (np.all(np.isfinite(v)) and np.all(v > 0)):
+        raise GeometryError(f"{who}: scale must be positive and finite, got {scale!r}")
+    return v
+
+
 def validate_mesh(
-    mesh: trimesh.Trimesh, name: str, config: LibraryConfig, scale: float = 1.0
+    mesh: trimesh.Trimesh,
+    name: str,
+    config: LibraryConfig,
+    scale: float | Sequence[float] = 1.0,
+    source: str | Path | None = None,
 ) -> trimesh.Trimesh:
     """Return a cleaned, repaired copy of ``mesh`` scaled by ``scale`` (to metres).
 
-    The copy has no visuals, merged vertices, no degenerate or duplicate faces, outward normals
-    and positive volume. ``name`` is used in error messages.
+    ``scale`` is one factor or three per-axis factors (URDF-style non-uniform scale), applied
+    before the units check. The copy has no visuals, merged vertices, no degenerate or
+    duplicate faces, outward normals and positive volume; a mesh of more than
+    ``config.max_mesh_faces`` faces is decimated to that many (logged). ``name`` and
+    ``source`` (the mesh file) are used in messages.
 
     Raises:
         GeometryError: NaN/inf vertices, fewer than 4 faces, flat or degenerate geometry, zero
@@ -160,39 +247,62 @@ def validate_mesh(
         UnitsError: the largest extent after ``scale`` is outside
             ``[config.min_extent, config.max_extent]``.
     """
+    who = describe(name, source)
     if not isinstance(mesh, trimesh.Trimesh):
-        raise GeometryError(f"model {name!r}: expected a trimesh.Trimesh, got {type(mesh)}")
-    if not (np.isfinite(scale) and scale > 0):
-        raise GeometryError(f"model {name!r}: scale must be positive and finite, got {scale}")
+        raise GeometryError(f"{who}: expected a trimesh.Trimesh, got {type(mesh)}")
+    factors = scale_vector(scale, who)
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     faces = np.asarray(mesh.faces, dtype=np.int64)
     if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
-        raise GeometryError(f"model {name!r}: mesh arrays have the wrong shape")
+        raise GeometryError(f"{who}: mesh arrays have the wrong shape")
     if not np.all(np.isfinite(vertices)):
         bad = int((~np.isfinite(vertices)).any(axis=1).sum())
-        raise GeometryError(f"model {name!r}: {bad} vertices have NaN or infinite coordinates")
-    if len(faces) < 4:
         raise GeometryError(
-            f"model {name!r}: only {len(faces)} faces; a closed surface needs at least 4"
+            f"{who}: {bad} of {len(vertices)} vertices have NaN or infinite coordinates; "
+            "fix or remove them in the mesh file (ssp does not drop vertices or fill the "
+            "holes they would leave)"
         )
+    if len(faces) < 4:
+        raise GeometryError(f"{who}: only {len(faces)} faces; a closed surface needs at least 4")
     if faces.min() < 0 or faces.max() >= len(vertices):
-        raise GeometryError(f"model {name!r}: faces reference vertices that do not exist")
+        raise GeometryError(f"{who}: faces reference vertices that do not exist")
 
-    m = trimesh.Trimesh(vertices * scale, faces, process=False)
+    m = trimesh.Trimesh(vertices * factors, faces, process=False)
+    if len(m.faces) > config.max_mesh_faces:
+        n_faces = len(m.faces)
+        m.merge_vertices()
+        with np.errstate(all="ignore"):
+            volume_before = abs(float(m.volume))
+        m = m.simplify_quadric_decimation(face_count=int(config.max_mesh_faces))
+        with np.errstate(all="ignore"):
+            change = abs(abs(float(m.volume)) / volume_before - 1.0) if volume_before else 0.0
+        if change > 0.01:
+            raise GeometryError(
+                f"{who}: {n_faces} faces (more than library.max_mesh_faces "
+                f"{config.max_mesh_faces}), and decimating it changed its volume by "
+                f"{100 * change:.1f} %; decimate the mesh in a mesh editor, or raise "
+                "library.max_mesh_faces"
+            )
+        log.warning(
+            "%s: %d faces decimated to %d (library.max_mesh_faces) to bound memory and time",
+            who,
+            n_faces,
+            len(m.faces),
+        )
     m.remove_unreferenced_vertices()
     extents = np.asarray(m.extents, dtype=float)
     largest = float(extents.max())
     if largest <= 0 or float(extents.min()) <= 1e-6 * largest:
         raise GeometryError(
-            f"model {name!r}: the mesh is flat or degenerate (extents {np.round(extents, 6)} m); "
+            f"{who}: the mesh is flat or degenerate (extents {np.round(extents, 6)} m); "
             "a solid object needs thickness in all three directions"
         )
     if largest > config.max_extent or largest < config.min_extent:
         limit = "above" if largest > config.max_extent else "below"
         bound = config.max_extent if largest > config.max_extent else config.min_extent
         raise UnitsError(
-            f"model {name!r}: largest extent {largest:.4g} m is {limit} the plausible "
-            f"{bound:g} m: {_units_hint(largest, scale, config)}"
+            f"{who}: largest extent {largest:.4g} m is {limit} the plausible "
+            f"{bound:g} m: {_units_hint(largest, float(np.prod(factors)) ** (1 / 3), config)}"
         )
 
     # cleaning that never opens a closed surface
@@ -210,18 +320,25 @@ def validate_mesh(
         m.remove_unreferenced_vertices()
         if len(m.faces) < n_before:
             repaired.append(f"removed {n_before - len(m.faces)} zero-area faces")
-        if not m.is_watertight:
-            n_before = len(m.faces)
-            trimesh.repair.fill_holes(m)
-            if len(m.faces) > n_before:
-                repaired.append(f"filled holes with {len(m.faces) - n_before} faces")
+        if not m.is_watertight and len(m.faces) >= 4:
+            filled = fill_planar_holes(m)
+            if filled is not None:
+                m, holes, new_faces = filled
+                log.warning(
+                    "%s: filled %d planar hole(s) with %d faces (the mesh was open)",
+                    who,
+                    holes,
+                    new_faces,
+                )
+                repaired.append(f"filled {holes} planar holes with {new_faces} faces")
     if len(m.faces) < 4:
-        raise GeometryError(f"model {name!r}: fewer than 4 faces are left after cleaning")
+        raise GeometryError(f"{who}: fewer than 4 faces are left after cleaning")
     if not m.is_watertight:
         raise GeometryError(
-            f"model {name!r}: the mesh is not watertight after repair "
-            f"({_open_edges_description(m)}); {_OPEN_SURFACE_WHY}. Close the mesh in a mesh "
-            "editor (e.g. fill holes / make manifold) and try again"
+            f"{who}: the mesh is not watertight after repair "
+            f"({_open_edges_description(m)}; only holes whose edges lie in a plane are "
+            f"filled); {_OPEN_SURFACE_WHY}. Close the mesh in a mesh editor (e.g. fill holes / "
+            "make manifold) and try again"
         )
     was_consistent = m.is_winding_consistent
     with np.errstate(all="ignore"):
@@ -234,10 +351,10 @@ def validate_mesh(
     if was_consistent and volume_before < 0 < volume:
         repaired.append("inverted inside-out mesh")
     if repaired:
-        log.info("model %r: repaired mesh: %s", name, "; ".join(repaired))
+        log.info("%s: repaired mesh: %s", who, "; ".join(repaired))
     if not np.isfinite(volume) or volume <= 1e-9 * float(np.prod(extents)):
         raise GeometryError(
-            f"model {name!r}: the mesh encloses no volume ({volume:.3g} m^3 for extents "
+            f"{who}: the mesh encloses no volume ({volume:.3g} m^3 for extents "
             f"{np.round(extents, 4)} m); it may be a flat sheet or self-cancelling surfaces"
         )
     return m

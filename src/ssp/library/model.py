@@ -15,16 +15,21 @@ from typing import NamedTuple
 import numpy as np
 import trimesh
 
-from ssp.library.symmetry import Symmetry
+from ssp.library.symmetry import Symmetry, SymmetryDetection
 
 
 @dataclass(frozen=True)
 class DecompositionInfo:
     """How the convex parts were obtained.
 
-    ``method``: ``"exact"`` (the model's own convex primitives), ``"coacd"``, ``"coacd-coarse"``
-    (the fallback run) or ``"convex-hull"`` (last resort). ``iou``: volume IoU of the union of the
-    parts against the mesh (Monte Carlo). ``seconds``: decomposition time (0 when cached).
+    ``method``: ``"exact"`` (a built-in model's own convex primitives), ``"given"`` (parts
+    supplied with the model, ``convex_parts`` in models.yaml), ``"convex"`` (the mesh is convex
+    within tolerance: its hull), ``"shells"`` (the mesh's own convex shells), ``"coacd"``,
+    ``"coacd-coarse"`` (the fallback run) or ``"convex-hull"`` (last resort, or asked for).
+    ``iou``: volume IoU of the union of the parts against the mesh (Monte Carlo).
+    ``seconds``: decomposition time (0 when cached). ``note``: how the parts were obtained
+    (fallback reasons, merges). ``warnings``: problems worth a look (an IoU below
+    ``DecompositionConfig.min_iou``), also logged.
     """
 
     method: str
@@ -33,6 +38,7 @@ class DecompositionInfo:
     seconds: float = 0.0
     cached: bool = False
     note: str = ""
+    warnings: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True, eq=False)
@@ -52,6 +58,8 @@ class ObjectModel:
         symmetry: discrete and continuous symmetries (BOP convention).
         decomposition: provenance and quality of ``convex_parts``.
         source: mesh file the model came from (None for generated models).
+        detected_symmetry: approximate symmetries found at build time (when asked for:
+            ``symmetry: {detect: ...}`` in models.yaml or ``ssp models prepare``), else None.
     """
 
     name: str
@@ -69,6 +77,7 @@ class ObjectModel:
         default_factory=lambda: DecompositionInfo("exact", 0, 1.0)
     )
     source: Path | None = None
+    detected_symmetry: SymmetryDetection | None = None
 
     @property
     def volume(self) -> float:
@@ -133,8 +142,12 @@ class ObjectModel:
             "convex_parts": int(len(self.convex_parts)),
             "decomposition": self.decomposition.method,
             "hull_iou": round(self.decomposition.iou, 4),
+            "decomposition_warnings": list(self.decomposition.warnings),
             "discrete_symmetries": int(len(self.symmetry.discrete)),
             "continuous_symmetries": int(len(self.symmetry.continuous)),
+            "detected_symmetries": (
+                None if self.detected_symmetry is None else self.detected_symmetry.to_dict()
+            ),
         }
 
 

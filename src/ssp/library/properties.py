@@ -1,4 +1,5 @@
-"""The per-folder ``models.yaml``: units, masses, friction, convex parts and symmetries.
+"""The per-folder ``models.yaml``: units, scale, masses, friction, convex parts, decomposition
+settings and symmetries.
 
 In the spirit of the reference's ``object_property_database.yaml`` (notes/reference-impl.md
 section 8), but every key is validated (unknown keys are errors, so typos fail loudly)::
@@ -11,9 +12,18 @@ section 8), but every key is validated (unknown keys are errors, so typos fail l
         mass: 1.2                  # kg, or density: kg/m^3 (not both)
         friction: 0.8
         units: m                   # optional per-object override
+        scale: 0.05                # or [sx, sy, sz]; multiplies the mesh after `units`
         convex_parts: drill.parts.obj   # one convex part per OBJ object/group; skips CoACD
+        decomposition: {threshold: 0.03, max_parts: 12}   # any DecompositionConfig field
+        symmetries: ["rotate 180 about x", {axis: [0, 0, 1], angle: 90, offset: [0, 0, 0]}]
         symmetries_discrete: [[16 numbers, row-major 4x4, translation in the file's units]]
         symmetries_continuous: [{axis: [0, 0, 1], offset: [0, 0, 0]}]
+        symmetry: {detect: true, tolerance: 0.002}   # use detected approximate symmetries
+
+``symmetries`` and ``symmetries_discrete`` are generators: the model's discrete symmetries are
+the group they generate (:meth:`ssp.library.symmetry.Symmetry.from_generators`). Offsets and
+translations are in the file's units (``units`` and ``scale`` apply); angles in degrees; the
+detection tolerance in metres.
 
 A folder without ``models.yaml`` is fine: every mesh file is a model named after its stem, with
 the defaults. Mesh files a present ``models.yaml`` does not list are loaded with the defaults too.
@@ -23,16 +33,27 @@ from __future__ import annotations
 
 import difflib
 import logging
-from dataclasses import dataclass
+import math
+import re
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+import numpy as np
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    create_model,
+    field_validator,
+    model_validator,
+)
 
-from ssp.config import read_yaml
+from ssp.config import DecompositionConfig, read_yaml
 from ssp.errors import ModelError, ModelFileError
 from ssp.library.mesh import UNIT_SCALES
-from ssp.library.symmetry import Symmetry
+from ssp.library.symmetry import Symmetry, rotation_transform
 
 log = logging.getLogger(__name__)
 
@@ -68,15 +89,88 @@ class ContinuousSymmetrySpec(_Strict):
     offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
+class RotationSpec(_Strict):
+    """A rotation by ``angle`` degrees about ``axis`` through ``offset`` (file units)."""
+
+    axis: tuple[float, float, float]
+    angle: float = Field(allow_inf_nan=False, description="degrees")
+    offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+_ROTATE = re.compile(
+    r"^\s*rotate\s+(?P<angle>[-+]?\d+(?:\.\d*)?)\s*(?:deg|degrees)?\s+about\s+"
+    r"(?P<sign>[-+]?)(?P<axis>[xyz])\s*$",
+    re.IGNORECASE,
+)
+
+
+def parse_rotation(text: str) -> RotationSpec:
+    """``"rotate 90 about z"`` (degrees; axis x, y or z, optionally signed) as a rotation."""
+    m = _ROTATE.match(text)
+    if m is None:
+        raise ValueError(
+            f"cannot read symmetry {text!r}; write 'rotate N about x|y|z' (N in degrees), "
+            "{axis: [x, y, z], angle: N, offset: [x, y, z]}, or use symmetries_discrete"
+        )
+    axis = [0.0, 0.0, 0.0]
+    axis["xyz".index(m["axis"].lower())] = -1.0 if m["sign"] == "-" else 1.0
+    return RotationSpec(axis=tuple(axis), angle=float(m["angle"]))
+
+
+class SymmetryDetectSpec(_Strict):
+    """Approximate symmetries detected from the shape (see :mod:`ssp.library.symmetry`)."""
+
+    detect: bool = Field(False, description="use the detected symmetries as the model's")
+    tolerance: float = Field(
+        0.002, gt=0, allow_inf_nan=False, description="largest surface distance (MSSD), m"
+    )
+
+
+def _optional_model(name: str, source: type[BaseModel]) -> type[BaseModel]:
+    """A strict model with every field of ``source`` optional (same types and bounds)."""
+    fields: dict[str, Any] = {}
+    for key, info in source.model_fields.items():
+        annotation = info.annotation
+        if info.metadata:
+            annotation = Annotated[(annotation, *info.metadata)]
+        fields[key] = (annotation | None, Field(None, description=info.description))
+    return create_model(name, __base__=_Strict, **fields)
+
+
+#: Per-object ``decomposition:`` settings: any :class:`~ssp.config.DecompositionConfig` field.
+DecompositionSpec = _optional_model("DecompositionSpec", DecompositionConfig)
+
+
 class ObjectSpec(_Properties):
     """One ``objects:`` entry."""
 
     mesh: str | None = None
     units: Units | None = None
+    scale: float | tuple[float, float, float] | None = Field(
+        None, description="factor (or x, y, z factors) applied after units"
+    )
     convex_parts: str | None = None
     description: str = ""
+    decomposition: DecompositionSpec | None = None  # type: ignore[valid-type]
+    symmetries: list[RotationSpec] = Field(default_factory=list)
     symmetries_discrete: list[list[float]] = Field(default_factory=list)
     symmetries_continuous: list[ContinuousSymmetrySpec] = Field(default_factory=list)
+    symmetry: SymmetryDetectSpec | None = None
+
+    @field_validator("symmetries", mode="before")
+    @classmethod
+    def _rotations(cls, v: Any) -> Any:
+        if isinstance(v, list):
+            return [parse_rotation(x) if isinstance(x, str) else x for x in v]
+        return v
+
+    @field_validator("scale")
+    @classmethod
+    def _positive_scale(cls, v: Any) -> Any:
+        values = [v] if isinstance(v, (int, float)) else list(v or ())
+        if any(not (math.isfinite(x) and x > 0) for x in values):
+            raise ValueError(f"scale must be positive and finite, got {v!r}")
+        return v
 
     @field_validator("symmetries_discrete")
     @classmethod
@@ -101,13 +195,18 @@ class ModelEntry:
 
     name: str
     mesh_path: Path
-    scale: float = 1.0
+    #: To metres: one factor or (x, y, z) factors (units times scale).
+    scale: float | tuple[float, float, float] = 1.0
     mass: float | None = None
     density: float | None = None
     friction: float | None = None
     convex_parts_path: Path | None = None
     symmetry: Symmetry | None = None
     description: str = ""
+    #: Per-model :class:`~ssp.config.DecompositionConfig` overrides (``decomposition:``).
+    decomposition: dict[str, Any] = field(default_factory=dict)
+    #: ``symmetry: {detect, tolerance}``, or None (detection not asked for).
+    symmetry_detect: SymmetryDetectSpec | None = None
     #: Why this entry cannot be built (e.g. its mesh file is missing); raised when building it.
     problem: ModelError | None = None
 
@@ -119,7 +218,15 @@ def _allowed_keys(model: type[BaseModel]) -> list[str]:
 def _describe_error(err: dict[str, Any]) -> str:
     loc = [str(x) for x in err.get("loc", ())]
     # pydantic adds the union member name ("ObjectSpec") to the location; drop it
-    loc = [x for x in loc if x not in ("ObjectSpec", "DefaultsSpec", "ContinuousSymmetrySpec")]
+    wrappers = (
+        "ObjectSpec",
+        "DefaultsSpec",
+        "ContinuousSymmetrySpec",
+        "DecompositionSpec",
+        "RotationSpec",
+        "SymmetryDetectSpec",
+    )
+    loc = [x for x in loc if x not in wrappers]
     where = ".".join(loc) or "(top level)"
     if err.get("type") == "extra_forbidden":
         key = loc[-1] if loc else "?"
@@ -129,6 +236,12 @@ def _describe_error(err: dict[str, Any]) -> str:
             allowed = _allowed_keys(DefaultsSpec)
         elif "symmetries_continuous" in loc:
             allowed = _allowed_keys(ContinuousSymmetrySpec)
+        elif "decomposition" in loc:
+            allowed = _allowed_keys(DecompositionSpec)
+        elif "symmetries" in loc:
+            allowed = _allowed_keys(RotationSpec)
+        elif "symmetry" in loc:
+            allowed = _allowed_keys(SymmetryDetectSpec)
         else:
             allowed = _allowed_keys(ObjectSpec)
         close = difflib.get_close_matches(key, allowed, n=1)
@@ -206,21 +319,25 @@ def _entry(
             raise ModelFileError(
                 f"{props_path}: objects.{name}.convex_parts: file not found: {spec.convex_parts}"
             )
-    scale = UNIT_SCALES[spec.units or props.units]
+    unit = UNIT_SCALES[spec.units or props.units]
+    factors = unit * np.broadcast_to(np.asarray(1.0 if spec.scale is None else spec.scale), (3,))
+    scale: float | tuple[float, float, float] = (
+        float(factors[0]) if np.all(factors == factors[0]) else tuple(float(x) for x in factors)
+    )
     if spec.mass is not None or spec.density is not None:
         mass, density = spec.mass, spec.density
     else:
         mass, density = defaults.mass, defaults.density
     symmetry = None
-    if spec.symmetries_discrete or spec.symmetries_continuous:
-        info = {
-            "symmetries_discrete": spec.symmetries_discrete,
-            "symmetries_continuous": [
-                {"axis": list(c.axis), "offset": list(c.offset)} for c in spec.symmetries_continuous
-            ],
-        }
+    if spec.symmetries or spec.symmetries_discrete or spec.symmetries_continuous:
+        generators = [np.asarray(s, dtype=float).reshape(4, 4) for s in spec.symmetries_discrete]
+        generators += [rotation_transform(r.axis, r.angle, r.offset) for r in spec.symmetries]
         try:
-            symmetry = Symmetry.from_bop(info, scale=scale)
+            symmetry = Symmetry.from_generators(
+                generators,
+                [(c.axis, c.offset) for c in spec.symmetries_continuous],
+                scale=factors,
+            )
         except ModelError as exc:
             raise ModelError(f"{props_path}: objects.{name}: {exc}") from exc
     return ModelEntry(
@@ -233,6 +350,10 @@ def _entry(
         convex_parts_path=parts_path,
         symmetry=symmetry,
         description=spec.description,
+        decomposition=(
+            spec.decomposition.model_dump(exclude_none=True) if spec.decomposition else {}
+        ),
+        symmetry_detect=spec.symmetry,
     )
 
 

@@ -19,12 +19,20 @@ MIN_SURFACE_POINTS = 64
 MIN_INTERIOR_POINTS = 32
 
 
+class _Quiet(logging.Filter):
+    """Drops trimesh's "only got N/M samples!" (ssp logs its own line, naming the model)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "samples!" not in record.getMessage()
+
+
 def surface_samples(
-    mesh: trimesh.Trimesh, spacing: float, max_points: int, seed: int = 0
+    mesh: trimesh.Trimesh, spacing: float, max_points: int, seed: int = 0, name: str = ""
 ) -> tuple[np.ndarray, np.ndarray]:
     """Evenly spread surface points about ``spacing`` (m) apart, with outward unit normals.
 
-    At most ``max_points`` (spacing grows instead) and at least ``min(64, max_points)``.
+    At most ``max_points`` (spacing grows instead) and at least ``min(64, max_points)``
+    requested; the even sampler may return a few less (logged, naming model ``name``).
 
     Returns:
         points (M, 3) m and normals (M, 3), float64.
@@ -34,9 +42,24 @@ def surface_samples(
     area = float(mesh.area)
     count = int(round(SURFACE_DENSITY * area / spacing**2))
     count = int(min(max_points, max(count, MIN_SURFACE_POINTS)))
-    points, face_index = trimesh.sample.sample_surface_even(
-        mesh, count, seed=np.random.default_rng(seed)
-    )
+    quiet = _Quiet()
+    trimesh_log = logging.getLogger("trimesh.sample")
+    trimesh_log.addFilter(quiet)
+    try:
+        points, face_index = trimesh.sample.sample_surface_even(
+            mesh, count, seed=np.random.default_rng(seed)
+        )
+    finally:
+        trimesh_log.removeFilter(quiet)
+    if len(points) < count:
+        log.info(
+            "model %r: %d of %d surface samples (the even sampler keeps points at least "
+            "%.2f mm apart)",
+            name,
+            len(points),
+            count,
+            1000 * float(np.sqrt(area / (3 * count))),
+        )
     normals = np.asarray(mesh.face_normals, dtype=np.float64)[face_index]
     return np.ascontiguousarray(points, dtype=np.float64), np.ascontiguousarray(normals)
 

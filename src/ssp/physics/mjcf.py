@@ -12,7 +12,9 @@ which :class:`ssp.physics.world.World` relies on:
 - every convex part of an object's model is one mesh geom (MuJoCo collides with its convex hull);
   one mesh asset per (model class, part) is shared by all instances of that class;
 - the inertial is explicit: the model's mass, centre of mass and full inertia tensor (from the
-  watertight mesh), never MuJoCo's hull-derived inertia.
+  watertight mesh), never MuJoCo's hull-derived inertia;
+- the arena (MuJoCo's contact and constraint memory) is sized from the scene
+  (:func:`arena_bytes`), so models of many convex parts do not overflow it.
 """
 
 from __future__ import annotations
@@ -60,6 +62,38 @@ def contact_margin(config: PhysicsConfig) -> float:
     return 0.08 * float(config.gravity) * float(config.timestep) ** 2
 
 
+#: MuJoCo's own arena size when none is given (``<size memory>`` unset), bytes.
+DEFAULT_ARENA_BYTES = 13_631_488
+#: Arena bytes per contact: the contact itself, its 3 constraint rows (condim 3) and the
+#: solver's per-row arrays, plus a per-dof share for the Jacobian rows (measured with MuJoCo
+#: 4.0.1: 1.7-2.8 kB per contact for 1-4 free bodies; the formula stays above that).
+ARENA_BYTES_PER_CONTACT = 2000
+ARENA_BYTES_PER_CONTACT_DOF = 96
+#: Contacts budgeted per convex part (its contacts with the table and its neighbours).
+CONTACTS_PER_PART = 4
+#: Largest arena ssp asks for, bytes; beyond it an overflow raises PhysicsError instead.
+MAX_ARENA_BYTES = 1 << 30
+
+
+def arena_bytes(part_counts: Sequence[int]) -> int:
+    """Arena size (bytes) for objects with ``part_counts`` convex parts each (one per object).
+
+    Budget: :data:`CONTACTS_PER_PART` contacts per part, plus one contact for every pair of
+    parts of the two objects with the most parts (one of them pushed fully into the other, as
+    a bad hypothesis can be). Never below MuJoCo's default, never above
+    :data:`MAX_ARENA_BYTES`. The arena is allocated once per world.
+    """
+    counts = sorted((int(c) for c in part_counts), reverse=True)
+    if not counts:
+        return DEFAULT_ARENA_BYTES
+    nv = 6 * len(counts)
+    worst_pair = counts[0] * (counts[1] if len(counts) > 1 else 1)
+    contacts = CONTACTS_PER_PART * (sum(counts) + 1) + worst_pair
+    # Jacobian rows are sparse beyond 60 dofs (MuJoCo's automatic choice)
+    per_contact = ARENA_BYTES_PER_CONTACT + ARENA_BYTES_PER_CONTACT_DOF * min(nv, 60)
+    return int(min(MAX_ARENA_BYTES, max(DEFAULT_ARENA_BYTES, contacts * per_contact)))
+
+
 def _check_model(model: ObjectModel, oid: str) -> None:
     """Reject mass properties MuJoCo would refuse (or silently clamp), naming the object."""
     mass = float(model.mass)
@@ -100,6 +134,9 @@ def build_mjmodel(
     spec.compiler.inertiafromgeom = mujoco.mjtInertiaFromGeom.mjINERTIAFROMGEOM_FALSE
     spec.compiler.alignfree = False  # body frame stays the model frame
     spec.compiler.balanceinertia = False
+    memory = arena_bytes([len(inst.model.convex_parts) for inst in instances])
+    if memory > DEFAULT_ARENA_BYTES:
+        spec.memory = memory
 
     opt = spec.option
     opt.timestep = float(config.timestep)

@@ -19,11 +19,16 @@ MuJoCo-specific behaviour worth knowing:
   (0.245 mm at dt = 5 ms), not the ``g dt^2 / 2`` of an exact fall.
 - A disabled object keeps its pose and zero velocity exactly (restored after every step) and has
   no contacts; enabling it restores its collisions.
+- MuJoCo's warnings go to the ``ssp.physics.mujoco`` logger (each distinct text once per
+  process), never to ``MUJOCO_LOG.TXT`` in the current folder; a contact or constraint buffer
+  overflow in :meth:`World.step`, :meth:`World.contacts` or
+  :meth:`World.acceleration_from_rest` raises :class:`PhysicsError`.
 """
 
 from __future__ import annotations
 
 import itertools
+import logging
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -55,6 +60,24 @@ _FATAL_WARNINGS = {
 }
 _FATAL_IDX = np.array(sorted(_FATAL_WARNINGS), dtype=int)
 _world_serial = itertools.count(1)
+_mujoco_log = logging.getLogger("ssp.physics.mujoco")
+_logged_warnings: set[str] = set()
+
+
+def _log_mujoco_warning(text: str) -> None:
+    """MuJoCo's user warning handler: log each distinct message once (counters stay exact)."""
+    text = str(text).strip()
+    key = text.split("Time =")[0]
+    if key not in _logged_warnings:
+        _logged_warnings.add(key)
+        _mujoco_log.warning("MuJoCo: %s (further identical warnings are not logged)", text)
+
+
+def _install_warning_handler() -> None:
+    """Route MuJoCo's warnings to logging instead of stdout and ./MUJOCO_LOG.TXT, unless the
+    application has installed its own handler."""
+    if mujoco.get_mju_user_warning() is None:
+        mujoco.set_mju_user_warning(_log_mujoco_warning)
 
 
 @dataclass(frozen=True, eq=False)
@@ -170,6 +193,7 @@ class World:
             raise DuplicateObjectError(f"duplicate object ids in the world: {dups}")
 
         self._config = config if config is not None else PhysicsConfig()
+        _install_warning_handler()
         self._instances = instances
         self._ids = ids
         self._index = {oid: k for k, oid in enumerate(ids)}
@@ -205,9 +229,23 @@ class World:
         self._frozen_v = np.zeros(0, dtype=int)  # qvel indices of disabled objects
         self._state_size = mujoco.mj_stateSize(m, _STATE_SPEC)
         self._scratch = np.empty(self._state_size)
+        self._forward_at_model_poses()
+
+    def _forward_at_model_poses(self) -> None:
+        """mj_forward of the freshly built (or reset) world, without collision detection.
+
+        Every object then sits at the identity pose, all overlapping: their contacts would be
+        meaningless and, for many-part models, overflow the arena. The next :meth:`contacts`
+        or :meth:`step` computes them at the poses the caller has set.
+        """
+        m = self._m
+        flags = m.opt.disableflags
+        m.opt.disableflags = flags | int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
+        try:
+            mujoco.mj_forward(m, self._d)
+        finally:
+            m.opt.disableflags = flags
         self._forward_current = False
-        mujoco.mj_forward(m, d)
-        self._forward_current = True
 
     # ------------------------------------------------------------------ objects
     @property
@@ -494,16 +532,20 @@ class World:
                     return t
         return None
 
-    def _check_health(self, warn0: np.ndarray, n: int) -> None:
+    def _check_health(self, warn0: np.ndarray, n: int | None) -> None:
+        """Raise PhysicsError if a fatal MuJoCo warning fired since ``warn0`` (counters) or the
+        state is not finite; ``n`` steps were taken (None: a forward computation)."""
         grew = self._warn[_FATAL_IDX] > warn0
         bad_state = not (np.isfinite(self._d.qpos).all() and np.isfinite(self._d.qvel).all())
         if grew.any() or bad_state:
             what = [_FATAL_WARNINGS[int(w)] for w in _FATAL_IDX[grew]]
             if bad_state:
                 what.append("non-finite positions or velocities")
+            during = f"during {n} step(s) up to" if n is not None else "in the forward pass at"
             raise PhysicsError(
-                f"physics failed during {n} step(s) up to t = {self._d.time:.4f} s: "
+                f"physics failed {during} t = {self._d.time:.4f} s: "
                 + "; ".join(what)
+                + f" ({int(self._d.ncon)} contacts, arena {self._m.narena} bytes)"
                 + ". Restore a saved state before continuing."
             )
 
@@ -518,8 +560,7 @@ class World:
             self._enabled[:] = True
             self._apply_enabled()
         self.set_friction_scale(1.0)
-        mujoco.mj_forward(self._m, self._d)
-        self._forward_current = True
+        self._forward_at_model_poses()
 
     def save_state(self) -> WorldState:
         """Snapshot of the full integration state and the enabled flags."""
@@ -552,8 +593,10 @@ class World:
         m, d = self._m, self._d
         buf = self._scratch
         mujoco.mj_getState(m, d, buf, _STATE_SPEC)
+        warn0 = self._warn[_FATAL_IDX].copy()
         mujoco.mj_forward(m, d)
         mujoco.mj_setState(m, d, buf, _STATE_SPEC)
+        self._check_health(warn0, None)
 
     # ------------------------------------------------------------------ queries
     def acceleration_from_rest(self) -> tuple[np.ndarray, np.ndarray]:
@@ -570,10 +613,12 @@ class World:
         buf = self._scratch
         mujoco.mj_getState(m, d, buf, _STATE_SPEC)
         self._qvel_flat[:] = 0.0
+        warn0 = self._warn[_FATAL_IDX].copy()
         mujoco.mj_forward(m, d)
         qacc = d.qacc.reshape(n, 6).copy()
         mujoco.mj_setState(m, d, buf, _STATE_SPEC)
         self._forward_current = False  # derived data now describe the zero-velocity state
+        self._check_health(warn0, None)
         lin, ang = self._com_motion(qacc)  # exact: angular velocity is zero
         off = ~self._enabled
         lin[off] = 0.0

@@ -174,11 +174,17 @@ def _build_isolated(
     camera: Camera,
     config: PhysicsConfig,
 ) -> _Layout:
-    tools = list(classes) if classes is not None else [n for n in library if n not in BLOCK_NAMES]
+    # the built-in block-world models (no source file) are not tools; a user folder's
+    # models are all used, whatever their names
+    tools = (
+        list(classes)
+        if classes is not None
+        else [n for n, m in library.items() if not (n in BLOCK_NAMES and m.source is None)]
+    )
     if not tools:
         raise ValueError(
-            "isolated experiment: the library has no tool-like classes (every class is one of "
-            f"{BLOCK_NAMES}); pass classes=... explicitly"
+            "isolated experiment: the library has no tool-like classes (every class is a "
+            f"built-in block-world model, {BLOCK_NAMES}); pass classes=... explicitly"
         )
     n_total = stages * per_stage
     order: list[str] = []
