@@ -7,8 +7,9 @@
 2. **Associate** hypotheses with known objects (:func:`ssp.temporal.associate`: instance ids,
    else a globally optimal assignment on class and pose distance measured at the centre of
    mass, with a gate of at most ``association_size_fraction`` of the class's median extent);
-   one object per instance segment (:func:`ssp.temporal.one_object_per_segment`: a known
-   object's class first, else the best-scored); the best ``k`` per object are kept; a new
+   one object per instance segment (:func:`ssp.temporal.one_object_per_segment`: the class
+   whose hypotheses account for most of the segment's points, a known object's with a
+   margin); the best ``k`` per object are kept; a new
    group whose segment an undetected object explains where it was is that object's duplicate
    (:func:`ssp.temporal.duplicates_of_undetected`).
 3. **Segments** per object (:func:`ssp.segments.object_segments`).
@@ -20,9 +21,9 @@
 6. **First guess and support graph**: every object at the pose among its previous pose and
    its hypotheses with the best terms that need no simulation (data fit and transition,
    :meth:`SceneScorer.unsimulated`), settled with data forces; support graph and layers
-   (Alg. 2). An undetected object seen empty or unseen that holds up objects which would fall
-   without it (:func:`ssp.retention.carries_load`) is **support-retained**; the others are
-   removed.
+   (Alg. 2). An undetected object of which the camera saw nothing either way that holds up
+   objects which would fall without it (:func:`ssp.retention.support_retained`) is
+   **support-retained**; it and the objects seen empty are otherwise removed.
 7. **Layered search** (Alg. 3, :func:`ssp.search.layered_search`) over the candidates: the
    frame's hypotheses, the previous pose, the current pose; then the ICP polish.
 8. **Verify** the new objects again at their final poses (:func:`ssp.verification.check_new`);
@@ -92,6 +93,10 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+#: A known object keeps its class on its segment unless another class accounts for this much
+#: more of the segment's points (a fraction).
+CLASS_MARGIN = 0.05
 
 STATE_FORMAT = "ssp-scene-state"
 STATE_VERSION = 1
@@ -316,17 +321,28 @@ class SceneParser:
                     f"instance id {oid!r} is a {known.class_name!r} but this frame's "
                     f"hypothesis calls it a {hyps[0].class_name!r}"
                 )
-        groups, confused = one_object_per_segment(
-            groups, lambda oid, hyps: (oid in self._known, float(hyps[0].score))
-        )
         k_max = cfg.search.hypotheses_per_object
+        labels = None if frame.labels is None else np.asarray(frame.labels)
+        # a scene point on the surface lies up to about one sample spacing from a sample
+        radius = cfg.data.inlier_radius + cfg.library.surface_spacing
+
+        def rank(oid: str, hyps: list[Hypothesis]) -> tuple:
+            """Which class a segment is: the group that accounts for most of its points (a
+            known object's with a margin: its class is not given up for a near tie)."""
+            if labels is None or hyps[0].segment is None:
+                return (oid in self._known, float(hyps[0].score))
+            points = frame.points[labels == hyps[0].segment]
+            model = self.library[hyps[0].class_name]
+            best = max(
+                explained_fraction(points, model, h.T_world_obj, radius) for h in hyps[:k_max]
+            )
+            return (best + (CLASS_MARGIN if oid in self._known else 0.0), float(hyps[0].score))
+
+        groups, confused = one_object_per_segment(groups, rank)
         groups = {oid: hyps[:k_max] for oid, hyps in groups.items()}
         claimed: dict[str, int] = {}
         duplicates: dict[str, str] = {}
-        if frame.labels is not None:
-            labels = np.asarray(frame.labels)
-            # a scene point on the surface lies up to about one sample spacing from a sample
-            radius = cfg.data.inlier_radius + cfg.library.surface_spacing
+        if labels is not None:
 
             def explained(u: str, points: np.ndarray) -> float:
                 k = self._known[u]
@@ -519,7 +535,7 @@ class SceneParser:
             score0 = scorer.evaluate(world, timer)
             graph0 = score0.graph
             retained = support_retained(
-                world, graph0, [o for o, v in verdicts.items() if v.state in REMOVABLE], cfg
+                world, graph0, [o for o, v in verdicts.items() if v.state == "unseen"], cfg
             )
             for oid in sorted(o for o, v in verdicts.items() if v.state in REMOVABLE):
                 if oid not in retained:

@@ -10,15 +10,17 @@ decides, for each undetected known object at its previous pose, in this order:
     its volume not seen empty): kept where it was (a missed detection);
 ``seen_empty``
     its camera-facing surface is seen through (``temporal.seen_through_fraction``): the
-    camera sees empty space where it was; removed unless it holds others up;
+    camera sees empty space where it was; removed (what it held up, if anything, is then
+    held by its own data or falls: the camera's direct view of free space is not overruled by
+    objects resting on a ghost);
 ``ephemeral``
     hidden behind observed depth (``temporal.occluded_fraction``): kept, as the camera could
     not have seen it;
 ``unseen``
     none of these (no data either way): removed unless it holds others up.
 
-:func:`support_retained` is the *support-retained* test of the last two: would the objects
-that stay, and that it holds up in the settled first-guess scene, fall without it
+:func:`support_retained` is the *support-retained* test of ``unseen`` objects: would the
+objects that stay, and that it holds up in the settled first-guess scene, fall without it
 (:func:`carries_load`)? Read from the contact forces: with the
 object disabled, the acceleration from rest of each object it supports
 (:meth:`ssp.physics.World.acceleration_from_rest`) exceeds ``temporal.retain_acceleration``
@@ -45,7 +47,7 @@ __all__ = ["REMOVABLE", "Triage", "carries_load", "support_retained", "triage"]
 
 log = logging.getLogger(__name__)
 
-#: Triage states whose objects are removed unless they hold others up.
+#: Triage states whose objects are removed (``unseen`` ones unless they hold others up).
 REMOVABLE = ("seen_empty", "unseen")
 
 

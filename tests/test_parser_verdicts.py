@@ -1,0 +1,145 @@
+"""Issue 15 on the scene parser: verification, undetected objects, moved objects, reasons.
+
+Each test is a failure class measured on real captures (issue 15, items 3-7 and the tower's
+ghost), rebuilt on rendered frames; each fails on the parser before these changes.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ssp.geometry import make_pose
+from ssp.library.build import build_model
+from ssp.library.library import ObjectLibrary
+from ssp.parser import SceneParser
+from ssp.probability import pose_change
+from ssp.scene import Hypothesis, TransitionMode
+from ssp.sim.frames import synthetic_frame
+from test_parser import CAMERA, CUBE, LIB, E, frame, on_table
+
+
+def test_a_missed_detection_keeps_a_cube_in_full_view():
+    """Item 5: the still-visible test scores the visible surface (a cube in full view scored
+    0.37-0.55 over its whole surface against 0.5, and was removed and re-added)."""
+    rng = np.random.default_rng(1)
+    gt = {"a": ("cube", on_table(CUBE, 0.02, 0.0, yaw_deg=30))}
+    parser = SceneParser(LIB)
+    parser.update(frame(gt, rng))
+    est = parser.update(frame(gt, rng, stamp=1.0, detect=set()))  # no hypothesis this frame
+    assert est.ids == ("cube_0",) and not est.removed
+    assert est["cube_0"].mode == TransitionMode.STATIC
+    assert "still visible" in est["cube_0"].reason
+    est = parser.update(frame(gt, rng, stamp=2.0))
+    assert est.ids == ("cube_0",)  # the same id when it is detected again
+
+
+def test_a_hidden_undetected_bottom_cube_holds_up_the_one_on_it():
+    """Item 6: the support test reads the contact forces: without the bottom cube the top one
+    would fall at g (a 0.1 s quasi-static settle let it fall 4.9 mm, under the 7.5 mm
+    threshold, so the bottom cube was removed and the top one left in mid-air)."""
+    rng = np.random.default_rng(2)
+    gt = {"b": ("cube", on_table(CUBE)), "t": ("cube", on_table(CUBE, level=1))}
+    parser = SceneParser(LIB)
+    est0 = parser.update(frame(gt, rng, ids=True))
+    assert set(est0.ids) == {"b", "t"}
+    # the bottom cube gives no points (sensor dropout) and no hypothesis: no data either way
+    est = parser.update(frame(gt, rng, stamp=1.0, detect={"t"}, hidden={"b"}, ids=True))
+    assert "b" in est and est["b"].mode == TransitionMode.SUPPORT_RETAINED
+    assert "holds up t" in est["b"].reason
+    assert abs(est["t"].T_world_obj[2, 3] - 1.5 * E) < 0.003  # not left in mid-air
+
+
+def test_false_objects_far_away_or_floating_are_rejected_with_reasons():
+    """Item 3: a hypothesis 5 m above the table or 30 m away was added with fit 0."""
+    rng = np.random.default_rng(3)
+    gt = {"a": ("cube", on_table(CUBE))}
+    f = frame(gt, rng)
+    f.hypotheses += [
+        Hypothesis("cube", make_pose(t=[0.0, 0.0, 5.0]), 0.9),
+        Hypothesis("cube", make_pose(t=[30.0, 0.0, 0.0254]), 0.9),
+        Hypothesis("block", make_pose(t=[0.1, 0.05, 0.3]), 0.95),  # floating in view
+    ]
+    est = SceneParser(LIB).update(f)
+    assert [o.class_name for o in est.objects] == ["cube"]
+    assert len(est.rejected) == 3
+    reasons = " ".join(r.reason for r in est.rejected)
+    assert "not in the camera's view" in reasons and "seen empty" in reasons
+    assert all(r.evidence for r in est.rejected)
+
+
+def test_every_segment_gets_a_verdict():
+    rng = np.random.default_rng(4)
+    gt = {"a": ("cube", on_table(CUBE)), "b": ("block", on_table(LIB["block"], 0.1, 0.0))}
+    f = frame(gt, rng, detect={"a"})  # the block's segment gets no hypothesis
+    est = SceneParser(LIB).update(f)
+    assert est.segments == {
+        0: f"object {est.ids[0]}",
+        1: "no object: no hypothesis was given for it",
+    }
+    assert est.to_dict()["segments"]["1"].startswith("no object")
+
+
+def test_a_picked_and_placed_cube_keeps_its_id_and_leaves_no_ghost():
+    """The tower's ghost: a cube picked and put down 24 cm away stayed at its old place (its
+    volume plainly empty in the depth) beside its new estimate."""
+    rng = np.random.default_rng(5)
+    before = {"a": ("cube", on_table(CUBE, -0.12, 0.0)), "c": ("cube", on_table(CUBE, 0.05, 0.1))}
+    after = {"a": ("cube", on_table(CUBE, 0.12, 0.0)), "c": before["c"]}
+    parser = SceneParser(LIB)
+    est0 = parser.update(frame(before, rng))
+    old = min(est0.objects, key=lambda o: o.T_world_obj[0, 3]).id  # the cube at x = -0.12
+    est = parser.update(frame(after, rng, stamp=1.0))
+    assert len(est.objects) == 2 and not est.removed  # no ghost, nothing lost
+    moved = est[old]
+    assert abs(moved.T_world_obj[0, 3] - 0.12) < 0.005
+    assert moved.mode == TransitionMode.PERTURBED and "re-identified" in moved.reason
+
+
+def test_association_and_gates_are_measured_at_the_centre_of_mass():
+    """Item 7: association and its gates measured distances between model origins; a mesh
+    whose origin lies 95 mm from its body, turned 30 degrees in place, moved its origin by
+    49 mm, beyond the gate: a new object every time it turned."""
+    import trimesh
+
+    from ssp.config import SSPConfig
+
+    mesh = trimesh.creation.box([0.06, 0.04, 0.03])
+    mesh.apply_translation([0.095, 0.0, 0.015])  # the model origin far outside the body
+    off = build_model("offbox", mesh, config=SSPConfig().library, density=600.0,
+                      convex_parts=[mesh])  # fmt: skip
+    lib = ObjectLibrary([off, CUBE])
+    c = off.center_of_mass
+    a = np.radians(30.0)
+    R = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    turned = np.eye(4)
+    turned[:3, :3] = R
+    turned[:3, 3] = c - R @ c  # turned about the body's centre
+    parser = SceneParser(lib)
+    ids = []
+    for i, T in enumerate((np.eye(4), turned)):
+        f = synthetic_frame(lib, {"o": ("offbox", T)}, T_world_cam=CAMERA, stamp=float(i),
+                            rng=np.random.default_rng(6 + i), k=3, stride=2)  # fmt: skip
+        est = parser.update(f)
+        assert len(est.objects) == 1, [o.id for o in est.objects]
+        ids.append(est.objects[0].id)
+        dt, dth = pose_change(T, est.objects[0].T_world_obj, None, c)
+        assert dt < 0.004 and np.degrees(dth) < 4.0
+    assert ids[0] == ids[1] and not est.removed
+    assert "re-identified" not in est.objects[0].reason  # associated, not found again
+
+
+def test_an_object_that_would_fall_is_reported():
+    """Item 4: a physically impossible output is no longer returned silently. The data shows a
+    cube 3 cm above the table and the windows that would let it drop are off: the parser
+    keeps it where its strong data puts it, and says that it would fall."""
+    rng = np.random.default_rng(7)
+    resting = SceneParser(LIB).update(frame({"a": ("cube", on_table(CUBE))}, rng))
+    assert not resting.warnings  # a cube resting on the table: nothing to say
+    cfg = SceneParser(LIB).config.model_copy(deep=True)
+    cfg.forces.final_icp = False
+    cfg.search.settle_without_forces = 0.0
+    cfg.search.final_settle = 0.0
+    high = {"a": ("cube", on_table(CUBE, z_extra=0.03))}
+    est = SceneParser(LIB, cfg).update(frame(high, rng))
+    assert len(est.objects) == 1 and est.objects[0].terms.stability < -5.0
+    assert any("would fall" in w for w in est.warnings), est.warnings
