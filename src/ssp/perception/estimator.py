@@ -44,6 +44,7 @@ from scipy.spatial import cKDTree
 from ssp.config import PerceptionConfig
 from ssp.errors import PerceptionError, UnknownObjectError
 from ssp.library.model import ObjectModel
+from ssp.perception.cleaning import robust_extent
 from ssp.registration import even_rows, facing_mask, icp_refine
 from ssp.scene import Hypothesis
 
@@ -221,6 +222,8 @@ class SegmentResult:
     objects: list[list[Hypothesis]] = field(default_factory=list)
     seconds: float = 0.0
     candidates: int = 0
+    #: Why no (further) object was found, in words ("" when the segment was fully explained).
+    stopped: str = ""
 
     @property
     def hypotheses(self) -> list[Hypothesis]:
@@ -307,22 +310,34 @@ class HypothesisEstimator:
         limit = 1 if single_object else cfg.max_objects_per_segment
         for _ in range(limit):
             if remaining.sum() < cfg.min_segment_points:
+                if not result.objects:
+                    result.stopped = f"fewer than {cfg.min_segment_points} points"
                 break
             p, n = pts[remaining], nrm[remaining]
-            extent = _extent(p)
+            extent = robust_extent(p)
             occ = _Occupancy(p, cfg.score_voxel)  # shared by every class's coarse scoring
             seg_area = len(voxel_thin(p, cfg.score_voxel)) * cfg.score_voxel**2
             seg_area /= _VOXEL_AREA_FACTOR
             pools = []
+            too_small = []
             for name in names:
                 table = self.table(name)
                 if single_object and extent > 1.3 * table.diameter:
-                    continue  # the segment is larger than this class
+                    too_small.append(name)  # the segment is larger than this class
+                    continue
                 pool = self._candidates(table, p, n, cam, rng, occ, seg_area)
                 if pool is not None:
                     result.candidates += len(pool.R)
                     pools.append(pool)
             if not pools:
+                if too_small and len(too_small) == len(names):
+                    biggest = max(self.table(c).diameter for c in names)
+                    result.stopped = (
+                        f"larger than every candidate class ({1000 * extent:.0f} mm across, "
+                        f"the largest class {1000 * biggest:.0f} mm)"
+                    )
+                else:
+                    result.stopped = "no candidate pose of any class matched its point pairs"
                 break
             # class screening: only classes whose coarse score is near the best are refined
             top = max(pool.quality for pool in pools)
@@ -335,6 +350,11 @@ class HypothesisEstimator:
                 if found and (best is None or found[0][0] > best[0][0][0]):
                     best = (found, pool.table.name)
             if best is None or best[0][0][0] < cfg.min_score:
+                if not result.objects:
+                    score = 0.0 if best is None else best[0][0][0]
+                    result.stopped = (
+                        f"no pose explained it: best score {score:.2f} < {cfg.min_score:.2f}"
+                    )
                 break
             found, name = best
             kept = _diverse(found, cfg.hypotheses_per_object, cfg, self.table(name).symmetries)
@@ -546,11 +566,3 @@ def _same_pose(T: np.ndarray, U: np.ndarray, sym: np.ndarray) -> bool:
         np.linalg.norm(T[:3, 3] - U[:3, 3]) <= 0.002
         and _rotation_distance(U[:3, :3], T[:3, :3], sym) <= np.radians(3)
     )
-
-
-def _extent(points: np.ndarray) -> float:
-    """Largest extent (m) of a point set along its principal axes."""
-    c = points - points.mean(0)
-    _, _, vt = np.linalg.svd(c[:: max(1, len(c) // 500)], full_matrices=False)
-    proj = c @ vt.T
-    return float((proj.max(0) - proj.min(0)).max())

@@ -31,6 +31,7 @@ from ssp.errors import PerceptionError, UnknownObjectError
 from ssp.geometry import transform_points
 from ssp.io.hypotheses import to_world
 from ssp.library.model import ObjectModel
+from ssp.perception.cleaning import clean_segment
 from ssp.perception.depth import cloud_from_depth
 from ssp.perception.estimator import HypothesisEstimator, SegmentResult
 from ssp.perception.normals import estimate_normals
@@ -51,6 +52,8 @@ class PerceptionResult:
         frame: the parser's input (world-frame points, segment labels, hypotheses, camera).
         segmentation: segment labels of ``frame.points`` and their classes when known.
         segments: per segment label, the estimator's result (empty when hypotheses were given).
+        verdicts: per segment label, what the front end made of it, in words: the points it
+            removed (flying pixels, stray pieces) and the hypotheses it found, or why none.
         timings: wall seconds per stage (``table``, ``segmentation``, ``normals``,
             ``hypotheses``, ``total``).
     """
@@ -58,6 +61,7 @@ class PerceptionResult:
     frame: Frame
     segmentation: Segmentation
     segments: dict[int, SegmentResult] = field(default_factory=dict)
+    verdicts: dict[int, str] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -197,6 +201,18 @@ class Perception:
             if T_world_cam is None:
                 raise PerceptionError("camera-frame hypotheses need the camera pose")
             hypotheses = to_world(hypotheses, T_world_cam)
+        verdicts: dict[int, str] = {}
+        if instance:  # instance masks of real sensors: drop flying pixels and stray pieces
+            for label in segmentation.segment_ids:
+                idx = np.flatnonzero(segmentation.labels == label)
+                cleaned = clean_segment(
+                    pts[idx],
+                    tolerance=self.cfg.cluster_tolerance,
+                    min_points=self.cfg.min_segment_points,
+                )
+                segmentation.labels[idx[~cleaned.keep]] = -1
+                if cleaned.describe():
+                    verdicts[int(label)] = f"removed {cleaned.describe()}"
         if hypotheses is None:
             hypotheses = []
             cam = None if T_world_cam is None else np.asarray(T_world_cam)[:3, 3]
@@ -222,6 +238,14 @@ class Perception:
                     hypotheses.extend(replace(h, segment=int(label)) for h in res.hypotheses)
                 else:
                     hypotheses.extend(res.hypotheses)
+                found = (
+                    "; ".join(f"{len(o)} hypotheses of {o[0].class_name}" for o in res.objects)
+                    if res.objects
+                    else f"no hypothesis: {res.stopped}"
+                )
+                verdicts[int(label)] = "; ".join(v for v in (verdicts.get(int(label)), found) if v)
+                if not res.objects:
+                    log.info("segment %d: %s", label, verdicts[int(label)])
             timings["normals"] = t_normals
             timings["hypotheses"] = sum(r.seconds for r in segments.values())
         timings["total"] = time.perf_counter() - t_start
@@ -239,4 +263,4 @@ class Perception:
             len(out_frame.hypotheses),
             timings["total"],
         )
-        return PerceptionResult(out_frame, segmentation, segments, timings)
+        return PerceptionResult(out_frame, segmentation, segments, verdicts, timings)
