@@ -410,6 +410,16 @@ class VerificationConfig(_Section):
             "the scene says so in its warnings."
         ),
     )
+    fallback_fit_drop: float = Field(
+        0.25,
+        gt=0,
+        le=1,
+        description=(
+            "A detected object whose searched pose explains this much less of its visible "
+            "surface than its best hypothesis is put back at that hypothesis, with a warning "
+            "(the search moved it off its data)."
+        ),
+    )
     stand_explained: float = Field(
         0.8,
         ge=0,

@@ -78,7 +78,7 @@ from ssp.temporal import (
     snap_symmetric,
 )
 from ssp.timing import StageTimer
-from ssp.verification import Evidence, check_new, evidence, verify_final
+from ssp.verification import Evidence, check_new, data_fallbacks, evidence, verify_final
 from ssp.visibility import CameraView
 
 __all__ = [
@@ -565,6 +565,11 @@ class SceneParser:
             self._polish(world, sim, {oid: segments[oid] for oid in with_data}, cam, timer)
         if unchanged or cfg.forces.final_icp:
             score = scorer.evaluate(world, timer)
+        fallbacks = data_fallbacks(score, scorer, groups, cfg)
+        if fallbacks:
+            world.set_poses({oid: T for oid, (T, _) in fallbacks.items()})
+            score = scorer.evaluate(world, timer)
+            chosen.update({oid: "hypothesis (data fallback)" for oid in fallbacks})
 
         with timer("verification"):
             final = {
@@ -598,6 +603,7 @@ class SceneParser:
                 association=assoc,
                 segments=segments,
                 view=view,
+                fallbacks={oid: note for oid, (_, note) in fallbacks.items()},
             ),
         )
 
@@ -668,7 +674,7 @@ class SceneParser:
         cfg = self.config
         score, models, prev_pose = out.score, out.models, out.prev_pose
         ids = score.ids
-        warnings: list[str] = []
+        warnings: list[str] = [f"{oid}: {note}" for oid, note in sorted(out.fallbacks.items())]
         rejected = dict(out.rejected)
         reasons: dict[str, str] = {}
         for oid in ids:
@@ -875,6 +881,7 @@ class _Outcome:
     association: _Association
     segments: Mapping[str, np.ndarray]
     view: CameraView | None
+    fallbacks: Mapping[str, str]
 
 
 def parse_sequence(

@@ -37,7 +37,15 @@ from ssp.library.model import ObjectModel
 from ssp.segments import explained_fraction
 from ssp.visibility import BEHIND_OWN, NOT_FACING, OCCLUDED, SEEN, SEEN_THROUGH, CameraView
 
-__all__ = ["Evidence", "Verdict", "check_new", "evidence", "still_visible", "verify_final"]
+__all__ = [
+    "Evidence",
+    "Verdict",
+    "check_new",
+    "data_fallbacks",
+    "evidence",
+    "still_visible",
+    "verify_final",
+]
 
 
 @dataclass(frozen=True)
@@ -217,6 +225,39 @@ def verify_final(
             verdict.evidence,
         )
     return verdict
+
+
+def data_fallbacks(score, scorer, groups, config: SSPConfig) -> dict[str, tuple[np.ndarray, str]]:
+    """No worse than the evidence: the detected objects whose searched pose explains much
+    less of their visible surface (data fit ``c``, Eq. 10) than their best hypothesis does,
+    by more than ``verification.fallback_fit_drop``: the search moved them off their data,
+    typically because what holds them up is not in the scene (an undetected object, a
+    distractor) and physics let them fall or tilt. ``id -> (that hypothesis's pose, the
+    warning)``; the parser puts them back there.
+
+    Args:
+        score: the searched scene's :class:`ssp.scoring.SceneScore`.
+        scorer: the frame's :class:`ssp.scoring.SceneScorer` (same world order).
+        groups: ``id -> hypotheses`` of the detected objects.
+    """
+    drop = config.verification.fallback_fit_drop
+    out: dict[str, tuple[np.ndarray, str]] = {}
+    for oid, hyps in groups.items():
+        if oid not in score.ids:
+            continue
+        i = score.ids.index(oid)
+        if not score.enabled[i] or not hyps:
+            continue
+        fits = [scorer.fit_fraction(i, h.T_world_obj) for h in hyps]
+        j = int(np.argmax(fits))
+        if fits[j] - float(score.fit[i]) > drop:
+            note = (
+                f"the search moved it off its data (fit {score.fit[i]:.2f} against "
+                f"{fits[j]:.2f} at its best hypothesis): kept at that hypothesis; what holds "
+                "it up may be undetected"
+            )
+            out[oid] = (np.asarray(hyps[j].T_world_obj, dtype=float).copy(), note)
+    return out
 
 
 def still_visible(ev: Evidence, config: SSPConfig) -> bool:
