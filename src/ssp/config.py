@@ -420,6 +420,14 @@ class VerificationConfig(_Section):
             "(the search moved it off its data)."
         ),
     )
+    fallback_collision: float = Field(
+        -1.0,
+        le=0,
+        description=(
+            "... unless its collision term (log P_C) there is below this: data wins over "
+            "physics only where it does not put one object into another."
+        ),
+    )
     stand_explained: float = Field(
         0.8,
         ge=0,

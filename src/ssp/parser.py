@@ -112,6 +112,7 @@ class _Known:
     T_world_obj: np.ndarray
     ephemeral: bool = False
     fit: float = 0.0  # data fit c at T_world_obj in the frame that set it
+    held: bool = False  # its data holds it where nothing in the scene does (data fallback)
 
 
 def first_guess(
@@ -203,6 +204,7 @@ class SceneParser:
                     "T_world_obj": k.T_world_obj.tolist(),
                     "ephemeral": k.ephemeral,
                     "fit": k.fit,
+                    "held": k.held,
                 }
                 for oid, k in sorted(self._known.items())
             ],
@@ -246,7 +248,11 @@ class SceneParser:
                     )
                 T = validate_pose(np.asarray(o["T_world_obj"], dtype=float), f"object {o['id']}")
                 parser._known[str(o["id"])] = _Known(
-                    cls_name, T, bool(o.get("ephemeral")), float(o.get("fit", 0.0))
+                    cls_name,
+                    T,
+                    bool(o.get("ephemeral")),
+                    float(o.get("fit", 0.0)),
+                    bool(o.get("held", False)),
                 )
         except (KeyError, TypeError, ValueError) as exc:
             if isinstance(exc, InvalidPoseError | UnknownObjectError):
@@ -565,10 +571,24 @@ class SceneParser:
             self._polish(world, sim, {oid: segments[oid] for oid in with_data}, cam, timer)
         if unchanged or cfg.forces.final_icp:
             score = scorer.evaluate(world, timer)
-        fallbacks = data_fallbacks(score, scorer, groups, cfg)
+        # data wins over physics for objects new in this frame, or held by their data before:
+        # an established object keeps its physically consistent pose
+        may_fall_back = {oid for oid in groups if oid not in self._known or self._known[oid].held}
+        fallbacks = data_fallbacks(score, scorer, {oid: groups[oid] for oid in may_fall_back}, cfg)
         if fallbacks:
+            searched = {oid: world.get_pose(oid) for oid in fallbacks}
             world.set_poses({oid: T for oid, (T, _) in fallbacks.items()})
-            score = scorer.evaluate(world, timer)
+            moved = scorer.evaluate(world, timer)
+            # data wins over physics only where it does not put one object into another
+            clash = {
+                oid
+                for oid in fallbacks
+                if moved.terms[world.index(oid), 1] < cfg.verification.fallback_collision
+            }
+            for oid in clash:
+                world.set_pose(oid, searched[oid])
+                del fallbacks[oid]
+            score = scorer.evaluate(world, timer) if clash else moved
             chosen.update({oid: "hypothesis (data fallback)" for oid in fallbacks})
 
         with timer("verification"):
@@ -774,7 +794,9 @@ class SceneParser:
                     reason=reason,
                 )
             )
-            known[out_id] = _Known(model.name, T, ephemeral, float(score.fit[i]))
+            known[out_id] = _Known(
+                model.name, T, ephemeral, float(score.fit[i]), held=oid in out.fallbacks
+            )
         removed = tuple(
             ObjectEstimate(
                 oid,

@@ -233,7 +233,8 @@ def data_fallbacks(score, scorer, groups, config: SSPConfig) -> dict[str, tuple[
     by more than ``verification.fallback_fit_drop``: the search moved them off their data,
     typically because what holds them up is not in the scene (an undetected object, a
     distractor) and physics let them fall or tilt. ``id -> (that hypothesis's pose, the
-    warning)``; the parser puts them back there.
+    warning)``; the parser puts them back there unless that pose interpenetrates another
+    object (``verification.fallback_collision``).
 
     Args:
         score: the searched scene's :class:`ssp.scoring.SceneScore`.
