@@ -11,6 +11,7 @@ from typing import Any, TypeVar
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from ssp import __version__
@@ -43,7 +44,9 @@ F = TypeVar("F", bound=Callable[..., Any])
 
 
 def _friendly(fn: F) -> F:
-    """Turn ssp's typed errors into a one-line message and exit code 1 (traceback with --debug)."""
+    """Turn ssp's typed errors and file-system errors (a folder that cannot be written, a full
+    disk) into a one-line message and exit code 1; Ctrl-C into exit code 130. Tracebacks with
+    --debug; any other exception is a bug and keeps its traceback."""
 
     @wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
@@ -51,11 +54,16 @@ def _friendly(fn: F) -> F:
 
         try:
             return fn(*args, **kwargs)
-        except SSPError as exc:
+        except (SSPError, OSError) as exc:
             if _state["debug"]:
                 raise
-            err_console.print(f"[bold red]error:[/] {exc}")
+            err_console.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False)
             raise typer.Exit(1) from None
+        except KeyboardInterrupt:
+            if _state["debug"]:
+                raise
+            err_console.print("[bold red]interrupted[/]")
+            raise typer.Exit(130) from None
 
     return wrapper  # type: ignore[return-value]
 
@@ -705,18 +713,43 @@ def bench_tower(
 @app.command("run")
 @_friendly
 def run_cmd(
-    input_path: Path = typer.Argument(
-        ..., help="A folder of PLY/PCD frames, or a BOP scene folder written by ssp simulate."
+    input_path: Path | None = typer.Argument(
+        None,
+        help=(
+            "A folder of PLY/PCD frames, or a BOP scene folder written by ssp simulate "
+            "(with --resume: the recorded one when omitted)."
+        ),
+        show_default=False,
     ),
     models: Path | None = ModelsOption,
-    out: Path = typer.Option(Path("ssp-out"), "--out", "-o", help="Output folder."),
-    hypotheses: str = typer.Option(
-        "auto",
+    out: Path | None = typer.Option(
+        None,
+        "--out",
+        "-o",
+        help="Output folder (new or empty) [default: ssp-out].",
+        show_default=False,
+    ),  # fmt: skip
+    resume: Path | None = typer.Option(
+        None,
+        "--resume",
+        help=(
+            "Continue the stopped run in this output folder from its saved state; the input, "
+            "--models, --config and options must be those it started with (omitted: the "
+            "recorded ones)."
+        ),
+        show_default=False,
+    ),
+    overwrite: bool = typer.Option(
+        False, "--overwrite", help="Clear an earlier run's files in --out first."
+    ),
+    hypotheses: str | None = typer.Option(
+        None,
         "--hypotheses",
         help=(
-            "auto: the input's hypotheses when present, else the built-in estimator; given: "
-            "only the input's; estimated: always the built-in estimator."
+            "auto (default): the input's hypotheses when present, else the built-in "
+            "estimator; given: only the input's; estimated: always the built-in estimator."
         ),
+        show_default=False,
     ),
     classes: str | None = typer.Option(
         None,
@@ -725,34 +758,81 @@ def run_cmd(
             "lists, else every model)."
         ),
     ),
-    method: str = typer.Option("ssp", help="BOP method name in the CSV file name (no '_')."),
+    method: str | None = typer.Option(
+        None,
+        help="BOP method name in the CSV file name (no '_') [default: ssp].",
+        show_default=False,
+    ),  # fmt: skip
     config: Path | None = ConfigOption,
 ) -> None:
     """Perception and scene parsing over recorded frames: per-frame JSON, a BOP19 CSV and a
-    summary (formats: docs/formats.md)."""
+    summary, kept current after every frame (formats: docs/formats.md). A stopped run
+    (Ctrl-C, a crash, a killed process) continues with --resume OUT."""
     from ssp.runner import HYPOTHESES_MODES, run
 
+    names = [c.strip() for c in classes.split(",") if c.strip()] if classes else None
+    if resume is not None:
+        from ssp.config import SSPConfig
+        from ssp.runner import read_run
+
+        if out is not None and out.resolve() != resume.resolve():
+            raise typer.BadParameter("give the run's folder once: --resume OUT (not --out)")
+        if overwrite:
+            raise typer.BadParameter("--resume continues a run; --overwrite starts one afresh")
+        rec = read_run(resume)
+        opts = rec["options"]
+        out = resume
+        input_path = input_path if input_path is not None else Path(rec["input"])
+        if models is None and rec.get("models") is not None:
+            models = Path(rec["models"])
+        hypotheses = hypotheses or opts["hypotheses"]
+        method = method or opts["method"]
+        names = names if names is not None else opts["classes"]
+        cfg = _config(config) if config is not None else SSPConfig.from_dict(rec["config"])
+    else:
+        if input_path is None:
+            raise typer.BadParameter("missing INPUT (a folder of frames or a BOP scene)")
+        out = out if out is not None else Path("ssp-out")
+        hypotheses = hypotheses or "auto"
+        method = method or "ssp"
+        cfg = _config(config)
     if hypotheses not in HYPOTHESES_MODES:
         raise typer.BadParameter(f"--hypotheses must be one of {', '.join(HYPOTHESES_MODES)}")
-    cfg = _config(config)
     lib = _library(models, config)
-    with _bar() as progress:
-        task = progress.add_task("frames", total=None)
+    frames_done = [0]
+    try:
+        with _bar() as progress:
+            task = progress.add_task("frames", total=None)
 
-        def report(done: int, total: int, message: str) -> None:
-            progress.update(task, completed=done, total=total, description=message[:60])
+            def report(done: int, total: int, message: str) -> None:
+                frames_done[0] = done
+                progress.update(task, completed=done, total=total, description=message[:60])
 
-        names = [c.strip() for c in classes.split(",") if c.strip()] if classes else None
-        summary = run(
-            input_path,
-            lib,
-            out,
-            cfg,
-            hypotheses=hypotheses,
-            classes=names,
-            method=method,
-            progress=report,
+            summary = run(
+                input_path,
+                lib,
+                out,
+                cfg,
+                hypotheses=hypotheses,
+                classes=names,
+                method=method,
+                progress=report,
+                resume=resume is not None,
+                overwrite=overwrite,
+                models=None if models is None else str(models.resolve()),
+            )
+    except KeyboardInterrupt:
+        err_console.print(
+            f"[bold red]interrupted[/] after {frames_done[0]} frames; the results so far are in "
+            f"{out}. Continue with: ssp run --resume {out}"
         )
+        raise typer.Exit(130) from None
+    _print_run(summary, input_path)
+    if not summary.done:
+        raise typer.Exit(1)
+
+
+def _print_run(summary, input_path: Path) -> None:
     info = summary.to_dict()
     table = Table(title=f"ssp run: {input_path} ({summary.kind})")
     for col in ("frame", "objects", "hypotheses", "perception s", "parser s"):
@@ -771,11 +851,18 @@ def run_cmd(
         + (f", {info['sec_per_frame']:.2f} s per frame" if info["sec_per_frame"] else "")
     )
     for f in summary.failed:
-        console.print(f"[red]skipped[/] {f['frame']}: {f['error']}")
+        bug = f"failed ({f['error_type']}, a bug: please report it)"
+        tag = bug if f["unexpected"] else "skipped"
+        console.print(f"[red]{tag}[/] {f['frame']}: {escape(f['error'])}", highlight=False)
+    for w in summary.warnings:
+        console.print(f"[yellow]warning[/] {w['frame']}: {escape(w['warning'])}", highlight=False)
+    if info["unexpected_errors"]:
+        console.print(
+            f"[bold red]{info['unexpected_errors']} frames failed with unexpected errors[/] "
+            "(tracebacks in the log above)"
+        )
     for f in summary.files:
         console.print(f"wrote [bold]{f}[/]")
-    if not summary.done:
-        raise typer.Exit(1)
 
 
 @app.command()
