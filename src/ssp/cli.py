@@ -798,6 +798,12 @@ def run_cmd(
         cfg = _config(config)
     if hypotheses not in HYPOTHESES_MODES:
         raise typer.BadParameter(f"--hypotheses must be one of {', '.join(HYPOTHESES_MODES)}")
+    from ssp.io.results import bop_csv_name
+    from ssp.runner import check_out_dir
+
+    bop_csv_name("input", method)  # a bad method name fails before the models load
+    if resume is None:
+        check_out_dir(out, overwrite)
     lib = _library(models, config)
     frames_done = [0]
     try:

@@ -590,7 +590,10 @@ def read_yaml(path: Path, error: type[SSPError], what: str = "file") -> Any:
     try:
         return yaml.safe_load(text)
     except yaml.YAMLError as exc:
-        raise error(f"{path} is not valid YAML: {exc}") from exc
+        mark = getattr(exc, "problem_mark", None)
+        where = f"{path}:{mark.line + 1}:{mark.column + 1}" if mark is not None else str(path)
+        what = " ".join(str(getattr(exc, "problem", None) or exc).split())
+        raise error(f"{where}: not valid YAML: {what}") from exc
 
 
 def load_config(path: str | Path) -> SSPConfig:

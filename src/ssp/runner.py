@@ -63,6 +63,7 @@ __all__ = [
     "STATE_JSON",
     "TIMING_KEYS",
     "RunSummary",
+    "check_out_dir",
     "read_run",
     "run",
 ]
@@ -303,10 +304,10 @@ def _input_files(path: Path, kind: str) -> dict[str, Any]:
         with os.scandir(folder) as it:
             entries = sorted(it, key=lambda e: e.name)
         for e in entries:
-            if e.name.startswith(".") or e.is_dir():
+            problem = file_problem(e.path)
+            if e.name.startswith(".") or problem == "is a folder, not a file":
                 continue
             rel = os.path.relpath(e.path, path)
-            problem = file_problem(e.path)
             if problem is None:
                 st = e.stat()
                 out[rel] = [st.st_size, st.st_mtime_ns]
@@ -423,9 +424,15 @@ def _own_files(out: Path, manifest: Mapping[str, Any] | None) -> list[Path]:
     return files
 
 
-def _prepare_fresh(out: Path, overwrite: bool) -> None:
+def check_out_dir(out: str | os.PathLike, overwrite: bool = False) -> None:
+    """ArgumentError unless ``out`` can take a new run (absent, empty, or with ``overwrite``
+    an earlier ssp run); :func:`run` checks it too, a command checks it before slow work."""
+    _prepare_fresh(Path(out), overwrite, clear=False)
+
+
+def _prepare_fresh(out: Path, overwrite: bool, clear: bool = True) -> None:
     """Make sure ``out`` can take a new run: absent or empty, or an earlier ssp run that
-    ``overwrite`` allows to clear (only its own files go)."""
+    ``overwrite`` allows to clear (only its own files go; ``clear=False``: only check)."""
     if out.exists() and not out.is_dir():
         raise ArgumentError(f"{out}: the output folder is a file")
     if not out.exists() or not any(out.iterdir()):
@@ -449,6 +456,8 @@ def _prepare_fresh(out: Path, overwrite: bool) -> None:
             f"{out}: the output folder already holds {'a finished' if finished else 'an'} ssp "
             f"run{of}: {again}replace it with --overwrite, or choose a new --out folder"
         )
+    if not clear:
+        return
     for p in _own_files(out, old):
         p.unlink()
     frames = out / FRAMES_DIR
@@ -474,7 +483,10 @@ def _prepare_resume(
             "run in a new --out folder"
         )
     state = _read_state(out)
-    if state is None:
+    if state is None:  # stopped before its first commit: start over (run.json is kept)
+        for p in _own_files(out, old):
+            if p.name != RUN_JSON:
+                p.unlink()
         return {}, []
     size = int(state.get("csv_bytes", 0))
     have = csv_path.stat().st_size if csv_path.exists() else 0
