@@ -106,8 +106,20 @@ def assert_consistent(out: Path, ref: Path) -> int:
 
 @pytest.mark.parametrize(
     "sig, k",
-    [(signal.SIGKILL, 0), (signal.SIGKILL, 1), (signal.SIGINT, 3), (signal.SIGKILL, 6)],
-    ids=["sigkill-at-start", "sigkill-after-1", "sigint-after-3", "sigkill-after-6"],
+    [
+        (signal.SIGKILL, 0),
+        (signal.SIGKILL, 1),
+        (signal.SIGINT, 3),
+        (signal.SIGTERM, 5),
+        (signal.SIGKILL, 7),
+    ],
+    ids=[
+        "sigkill-at-start",
+        "sigkill-after-1",
+        "sigint-after-3",
+        "sigterm-after-5",
+        "sigkill-after-7",
+    ],
 )
 def test_killed_run_resumes_to_the_uninterrupted_result(sig, k, lib, scene, reference,
                                                         tmp_path):  # fmt: skip
@@ -129,13 +141,14 @@ def test_killed_run_resumes_to_the_uninterrupted_result(sig, k, lib, scene, refe
         if proc.poll() is None:
             proc.kill()
     stderr = proc.stderr.read().decode()
-    if sig == signal.SIGINT:
-        assert proc.returncode == 130 and "--resume" in stderr, stderr
-    else:
+    if sig == signal.SIGKILL:
         assert proc.returncode == -signal.SIGKILL
+    else:  # Ctrl-C and SIGTERM stop it cleanly, saying how to go on
+        assert proc.returncode == 130 and "--resume" in stderr, stderr
+        assert _load(out / "summary.json")["status"] == "interrupted"
     if (out / "state.json").exists():
         assert_consistent(out, reference)
-    if sig == signal.SIGINT:  # resume through the command line
+    if sig != signal.SIGKILL:  # resume through the command line
         r = CliRunner().invoke(app, ["run", "--resume", str(out)])
         assert r.exit_code == 0, r.output
     else:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import signal
 from collections.abc import Callable
 from functools import wraps
 from pathlib import Path
@@ -394,6 +395,59 @@ def bench_parser_cmd(
     console.print(table)
     for f in files:
         console.print(f"wrote [bold]{f}[/]")
+
+
+@bench_app.command("soak")
+@_friendly
+def bench_soak_cmd(
+    frames: int = typer.Option(1000, min=1, help="Length of the synthetic sequence."),
+    out: Path = typer.Option(Path("bench-out/soak"), "--out", "-o", help="Output folder."),
+    seed: int = typer.Option(0, help="Seed of the first structure cycle."),
+    stride: int = typer.Option(4, min=1, help="Render every n-th pixel (4: 160 x 120)."),
+    runner: bool = typer.Option(
+        False,
+        "--runner",
+        help="Through ssp run (files in, crash-safe files out) instead of the parser alone.",
+    ),
+    config: Path | None = ConfigOption,
+) -> None:
+    """Wall time and memory (RSS) per frame of the scene parser over a long synthetic
+    sequence (cycles of block structures built up); writes OUT/results.json."""
+    from ssp.eval.bench_soak import WINDOW, bench_soak, write_report
+
+    with _bar() as progress:
+        task = progress.add_task("soak", total=frames)
+        result = bench_soak(
+            frames,
+            seed=seed,
+            stride=stride,
+            config=_config(config),
+            runner=runner,
+            progress=lambda done, total: progress.update(task, completed=done),
+        )
+    result["command"] = {"frames": frames, "seed": seed, "stride": stride, "runner": runner}
+    path = write_report(result, out)
+    s = result["summary"]
+    w = min(WINDOW, frames)
+    table = Table(title=f"soak: {frames} frames{' through ssp run' if runner else ''}")
+    for col in ("frames", "s/frame mean", "median", "p95", "RSS MiB (end)"):
+        table.add_column(col, justify="right")
+    for name, rss in ((f"first_{w}", f"rss_mib_after_{w}"), (f"last_{w}", "rss_mib_end")):
+        d = s[name]
+        table.add_row(
+            name.replace("_", " "),
+            f"{d['mean']:.3f}",
+            f"{d['median']:.3f}",
+            f"{d['p95']:.3f}",
+            f"{s[rss]:.1f}",
+        )
+    console.print(table)
+    half = s.get("rss_growth_mib_second_half")
+    console.print(
+        f"RSS growth after frame {w}: {s[f'rss_growth_mib_after_{w}']:+.1f} MiB"
+        + ("" if half is None else f", over the second half: {half:+.1f} MiB")
+        + f"; {s['failed']} failed frames; wrote [bold]{path}[/]"
+    )
 
 
 ExperimentOption = typer.Option(
@@ -806,6 +860,7 @@ def run_cmd(
         check_out_dir(out, overwrite)
     lib = _library(models, config)
     frames_done = [0]
+    previous = _stop_on_sigterm()
     try:
         with _bar() as progress:
             task = progress.add_task("frames", total=None)
@@ -833,9 +888,25 @@ def run_cmd(
             f"{out}. Continue with: ssp run --resume {out}"
         )
         raise typer.Exit(130) from None
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
     _print_run(summary, input_path)
     if not summary.done:
         raise typer.Exit(1)
+
+
+def _stop_on_sigterm():
+    """Make SIGTERM stop a run like Ctrl-C (a clean 'interrupted' summary and a resume hint);
+    returns the previous handler (None when signals cannot be set here)."""
+
+    def stop(signum, frame):
+        raise KeyboardInterrupt
+
+    try:
+        return signal.signal(signal.SIGTERM, stop)
+    except ValueError:  # not the main thread
+        return None
 
 
 def _print_run(summary, input_path: Path) -> None:
