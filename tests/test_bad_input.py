@@ -678,6 +678,15 @@ def _two_stems(d):
     shutil.copy(d / "f0.ply", d / "f0.pcd")
 
 
+def _hyp_class(name):
+    def damage(s):
+        doc = _load(s / "hypotheses.json")
+        doc["1"][0]["class"] = name
+        (s / "hypotheses.json").write_text(json.dumps(doc))
+
+    return damage
+
+
 def _fifo_scene_json(d):
     (d / "scene.json").unlink()
     os.mkfifo(d / "scene.json")
@@ -709,7 +718,9 @@ INPUT_ERRORS = [
      .unlink()), InputError, ("sequence.json",)),
     ("bop-class-not-in-library", lambda f, b, t: _bop_copy(b, t, lambda s: (s / "models.json")
      .write_text(json.dumps({"obj_ids": {"1": "anvil", "2": "anvil2"}}))), InputError,
-     ("not in the library", "anvil")),
+     ("scene_gt.json", "not in the library", "anvil")),
+    ("bop-hypothesis-class-not-in-library", lambda f, b, t: _bop_copy(b, t, _hyp_class("mugg")),
+     InputError, ("hypotheses.json", "not in the library", "mugg")),
 ]  # fmt: skip
 
 
@@ -1057,3 +1068,49 @@ def test_existing_out_keeps_no_stale_frames(lib, seq, folder, tmp_path):
     assert sorted(p.name for p in (out / "frames").iterdir()) == ["f2.json"]
     assert _load(out / "frames" / "f2.json")["status"] == "failed"
     assert len(_csv_rows(out)) == 1  # the header only
+
+
+# ------------------------------------------------------------------------- streaming, baselines
+def test_inputs_are_read_frame_by_frame(lib, folder, bop, tmp_path, monkeypatch):
+    """Neither reader reads a frame before the previous one is parsed and written."""
+    from ssp.io.folder import FolderInput
+    from ssp.sim.bop import BopScene
+
+    loaded = []
+    for cls in (FolderInput, BopScene):
+        real = cls.load
+        monkeypatch.setattr(cls, "load", lambda self, k, real=real: loaded.append(k) or real(
+            self, k))  # fmt: skip
+    seen: list[int] = []
+    for src, name in ((folder, "f"), (bop[0], "b")):
+        loaded.clear()
+        seen.clear()
+        run(src, lib, tmp_path / name, progress=lambda done, total, m: seen.append(len(loaded)))
+        assert seen == list(range(1, len(seen) + 1)) and len(seen) >= 2
+
+
+def test_unexpected_errors_are_logged_with_their_traceback(lib, folder, tmp_path, monkeypatch,
+                                                           caplog):  # fmt: skip
+    from ssp.perception.pipeline import Perception
+
+    def bug(self, points, **kw):
+        raise TypeError("a bug")
+
+    monkeypatch.setattr(Perception, "from_points", bug)
+    run(folder, lib, tmp_path / "out", hypotheses="given")
+    records = [r for r in caplog.records if r.levelname == "ERROR" and r.exc_info]
+    assert len(records) == 2 and "TypeError" in records[0].getMessage()
+
+
+def test_ssp_baseline_contains_a_bug_in_one_frame(lib, api_ref, monkeypatch):
+    from ssp.eval.baselines import SSPMethod
+
+    (f0, f1), _, _ = api_ref
+    method = SSPMethod(lib)
+    first = method.update(f0)
+    assert first
+    monkeypatch.setattr(SceneParser, "_update", lambda self, frame, timer: 1 / 0)
+    again = method.update(f1)  # answered with the previous output
+    assert [(d.class_name, d.T_world_obj.tolist()) for d in again] == [
+        (d.class_name, d.T_world_obj.tolist()) for d in first
+    ]

@@ -774,13 +774,14 @@ def run_cmd(
             "(with --resume: the recorded one when omitted)."
         ),
         show_default=False,
+        metavar="INPUT",
     ),
     models: Path | None = ModelsOption,
     out: Path | None = typer.Option(
         None,
         "--out",
         "-o",
-        help="Output folder (new or empty) [default: ssp-out].",
+        help="Output folder, new or empty (default: ssp-out).",
         show_default=False,
     ),  # fmt: skip
     resume: Path | None = typer.Option(
@@ -814,7 +815,7 @@ def run_cmd(
     ),
     method: str | None = typer.Option(
         None,
-        help="BOP method name in the CSV file name (no '_') [default: ssp].",
+        help="BOP method name in the CSV file name, no '_' (default: ssp).",
         show_default=False,
     ),  # fmt: skip
     config: Path | None = ConfigOption,

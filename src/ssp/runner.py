@@ -339,6 +339,21 @@ def _library_digests(library: Mapping) -> dict[str, str]:
 
 
 # ------------------------------------------------------------------------------ run folders
+def _read_doc(p: Path, fmt: str, what: str) -> dict[str, Any]:
+    """The JSON object of ``p`` with ``format == fmt`` and this module's version."""
+    try:
+        doc = json.loads(p.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise ArgumentError(f"{p}: cannot read: {exc}") from exc
+    if not isinstance(doc, dict) or doc.get("format") != fmt:
+        raise ArgumentError(f"{p}: not an {what} (format {fmt!r})")
+    if doc.get("version") != FORMAT_VERSION:
+        raise ArgumentError(
+            f"{p}: {what} version {doc.get('version')!r}; this ssp reads {FORMAT_VERSION}"
+        )
+    return doc
+
+
 def read_run(out_dir: str | os.PathLike) -> dict[str, Any]:
     """The ``run.json`` of an output folder (what the run reads and its options).
 
@@ -348,30 +363,12 @@ def read_run(out_dir: str | os.PathLike) -> dict[str, Any]:
     p = Path(out_dir) / RUN_JSON
     if not p.is_file():
         raise ArgumentError(f"{out_dir}: no ssp run here (no {RUN_JSON}): nothing to resume")
-    try:
-        doc = json.loads(p.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as exc:
-        raise ArgumentError(f"{p}: cannot read: {exc}") from exc
-    if not isinstance(doc, dict) or doc.get("format") != RUN_FORMAT:
-        raise ArgumentError(f"{p}: not an ssp run manifest (format {RUN_FORMAT!r})")
-    if doc.get("version") != FORMAT_VERSION:
-        raise ArgumentError(
-            f"{p}: run format version {doc.get('version')!r}; this ssp reads {FORMAT_VERSION}"
-        )
-    return doc
+    return _read_doc(p, RUN_FORMAT, "ssp run manifest")
 
 
 def _read_state(out: Path) -> dict[str, Any] | None:
     p = out / STATE_JSON
-    if not p.exists():
-        return None
-    try:
-        doc = json.loads(p.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as exc:
-        raise ArgumentError(f"{p}: cannot read: {exc}") from exc
-    if not isinstance(doc, dict) or doc.get("format") != STATE_FORMAT:
-        raise ArgumentError(f"{p}: not an ssp run state (format {STATE_FORMAT!r})")
-    return doc
+    return _read_doc(p, STATE_FORMAT, "ssp run state") if p.exists() else None
 
 
 def _flat(d: Any, prefix: str = "") -> dict[str, Any]:

@@ -133,24 +133,14 @@ class BopCsvWriter:
         self._times: dict[tuple[int, int], float] = {}
         self.rows = 0
 
-    def add(
-        self,
-        scene_id: int,
-        im_id: int,
-        obj_id: int,
-        score: float,
-        T_cam_obj: np.ndarray,
-        time: float | None = None,
-    ) -> None:
-        """Add one estimate: ``T_cam_obj`` (4x4, m) is the model-to-camera pose.
-
-        ``time`` (s) is the whole image's processing time, None or negative for unknown (-1);
-        every row of one ``(scene_id, im_id)`` must carry the same time.
+    def add(self, *row: Any, **kw: Any) -> None:
+        """Add one estimate: ``add(scene_id, im_id, obj_id, score, T_cam_obj, time=None)``,
+        arguments as for :meth:`format_row`.
 
         Raises:
             ValueError: closed writer, a bad id, score, pose or time.
         """
-        self.write_rows([self.format_row(scene_id, im_id, obj_id, score, T_cam_obj, time)])
+        self.write_rows([self.format_row(*row, **kw)])
 
     def format_row(
         self,
@@ -161,8 +151,14 @@ class BopCsvWriter:
         T_cam_obj: np.ndarray,
         time: float | None = None,
     ) -> str:
-        """The CSV line of one estimate (arguments as for :meth:`add`), validated but not
-        written: a caller that must write a frame's rows all or none formats them first."""
+        """The CSV line of one estimate, validated but not written (a caller that must write a
+        frame's rows all or none formats them first): ``T_cam_obj`` (4x4, m) is the
+        model-to-camera pose; ``time`` (s) the whole image's processing time, None or negative
+        for unknown (-1); every row of one ``(scene_id, im_id)`` must carry the same time.
+
+        Raises:
+            ValueError: a bad id, score, pose or time.
+        """
         ids = [_nonneg_int(v, k) for v, k in ((scene_id, "scene_id"), (im_id, "im_id"))]
         oid = _nonneg_int(obj_id, "obj_id")
         if oid < 1:

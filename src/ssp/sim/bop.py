@@ -386,8 +386,12 @@ def open_bop(path, library: Mapping) -> BopScene:
     models = _load(d / "models.json")
     try:
         classes = {int(k): v for k, v in models["obj_ids"].items()}
-        used = {classes[g["obj_id"]] for v in scene_gt.values() for g in v}
-        used |= {h.get("class") or classes[h["obj_id"]] for v in hyps.values() for h in v}
+        used = {
+            "scene_gt.json": {classes[g["obj_id"]] for v in scene_gt.values() for g in v},
+            "hypotheses.json": {
+                h.get("class") or classes[h["obj_id"]] for v in hyps.values() for h in v
+            },
+        }
         c = meta["camera"]
         camera = Camera(int(c["width"]), int(c["height"]), c["fx"], c["fy"], c["cx"], c["cy"])
         if "T_world_cam" in meta:
@@ -404,9 +408,13 @@ def open_bop(path, library: Mapping) -> BopScene:
         groups = [int(fm["static_group"]) for fm in frames]
     except (KeyError, TypeError, ValueError, AttributeError, StopIteration) as exc:
         raise InputError(f"{d}: malformed scene files: {exc!r}") from exc
-    missing = sorted(c for c in used if c not in library)
-    if missing:
-        raise InputError(f"{d}: classes not in the library: {missing}")
+    for name, names in used.items():
+        missing = sorted(c for c in names if c not in library)
+        if missing:
+            raise InputError(
+                f"{d / name}: classes not in the library: {missing} (known: "
+                f"{', '.join(library) or 'none'}; object ids in {d / 'models.json'})"
+            )
     info = dict(meta.get("info", {}))
     if hyps_gt is not None:
         info["hypothesis_sources"] = [list(hyps_gt.get(str(im), [])) for im in im_ids]
