@@ -175,8 +175,13 @@ def _crash_at(monkeypatch, where: str, frame: str) -> None:
             return p
         if seen["frame"] and p.name == "state.json" and where == "before-commit":
             raise KeyboardInterrupt
-        out = real_write(path, obj, indent)
-        if seen["frame"] and p.name == "summary.json" and where == "after-commit":
+        return real_write(path, obj, indent)
+
+    real_text = ssp.runner.atomic_write_text
+
+    def atomic_write_text(path, text):  # the summary written after each frame
+        out = real_text(path, text)
+        if seen["frame"] and Path(path).name == "summary.json" and where == "after-commit":
             raise KeyboardInterrupt
         return out
 
@@ -191,6 +196,7 @@ def _crash_at(monkeypatch, where: str, frame: str) -> None:
         return real_rows(self, lines)
 
     monkeypatch.setattr(ssp.runner, "write_json", write_json)
+    monkeypatch.setattr(ssp.runner, "atomic_write_text", atomic_write_text)
     monkeypatch.setattr(BopCsvWriter, "write_rows", write_rows)
 
 
@@ -238,3 +244,16 @@ def _stop_after(lib, scene, out, frames: int) -> None:
             raise KeyboardInterrupt
 
     run(scene, lib, out, progress=progress)
+
+
+def test_summary_written_during_the_run_is_the_summary(reference):
+    """The compact summary written after each frame (records encoded once) equals the dict."""
+    from ssp.runner import RunSummary
+
+    s = RunSummary("in", "bop", frames=FRAMES)
+    for p in sorted((reference / "frames").iterdir()):
+        s.add(_load(p))
+        assert json.loads(s.to_json()) == json.loads(json.dumps(s.to_dict()))
+    assert _strip(json.loads(s.to_json())) == _strip(
+        {**_load(reference / "summary.json"), "input": "in", "status": "running"}
+    )

@@ -51,7 +51,7 @@ from ssp import __version__
 from ssp.config import SSPConfig
 from ssp.errors import ArgumentError, InputError, SSPError
 from ssp.geometry import invert
-from ssp.io._files import file_problem, fsync_dir, to_jsonable
+from ssp.io._files import atomic_write_text, file_problem, fsync_dir, to_jsonable
 from ssp.io.folder import SCENE_JSON, check_folder, is_bop_scene, open_folder
 from ssp.io.results import BopCsvWriter, ObjectIds, bop_csv_name, frame_record, write_json
 from ssp.parser import SceneParser
@@ -104,6 +104,7 @@ class RunSummary:
     warnings: list[dict[str, str]] = field(default_factory=list)
     files: list[str] = field(default_factory=list)
     status: str = "running"
+    _done_text: list[str] = field(default_factory=list, init=False, repr=False)  # JSON per record
 
     @property
     def unexpected_errors(self) -> int:
@@ -137,6 +138,16 @@ class RunSummary:
         }
         self.done.append(record)
         return record
+
+    def to_json(self) -> str:
+        """:meth:`to_dict` as compact JSON; the per-frame records are serialised once each, so
+        writing the summary after every frame costs a string join, not a re-encoding."""
+        self._done_text += [
+            json.dumps(r, allow_nan=False) for r in self.done[len(self._done_text) :]
+        ]
+        head = {k: v for k, v in self.to_dict().items() if k != "per_frame"}
+        text = json.dumps(to_jsonable(head), allow_nan=False)
+        return f'{text[:-1]}, "per_frame": [{", ".join(self._done_text)}]}}\n'
 
     def to_dict(self) -> dict[str, Any]:
         secs = [d["seconds"] for d in self.done]
@@ -639,7 +650,7 @@ def run(
                 commit(n + 1, parser_state)
                 committed_parser = parser_state
                 record = summary.add(frame_json)
-                write_json(out / SUMMARY_JSON, summary.to_dict(), indent=None)
+                atomic_write_text(out / SUMMARY_JSON, summary.to_json())
                 if progress is not None:
                     msg = record.get("error") or f"{record['objects']} objects"
                     progress(n + 1, inp.total, f"{source.name}: {msg}")
