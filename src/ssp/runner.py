@@ -693,7 +693,6 @@ def _run_frame(
         ]
         extra = {
             "status": "done",
-            "warnings": warnings,
             "perception": {
                 "hypotheses": len(frame.hypotheses),
                 "segments": len(perceived.segmentation.segment_ids),
@@ -703,6 +702,13 @@ def _run_frame(
             "seconds": seconds,
         }
         frame_json = frame_record(estimate, name=source.name, index=source.index, extra=extra)
+        # one list of doubts: the input's and the front end's, then the parser's
+        frame_json["warnings"] = [*warnings, *frame_json["warnings"]]
+        # a segment the parser got no hypothesis for: say what the front end made of it
+        for label, verdict in perceived.verdicts.items():
+            key = str(label)
+            if frame_json["segments"].get(key, "").startswith("no object"):
+                frame_json["segments"][key] = f"no object: {verdict}"
         return to_jsonable(frame_json), lines
     except Exception as exc:
         return _failure(source, exc, warnings, time.perf_counter() - t0), []
