@@ -146,7 +146,7 @@ def test_bad_scene_json(tmp_path, doc, match):
 
 
 def test_bad_folders(tmp_path):
-    with pytest.raises(InputError, match="no such folder"):
+    with pytest.raises(InputError, match="does not exist"):
         open_folder(tmp_path / "missing")
     with pytest.raises(InputError, match="no frames"):
         open_folder(tmp_path)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import signal
 from collections.abc import Callable
 from functools import wraps
 from pathlib import Path
@@ -11,6 +12,7 @@ from typing import Any, TypeVar
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from ssp import __version__
@@ -43,7 +45,9 @@ F = TypeVar("F", bound=Callable[..., Any])
 
 
 def _friendly(fn: F) -> F:
-    """Turn ssp's typed errors into a one-line message and exit code 1 (traceback with --debug)."""
+    """Turn ssp's typed errors and file-system errors (a folder that cannot be written, a full
+    disk) into a one-line message and exit code 1; Ctrl-C into exit code 130. Tracebacks with
+    --debug; any other exception is a bug and keeps its traceback."""
 
     @wraps(fn)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
@@ -51,11 +55,16 @@ def _friendly(fn: F) -> F:
 
         try:
             return fn(*args, **kwargs)
-        except SSPError as exc:
+        except (SSPError, OSError) as exc:
             if _state["debug"]:
                 raise
-            err_console.print(f"[bold red]error:[/] {exc}")
+            err_console.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False)
             raise typer.Exit(1) from None
+        except KeyboardInterrupt:
+            if _state["debug"]:
+                raise
+            err_console.print("[bold red]interrupted[/]")
+            raise typer.Exit(130) from None
 
     return wrapper  # type: ignore[return-value]
 
@@ -455,6 +464,59 @@ def bench_parser_cmd(
     console.print(table)
     for f in files:
         console.print(f"wrote [bold]{f}[/]")
+
+
+@bench_app.command("soak")
+@_friendly
+def bench_soak_cmd(
+    frames: int = typer.Option(1000, min=1, help="Length of the synthetic sequence."),
+    out: Path = typer.Option(Path("bench-out/soak"), "--out", "-o", help="Output folder."),
+    seed: int = typer.Option(0, help="Seed of the first structure cycle."),
+    stride: int = typer.Option(4, min=1, help="Render every n-th pixel (4: 160 x 120)."),
+    runner: bool = typer.Option(
+        False,
+        "--runner",
+        help="Through ssp run (files in, crash-safe files out) instead of the parser alone.",
+    ),
+    config: Path | None = ConfigOption,
+) -> None:
+    """Wall time and memory (RSS) per frame of the scene parser over a long synthetic
+    sequence (cycles of block structures built up); writes OUT/results.json."""
+    from ssp.eval.bench_soak import WINDOW, bench_soak, write_report
+
+    with _bar() as progress:
+        task = progress.add_task("soak", total=frames)
+        result = bench_soak(
+            frames,
+            seed=seed,
+            stride=stride,
+            config=_config(config),
+            runner=runner,
+            progress=lambda done, total: progress.update(task, completed=done),
+        )
+    result["command"] = {"frames": frames, "seed": seed, "stride": stride, "runner": runner}
+    path = write_report(result, out)
+    s = result["summary"]
+    w = min(WINDOW, frames)
+    table = Table(title=f"soak: {frames} frames{' through ssp run' if runner else ''}")
+    for col in ("frames", "s/frame mean", "median", "p95", "RSS MiB (end)"):
+        table.add_column(col, justify="right")
+    for name, rss in ((f"first_{w}", f"rss_mib_after_{w}"), (f"last_{w}", "rss_mib_end")):
+        d = s[name]
+        table.add_row(
+            name.replace("_", " "),
+            f"{d['mean']:.3f}",
+            f"{d['median']:.3f}",
+            f"{d['p95']:.3f}",
+            f"{s[rss]:.1f}",
+        )
+    console.print(table)
+    half = s.get("rss_growth_mib_second_half")
+    console.print(
+        f"RSS growth after frame {w}: {s[f'rss_growth_mib_after_{w}']:+.1f} MiB"
+        + ("" if half is None else f", over the second half: {half:+.1f} MiB")
+        + f"; {s['failed']} failed frames; wrote [bold]{path}[/]"
+    )
 
 
 ExperimentOption = typer.Option(
@@ -891,18 +953,44 @@ def bench_tower(
 @app.command("run")
 @_friendly
 def run_cmd(
-    input_path: Path = typer.Argument(
-        ..., help="A folder of PLY/PCD frames, or a BOP scene folder written by ssp simulate."
+    input_path: Path | None = typer.Argument(
+        None,
+        help=(
+            "A folder of PLY/PCD frames, or a BOP scene folder written by ssp simulate "
+            "(with --resume: the recorded one when omitted)."
+        ),
+        show_default=False,
+        metavar="INPUT",
     ),
     models: Path | None = ModelsOption,
-    out: Path = typer.Option(Path("ssp-out"), "--out", "-o", help="Output folder."),
-    hypotheses: str = typer.Option(
-        "auto",
+    out: Path | None = typer.Option(
+        None,
+        "--out",
+        "-o",
+        help="Output folder, new or empty (default: ssp-out).",
+        show_default=False,
+    ),  # fmt: skip
+    resume: Path | None = typer.Option(
+        None,
+        "--resume",
+        help=(
+            "Continue the stopped run in this output folder from its saved state; the input, "
+            "--models, --config and options must be those it started with (omitted: the "
+            "recorded ones)."
+        ),
+        show_default=False,
+    ),
+    overwrite: bool = typer.Option(
+        False, "--overwrite", help="Clear an earlier run's files in --out first."
+    ),
+    hypotheses: str | None = typer.Option(
+        None,
         "--hypotheses",
         help=(
-            "auto: the input's hypotheses when present, else the built-in estimator; given: "
-            "only the input's; estimated: always the built-in estimator."
+            "auto (default): the input's hypotheses when present, else the built-in "
+            "estimator; given: only the input's; estimated: always the built-in estimator."
         ),
+        show_default=False,
     ),
     classes: str | None = typer.Option(
         None,
@@ -911,35 +999,105 @@ def run_cmd(
             "lists, else every model)."
         ),
     ),
-    method: str = typer.Option("ssp", help="BOP method name in the CSV file name (no '_')."),
+    method: str | None = typer.Option(
+        None,
+        help="BOP method name in the CSV file name, no '_' (default: ssp).",
+        show_default=False,
+    ),  # fmt: skip
     config: Path | None = ConfigOption,
     cache: Path | None = CacheOption,
 ) -> None:
     """Perception and scene parsing over recorded frames: per-frame JSON, a BOP19 CSV and a
-    summary (formats: docs/formats.md)."""
+    summary, kept current after every frame (formats: docs/formats.md). A stopped run
+    (Ctrl-C, a crash, a killed process) continues with --resume OUT."""
     from ssp.runner import HYPOTHESES_MODES, run
 
+    names = [c.strip() for c in classes.split(",") if c.strip()] if classes else None
+    if resume is not None:
+        from ssp.config import SSPConfig
+        from ssp.runner import read_run
+
+        if out is not None and out.resolve() != resume.resolve():
+            raise typer.BadParameter("give the run's folder once: --resume OUT (not --out)")
+        if overwrite:
+            raise typer.BadParameter("--resume continues a run; --overwrite starts one afresh")
+        rec = read_run(resume)
+        opts = rec["options"]
+        out = resume
+        input_path = input_path if input_path is not None else Path(rec["input"])
+        if models is None and rec.get("models") is not None:
+            models = Path(rec["models"])
+        hypotheses = hypotheses or opts["hypotheses"]
+        method = method or opts["method"]
+        names = names if names is not None else opts["classes"]
+        cfg = _config(config) if config is not None else SSPConfig.from_dict(rec["config"])
+    else:
+        if input_path is None:
+            raise typer.BadParameter("missing INPUT (a folder of frames or a BOP scene)")
+        out = out if out is not None else Path("ssp-out")
+        hypotheses = hypotheses or "auto"
+        method = method or "ssp"
+        cfg = _config(config)
     if hypotheses not in HYPOTHESES_MODES:
         raise typer.BadParameter(f"--hypotheses must be one of {', '.join(HYPOTHESES_MODES)}")
-    cfg = _config(config)
+    from ssp.io.results import bop_csv_name
+    from ssp.runner import check_out_dir
+
+    bop_csv_name("input", method)  # a bad method name fails before the models load
+    if resume is None:
+        check_out_dir(out, overwrite)
     lib = _library(models, config, cache)
-    with _bar() as progress:
-        task = progress.add_task("frames", total=None)
+    frames_done = [0]
+    previous = _stop_on_sigterm()
+    try:
+        with _bar() as progress:
+            task = progress.add_task("frames", total=None)
 
-        def report(done: int, total: int, message: str) -> None:
-            progress.update(task, completed=done, total=total, description=message[:60])
+            def report(done: int, total: int, message: str) -> None:
+                frames_done[0] = done
+                progress.update(task, completed=done, total=total, description=message[:60])
 
-        names = [c.strip() for c in classes.split(",") if c.strip()] if classes else None
-        summary = run(
-            input_path,
-            lib,
-            out,
-            cfg,
-            hypotheses=hypotheses,
-            classes=names,
-            method=method,
-            progress=report,
+            summary = run(
+                input_path,
+                lib,
+                out,
+                cfg,
+                hypotheses=hypotheses,
+                classes=names,
+                method=method,
+                progress=report,
+                resume=resume is not None,
+                overwrite=overwrite,
+                models=None if models is None else str(models.resolve()),
+            )
+    except KeyboardInterrupt:
+        err_console.print(
+            f"[bold red]interrupted[/] after {frames_done[0]} frames; the results so far are in "
+            f"{out}. Continue with: ssp run --resume {out}"
         )
+        raise typer.Exit(130) from None
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+    _print_run(summary, input_path)
+    if not summary.done:
+        raise typer.Exit(1)
+
+
+def _stop_on_sigterm():
+    """Make SIGTERM stop a run like Ctrl-C (a clean 'interrupted' summary and a resume hint);
+    returns the previous handler (None when signals cannot be set here)."""
+
+    def stop(signum, frame):
+        raise KeyboardInterrupt
+
+    try:
+        return signal.signal(signal.SIGTERM, stop)
+    except ValueError:  # not the main thread
+        return None
+
+
+def _print_run(summary, input_path: Path) -> None:
     info = summary.to_dict()
     table = Table(title=f"ssp run: {input_path} ({summary.kind})")
     for col in ("frame", "objects", "hypotheses", "perception s", "parser s"):
@@ -958,11 +1116,18 @@ def run_cmd(
         + (f", {info['sec_per_frame']:.2f} s per frame" if info["sec_per_frame"] else "")
     )
     for f in summary.failed:
-        console.print(f"[red]skipped[/] {f['frame']}: {f['error']}")
+        bug = f"failed ({f['error_type']}, a bug: please report it)"
+        tag = bug if f["unexpected"] else "skipped"
+        console.print(f"[red]{tag}[/] {f['frame']}: {escape(f['error'])}", highlight=False)
+    for w in summary.warnings:
+        console.print(f"[yellow]warning[/] {w['frame']}: {escape(w['warning'])}", highlight=False)
+    if info["unexpected_errors"]:
+        console.print(
+            f"[bold red]{info['unexpected_errors']} frames failed with unexpected errors[/] "
+            "(tracebacks in the log above)"
+        )
     for f in summary.files:
         console.print(f"wrote [bold]{f}[/]")
-    if not summary.done:
-        raise typer.Exit(1)
 
 
 @app.command()

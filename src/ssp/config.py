@@ -10,6 +10,7 @@ YAML round trip: :func:`load_config` / :func:`dump_config`; ``ssp dump-config`` 
 
 from __future__ import annotations
 
+import difflib
 import math
 from pathlib import Path
 from typing import Any, Literal
@@ -21,7 +22,10 @@ from ssp.errors import ConfigError, SSPError
 
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True, frozen=False)
+    # allow_inf_nan=False: a non-finite number (YAML .inf, .nan) is rejected with its field path
+    model_config = ConfigDict(
+        extra="forbid", validate_assignment=True, frozen=False, allow_inf_nan=False
+    )
 
 
 class PhysicsConfig(_Section):
@@ -609,28 +613,119 @@ class SSPConfig(_Section):
     seed: int = Field(0, description="Seed for everything random in ssp.")
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any] | None) -> SSPConfig:
-        """Validate a (possibly partial) nested dict; missing fields keep their defaults."""
+    def from_dict(cls, data: dict[str, Any] | None, where: str = "configuration") -> SSPConfig:
+        """Validate a (possibly partial) nested dict; missing fields keep their defaults.
+
+        Raises:
+            ConfigError: one line per problem, ``where: section.field: problem``, with the
+                closest valid key for an unknown one (:func:`config_problems`).
+        """
         try:
             return cls.model_validate(data or {})
         except ValidationError as exc:
-            raise ConfigError(f"invalid configuration:\n{exc}") from exc
+            lines = config_problems(exc)
+            head = f"{where}: " if len(lines) == 1 else f"{where}: {len(lines)} problems:\n  "
+            raise ConfigError(head + "\n  ".join(lines)) from None
 
     def to_dict(self) -> dict[str, Any]:
         """Plain nested dict (JSON/YAML types only)."""
         return self.model_dump(mode="json")
 
 
+# ------------------------------------------------------------------------------ messages
+def _field_paths(model: type[BaseModel], prefix: str = "") -> list[str]:
+    """Every dotted key of ``model`` (sections and their fields), e.g. ``physics.timestep``."""
+    out = []
+    for name, info in model.model_fields.items():
+        key = prefix + name
+        out.append(key)
+        sub = info.annotation
+        if isinstance(sub, type) and issubclass(sub, BaseModel):
+            out.extend(_field_paths(sub, key + "."))
+    return out
+
+
+def _section_at(loc: tuple) -> type[BaseModel] | None:
+    """The config section class at ``loc`` (a tuple of field names), or None."""
+    model: Any = SSPConfig
+    for part in loc:
+        info = model.model_fields.get(part) if isinstance(part, str) else None
+        sub = info.annotation if info is not None else None
+        if not (isinstance(sub, type) and issubclass(sub, BaseModel)):
+            return None
+        model = sub
+    return model
+
+
+def _suggest(loc: tuple) -> str:
+    """`` (did you mean 'x'?)`` for an unknown key at ``loc``, or ``""``."""
+    key = str(loc[-1])
+    section = _section_at(loc[:-1])
+    if section is not None:
+        close = difflib.get_close_matches(key, list(section.model_fields), n=1, cutoff=0.6)
+        if close:
+            return f" (did you mean {'.'.join([*map(str, loc[:-1]), close[0]])!r}?)"
+    paths = _field_paths(SSPConfig)
+    by_leaf = {p: p.rsplit(".", 1)[-1] for p in paths}
+    close = difflib.get_close_matches(key, list(set(by_leaf.values())), n=1, cutoff=0.75)
+    if close:
+        where = sorted(p for p, leaf in by_leaf.items() if leaf == close[0])
+        return f" (did you mean {where[0]!r}?)"
+    if section is not None:
+        return f"; valid keys here: {', '.join(section.model_fields)}"
+    return ""
+
+
+def _loc(loc: tuple) -> str:
+    out = ""
+    for part in loc:
+        out += f"[{part}]" if isinstance(part, int) else (f".{part}" if out else str(part))
+    return out or "(top level)"
+
+
+def config_problems(exc: ValidationError) -> list[str]:
+    """One readable line per problem of a configuration :class:`ValidationError`:
+    ``section.field: what is wrong (got value)``; unknown keys get the closest valid key
+    (difflib). Repeated lines (one per missing tuple item) are merged."""
+    lines: list[str] = []
+    for err in exc.errors():
+        loc = tuple(err["loc"])
+        kind = err["type"]
+        got = err.get("input")
+        if kind == "extra_forbidden":
+            line = f"{_loc(loc)}: unknown setting{_suggest(loc)}"
+        elif kind == "missing" and loc and isinstance(loc[-1], int):
+            line = f"{_loc(loc[:-1])}: too few values, got {got!r}"
+        else:
+            msg = str(err["msg"]).removeprefix("Value error, ")
+            shown = got if not isinstance(got, dict) else None
+            line = f"{_loc(loc)}: {msg[:1].lower()}{msg[1:]}" + (
+                f" (got {shown!r})" if shown is not None else ""
+            )
+        if line not in lines:
+            lines.append(line)
+    return lines
+
+
 def read_yaml(path: Path, error: type[SSPError], what: str = "file") -> Any:
-    """Parsed YAML of ``path`` (None if empty); raises ``error`` if unreadable or invalid."""
+    """Parsed YAML of ``path`` (None if empty); raises ``error`` if unreadable, not UTF-8 text,
+    or invalid YAML."""
     try:
         text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise error(
+            f"{path}: the {what} is not UTF-8 text (byte {exc.object[exc.start]:#04x} at "
+            f"offset {exc.start}): save it as UTF-8"
+        ) from None
     except OSError as exc:
         raise error(f"cannot read {what} {path}: {exc}") from exc
     try:
         return yaml.safe_load(text)
     except yaml.YAMLError as exc:
-        raise error(f"{path} is not valid YAML: {exc}") from exc
+        mark = getattr(exc, "problem_mark", None)
+        where = f"{path}:{mark.line + 1}:{mark.column + 1}" if mark is not None else str(path)
+        what = " ".join(str(getattr(exc, "problem", None) or exc).split())
+        raise error(f"{where}: not valid YAML: {what}") from exc
 
 
 def load_config(path: str | Path) -> SSPConfig:
@@ -639,14 +734,23 @@ def load_config(path: str | Path) -> SSPConfig:
     data = read_yaml(path, ConfigError, "config file")
     if data is not None and not isinstance(data, dict):
         raise ConfigError(f"{path}: the top level must be a mapping of sections")
-    return SSPConfig.from_dict(data)
+    return SSPConfig.from_dict(data, str(path))
 
 
 def dump_config(config: SSPConfig, path: str | Path | None = None) -> str:
-    """YAML text of ``config`` (written to ``path`` when given), with a units header."""
+    """YAML text of ``config`` (written atomically to ``path`` when given), with a units header.
+
+    Raises:
+        ConfigError: ``path`` cannot be written.
+    """
+    from ssp.io._files import atomic_write_text
+
     text = "# ssp configuration. Units: metres, kilograms, seconds, radians.\n" + yaml.safe_dump(
         config.to_dict(), sort_keys=False
     )
     if path is not None:
-        Path(path).write_text(text)
+        try:
+            atomic_write_text(path, text)
+        except OSError as exc:
+            raise ConfigError(f"cannot write {path}: {exc}") from exc
     return text

@@ -54,6 +54,11 @@ class WorldMismatchError(PhysicsError, ValueError):
     """A saved world state was restored into a world other than the one that saved it."""
 
 
+class ArgumentError(SSPError, ValueError):
+    """A function argument or command option that cannot be used (an unknown mode, a BOP
+    method name with ``_``, an output folder that holds something else)."""
+
+
 class InputError(SSPError, ValueError):
     """An input file or folder (cloud, hypotheses JSON, scene description) that cannot be used."""
 

@@ -908,15 +908,23 @@ class _Outcome:
 
 def parse_sequence(
     parser: SceneParser, frames: Iterable[Frame]
-) -> Iterator[tuple[int, SceneEstimate | SSPError]]:
+) -> Iterator[tuple[int, SceneEstimate | Exception]]:
     """Feed ``frames`` to ``parser``; yields ``(index, estimate)`` or ``(index, error)``.
 
-    A frame that fails (bad input, a physics failure) is logged and skipped: the parser's state
-    stays that of the last good frame, and the sequence goes on.
+    A frame that fails is logged and skipped: the parser's state stays that of the last good
+    frame, and the sequence goes on. Bad input and physics failures raise :class:`SSPError`
+    (logged as a warning); any other exception is a bug, logged with its traceback as an error
+    and yielded all the same, so one frame never ends the sequence. ``KeyboardInterrupt`` and
+    ``SystemExit`` are not caught.
     """
     for i, frame in enumerate(frames):
         try:
-            yield i, parser.update(frame)
+            estimate = parser.update(frame)
         except SSPError as exc:
             log.warning("frame %d skipped: %s", i, exc)
             yield i, exc
+        except Exception as exc:  # a bug: count it, keep its traceback, go on
+            log.error("frame %d failed with an unexpected error", i, exc_info=exc)
+            yield i, exc
+        else:
+            yield i, estimate

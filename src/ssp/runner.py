@@ -1,97 +1,236 @@
 """``ssp run``: the whole pipeline over recorded frames, with files in and files out.
 
 Inputs (``docs/formats.md``): a folder of PLY/PCD clouds (:func:`ssp.io.folder.open_folder`)
-or a BOP scene folder written by ``ssp simulate`` (:func:`ssp.sim.bop.read_bop`). Each frame
-goes through the perception front end (:class:`ssp.perception.Perception`; given hypotheses
-replace its estimator) and the scene parser. Outputs in ``out``:
+or a BOP scene folder written by ``ssp simulate`` (:func:`ssp.sim.bop.open_bop`). Both are
+read frame by frame: a frame's files are read when its turn comes, so one unreadable frame
+fails alone and a long input is never in memory at once. Each frame goes through the
+perception front end (:class:`ssp.perception.Perception`; given hypotheses replace its
+estimator) and the scene parser. Outputs in ``out``:
 
 * ``frames/<name>.json``: the parser's estimate (:func:`ssp.io.results.frame_record`) plus the
-  front end's timings and hypothesis count;
+  front end's timings and hypothesis count, or the error of a failed frame;
 * ``<method>_<dataset>-test.csv``: BOP19 results (poses in the camera frame, t in mm; in the
   world frame when the camera pose is unknown, as the frame's ``poses_in`` says);
 * ``obj_ids.json``: class name -> BOP ``obj_id``;
-* ``summary.json``: frames done and failed (with the reason), objects, times.
+* ``summary.json``: frames done and failed (with the reason), warnings, objects, times;
+* ``run.json``: what the run reads (input files, models, config, options), to check a resume;
+* ``state.json``: the parser's state after the last finished frame, and where to go on.
 
-A frame that cannot be read or perceived, or that the parser rejects, is recorded in the
-summary and skipped; the parser's state is untouched by it (:meth:`SceneParser.update`).
+**Containment.** Any exception in one frame (reading, perception, parser, formatting its
+results) is logged (with its traceback when it is not an :class:`SSPError`: a bug) and the
+frame is reported failed in its JSON and in the summary, which counts the unexpected errors
+apart; the run goes on with the parser state of the last good frame. ``KeyboardInterrupt``
+and ``SystemExit`` stop the run (the outputs stay consistent).
+
+**Crash safety.** Per frame, in this order: its JSON (atomic replace), its CSV rows (fsynced),
+then ``state.json`` (atomic; the commit: the frame counts as finished from here), then
+``summary.json``. ``summary.json`` and ``obj_ids.json`` exist from the start. A run stopped at
+any point (SIGKILL included) is continued by ``run(..., resume=True)`` (``ssp run --resume
+OUT``): the CSV is cut back to the size recorded at the last commit, frame JSONs of frames not
+committed are deleted, the parser resumes from its saved state, and the results are those of
+an uninterrupted run (only the wall times differ: :data:`TIMING_KEYS`).
 """
 
 from __future__ import annotations
 
+import difflib
+import hashlib
+import itertools
+import json
 import logging
+import os
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from ssp import __version__
 from ssp.config import SSPConfig
-from ssp.errors import InputError, SSPError
+from ssp.errors import ArgumentError, InputError, SSPError
 from ssp.geometry import invert
-from ssp.io.folder import is_bop_scene, open_folder
+from ssp.io._files import atomic_write_text, file_problem, fsync_dir, to_jsonable
+from ssp.io.folder import SCENE_JSON, check_folder, is_bop_scene, open_folder
 from ssp.io.results import BopCsvWriter, ObjectIds, bop_csv_name, frame_record, write_json
 from ssp.parser import SceneParser
 from ssp.perception.pipeline import Perception, PerceptionResult
 
-__all__ = ["HYPOTHESES_MODES", "RunSummary", "run"]
+__all__ = [
+    "HYPOTHESES_MODES",
+    "RUN_JSON",
+    "STATE_JSON",
+    "TIMING_KEYS",
+    "RunSummary",
+    "check_out_dir",
+    "read_run",
+    "run",
+]
 
 log = logging.getLogger(__name__)
 
 #: ``auto``: the input's hypotheses when it has them, else the built-in estimator;
 #: ``given``: only the input's (a frame without is an error); ``estimated``: always estimate.
 HYPOTHESES_MODES = ("auto", "given", "estimated")
+FRAMES_DIR = "frames"
+SUMMARY_JSON = "summary.json"
+OBJ_IDS_JSON = "obj_ids.json"
+RUN_JSON = "run.json"
+STATE_JSON = "state.json"
+RUN_FORMAT, STATE_FORMAT, FORMAT_VERSION = "ssp-run", "ssp-run-state", 1
+#: Keys holding wall times, in frame JSONs (also under ``perception``) and summary records:
+#: the only values that differ between two runs of one input (or a run and its resume).
+TIMING_KEYS = ("seconds", "timings", "perception_s", "parser_s", "sec_per_frame")
 
 
+# ------------------------------------------------------------------------------ summary
 @dataclass
 class RunSummary:
-    """What :func:`run` did (also written to ``summary.json``)."""
+    """What :func:`run` did (also written to ``summary.json``).
+
+    ``done`` and ``failed`` hold one record per frame (``failed``: ``frame``, ``index``,
+    ``error``, ``error_type``, ``unexpected``); ``unexpected_errors`` counts the failures that
+    are not :class:`SSPError` (bugs); ``warnings`` holds ``{frame, warning}``; ``status`` is
+    ``running``, ``finished``, ``interrupted`` (KeyboardInterrupt, SystemExit) or ``stopped``
+    (an error outside any frame, such as a full disk).
+    """
 
     input: str
     kind: str
     frames: int = 0
     done: list[dict[str, Any]] = field(default_factory=list)
     failed: list[dict[str, Any]] = field(default_factory=list)
+    warnings: list[dict[str, str]] = field(default_factory=list)
     files: list[str] = field(default_factory=list)
+    status: str = "running"
+    _done_text: list[str] = field(default_factory=list, init=False, repr=False)  # JSON per record
+
+    @property
+    def unexpected_errors(self) -> int:
+        return sum(bool(f.get("unexpected")) for f in self.failed)
+
+    def add(self, frame_json: Mapping[str, Any]) -> dict[str, Any]:
+        """Add a finished frame from its ``frames/<name>.json`` content (so that a resumed
+        run rebuilds the summary of the frames done before it stopped); returns its record."""
+        name = frame_json["name"]
+        self.warnings.extend({"frame": name, "warning": w} for w in frame_json.get("warnings", []))
+        if frame_json.get("status") == "failed":
+            record = {
+                "frame": name,
+                "index": frame_json["index"],
+                "error": frame_json["error"],
+                "error_type": frame_json["error_type"],
+                "unexpected": frame_json["unexpected"],
+            }
+            self.failed.append(record)
+            return record
+        T_wc = frame_json.get("T_world_cam")
+        record = {
+            "frame": name,
+            "index": frame_json["index"],
+            "objects": len(frame_json["objects"]),
+            "hypotheses": frame_json["perception"]["hypotheses"],
+            "poses_in": "world" if T_wc is None else "camera",
+            "perception_s": frame_json["perception"]["timings"].get("total", 0.0),
+            "parser_s": frame_json["timings"].get("total", 0.0),
+            "seconds": frame_json["seconds"],
+        }
+        self.done.append(record)
+        return record
+
+    def to_json(self) -> str:
+        """:meth:`to_dict` as compact JSON; the per-frame records are serialised once each, so
+        writing the summary after every frame costs a string join, not a re-encoding."""
+        self._done_text += [
+            json.dumps(r, allow_nan=False) for r in self.done[len(self._done_text) :]
+        ]
+        head = {k: v for k, v in self.to_dict().items() if k != "per_frame"}
+        text = json.dumps(to_jsonable(head), allow_nan=False)
+        return f'{text[:-1]}, "per_frame": [{", ".join(self._done_text)}]}}\n'
 
     def to_dict(self) -> dict[str, Any]:
         secs = [d["seconds"] for d in self.done]
         return {
+            "status": self.status,
             "input": self.input,
             "kind": self.kind,
             "frames": self.frames,
             "done": len(self.done),
             "failed": self.failed,
+            "unexpected_errors": self.unexpected_errors,
+            "warnings": self.warnings,
             "sec_per_frame": float(np.mean(secs)) if secs else None,
             "per_frame": self.done,
             "files": self.files,
         }
 
 
+# ------------------------------------------------------------------------------ inputs
 @dataclass
 class _Source:
-    """One input frame: its name, 0-based index, and a function that reads and perceives it."""
+    """One input frame: its name, index (BOP ``im_id`` or folder position), the files it is
+    read from, and a function that reads and perceives it (result and warnings)."""
 
     name: str
     index: int
-    perceive: Callable[[], PerceptionResult]
+    files: tuple[str, ...]
+    perceive: Callable[[], tuple[PerceptionResult, list[str]]]
+
+    def where(self, message: str) -> str:
+        """The file to name in an error ``message`` that names none: the hypotheses file for
+        a problem with a hypothesis (when the frame has one), else the frame's main file."""
+        if any(f in message for f in self.files):
+            return message
+        about_hyp = message.startswith(("hypothesis", "instance id", "invalid pose"))
+        f = self.files[-1] if about_hyp and len(self.files) > 1 else self.files[0]
+        return f"{f}: {message}"
 
 
-def _folder_sources(path: Path, perception: Perception, mode: str) -> list[_Source]:
+@dataclass
+class _Input:
+    """An opened input: its kind, frame count, and the frames from position ``start`` on."""
+
+    kind: str
+    total: int
+    sources: Callable[[int], Iterator[_Source]]
+
+
+def _unknown_class(name: str, library: Mapping) -> str:
+    close = difflib.get_close_matches(name, list(library), n=1)
+    hint = f" (did you mean {close[0]!r}?)" if close else ""
+    return f"class {name!r} is not in the library{hint}; known: {', '.join(library) or 'none'}"
+
+
+def _open_folder_input(path: Path, library: Mapping, perception: Perception, mode: str) -> _Input:
     folder = open_folder(path)
     spec = folder.spec
+    scene = path / SCENE_JSON
+    for what, mapping in (("classes", spec.classes), ("colors", spec.colors)):
+        for key, cls in mapping.items():
+            if cls not in library:
+                label = f"#{key:06x}" if what == "colors" else str(key)
+                raise InputError(f"{scene}: {what}[{label!r}]: {_unknown_class(cls, library)}")
 
-    def make(ff) -> Callable[[], PerceptionResult]:
-        def perceive() -> PerceptionResult:
+    def make(ff) -> Callable[[], tuple[PerceptionResult, list[str]]]:
+        def perceive() -> tuple[PerceptionResult, list[str]]:
             raw = folder.load(ff)
             hyps = None if mode == "estimated" else raw.hypotheses
             if mode == "given" and hyps is None:
-                raise InputError(f"{ff.name}: no hypotheses file and --hypotheses given")
+                raise InputError(
+                    f"{ff.cloud_path}: no hypotheses file {ff.name}.hypotheses.json and "
+                    "--hypotheses given"
+                )
+            for i, h in enumerate(hyps or []):
+                if h.class_name not in library:
+                    raise InputError(
+                        f"{ff.hypotheses_path}: hypothesis {i}: "
+                        f"{_unknown_class(h.class_name, library)}"
+                    )
             T_wc = spec.T_world_cam
             if T_wc is None and raw.frame == "world":
                 T_wc = raw.viewpoint
-            return perception.from_points(
+            result = perception.from_points(
                 raw.points,
                 frame=raw.frame,
                 stamp=raw.stamp,
@@ -102,42 +241,290 @@ def _folder_sources(path: Path, perception: Perception, mode: str) -> list[_Sour
                 hypotheses=hyps,
                 hypotheses_frame=raw.hypotheses_frame or "world",
             )
+            return result, list(raw.warnings)
 
         return perceive
 
-    return [_Source(ff.name, ff.index, make(ff)) for ff in folder.frames]
+    def sources(start: int) -> Iterator[_Source]:
+        for ff in folder.frames[start:]:
+            files = (str(ff.cloud_path),) + (
+                (str(ff.hypotheses_path),) if ff.hypotheses_path is not None else ()
+            )
+            yield _Source(ff.name, ff.index, files, make(ff))
+
+    return _Input("folder", len(folder.frames), sources)
 
 
-def _bop_sources(path: Path, library, cfg, classes, mode: str) -> list[_Source]:
-    from ssp.sim.bop import read_bop
+def _open_bop_input(path: Path, library: Mapping, cfg: SSPConfig, classes, mode: str) -> _Input:
+    from ssp.sim.bop import open_bop
 
-    seq = read_bop(path, library)
-    perception = Perception(library, cfg, classes or seq.models or None)
-    has_hyps = (path / "hypotheses.json").is_file()
-    if mode == "given" and not has_hyps:
+    scene = open_bop(path, library)
+    perception = Perception(library, cfg, classes or scene.models or None)
+    hyp_file = path / "hypotheses.json"
+    if mode == "given" and not scene.has_hypotheses:
         raise InputError(f"{path}: no hypotheses.json and --hypotheses given")
 
-    def make(i: int) -> Callable[[], PerceptionResult]:
-        sf = seq.frames[i]
-
-        def perceive() -> PerceptionResult:
+    def make(k: int) -> Callable[[], tuple[PerceptionResult, list[str]]]:
+        def perceive() -> tuple[PerceptionResult, list[str]]:
+            im = scene.im_ids[k]
+            warnings = []
+            use_given = scene.has_hypotheses and mode != "estimated"
+            if use_given and not scene.has_entry(k):
+                if mode == "given":
+                    raise InputError(f"{hyp_file}: no entry for im_id {im} and --hypotheses given")
+                warnings.append(
+                    f"{hyp_file}: no entry for im_id {im}: its hypotheses were estimated"
+                )
+                log.warning("%s", warnings[-1])
+                use_given = False
+            sf = scene.load(k)
             mask = np.asarray(sf.instance).astype(np.int64)
             mask[mask < -1] = -1
-            use_given = has_hyps and mode != "estimated"
-            return perception.from_depth(
+            result = perception.from_depth(
                 sf.depth,
-                seq.camera,
+                scene.camera,
                 stamp=sf.stamp,
-                T_world_cam=seq.T_world_cam,
+                T_world_cam=scene.T_world_cam,
                 mask=mask,
                 hypotheses=list(sf.hypotheses) if use_given else None,
             )
+            return result, warnings
 
         return perceive
 
-    return [_Source(f"{sf.index:06d}", sf.index, make(i)) for i, sf in enumerate(seq.frames)]
+    def sources(start: int) -> Iterator[_Source]:
+        for k in range(start, len(scene)):
+            im = scene.im_ids[k]
+            files = (str(path / "depth" / f"{im:06d}.png"), str(hyp_file))
+            yield _Source(f"{im:06d}", im, files, make(k))
+
+    return _Input("bop", len(scene), sources)
 
 
+def _input_files(path: Path, kind: str) -> dict[str, Any]:
+    """``{relative name: [size, mtime_ns]}`` (or the problem of an entry that is not a regular
+    file) of the files the run reads: the input folder's own files, and for a BOP scene those
+    of ``depth/``, ``instance/`` and ``mask_visib/``. Never opens a file."""
+    out: dict[str, Any] = {}
+    folders = [path] + (
+        [path / d for d in ("depth", "instance", "mask_visib")] if kind == "bop" else []
+    )
+    for folder in folders:
+        if not folder.is_dir():
+            continue
+        with os.scandir(folder) as it:
+            entries = sorted(it, key=lambda e: e.name)
+        for e in entries:
+            problem = file_problem(e.path)
+            if e.name.startswith(".") or problem == "is a folder, not a file":
+                continue
+            rel = os.path.relpath(e.path, path)
+            if problem is None:
+                st = e.stat()
+                out[rel] = [st.st_size, st.st_mtime_ns]
+            else:
+                out[rel] = problem
+    return out
+
+
+def _library_digests(library: Mapping) -> dict[str, str]:
+    """``{class: sha256}`` of what the parser uses of each model (geometry, parts, mass
+    properties, friction, samples, symmetries): equal digests, equal results."""
+    out = {}
+    for name in sorted(library):
+        m = library[name]
+        h = hashlib.sha256(name.encode())
+        arrays = [m.mesh.vertices, m.mesh.faces, m.center_of_mass, m.inertia]
+        arrays += [m.surface_points, m.surface_normals, m.interior_points, m.symmetry.discrete]
+        for part in m.convex_parts:
+            arrays += [part.vertices, part.faces]
+        for c in m.symmetry.continuous:
+            arrays += [c.axis, c.offset]
+        for a in arrays:
+            a = np.ascontiguousarray(a)
+            h.update(str((a.dtype.str, a.shape)).encode())
+            h.update(a.tobytes())
+        h.update(repr((float(m.mass), float(m.friction), len(m.convex_parts))).encode())
+        out[name] = h.hexdigest()
+    return out
+
+
+# ------------------------------------------------------------------------------ run folders
+def _read_doc(p: Path, fmt: str, what: str) -> dict[str, Any]:
+    """The JSON object of ``p`` with ``format == fmt`` and this module's version."""
+    try:
+        doc = json.loads(p.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise ArgumentError(f"{p}: cannot read: {exc}") from exc
+    if not isinstance(doc, dict) or doc.get("format") != fmt:
+        raise ArgumentError(f"{p}: not an {what} (format {fmt!r})")
+    if doc.get("version") != FORMAT_VERSION:
+        raise ArgumentError(
+            f"{p}: {what} version {doc.get('version')!r}; this ssp reads {FORMAT_VERSION}"
+        )
+    return doc
+
+
+def read_run(out_dir: str | os.PathLike) -> dict[str, Any]:
+    """The ``run.json`` of an output folder (what the run reads and its options).
+
+    Raises:
+        ArgumentError: the folder holds no ssp run, or its run.json is unreadable.
+    """
+    p = Path(out_dir) / RUN_JSON
+    if not p.is_file():
+        raise ArgumentError(f"{out_dir}: no ssp run here (no {RUN_JSON}): nothing to resume")
+    return _read_doc(p, RUN_FORMAT, "ssp run manifest")
+
+
+def _read_state(out: Path) -> dict[str, Any] | None:
+    p = out / STATE_JSON
+    return _read_doc(p, STATE_FORMAT, "ssp run state") if p.exists() else None
+
+
+def _flat(d: Any, prefix: str = "") -> dict[str, Any]:
+    if not isinstance(d, dict):
+        return {prefix: d}
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        out.update(_flat(v, f"{prefix}.{k}" if prefix else str(k)))
+    return out
+
+
+def _differences(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
+    """What differs between the recorded and the current manifest, one phrase each."""
+    diffs = []
+    for key, what in (("input", "input"), ("kind", "input kind"), ("ssp", "ssp version")):
+        if old.get(key) != new.get(key):
+            diffs.append(f"{what} {old.get(key)!r} -> {new.get(key)!r}")
+    for k, v in new["options"].items():
+        if old.get("options", {}).get(k) != v:
+            diffs.append(f"option {k} {old.get('options', {}).get(k)!r} -> {v!r}")
+    a, b = _flat(old.get("config", {})), _flat(new["config"])
+    changed = sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k))
+    if changed:
+        shown = ", ".join(f"{k} {a.get(k)!r} -> {b.get(k)!r}" for k in changed[:4])
+        diffs.append("config " + shown + (" ..." if len(changed) > 4 else ""))
+    la, lb = old.get("library", {}), new["library"]
+    models = sorted(k for k in la.keys() | lb.keys() if la.get(k) != lb.get(k))
+    if models:
+        diffs.append(f"models {', '.join(models[:6])} differ (--models {old.get('models')!r})")
+    fa, fb = old.get("input_files", {}), new["input_files"]
+    files = sorted(k for k in fa.keys() | fb.keys() if fa.get(k) != fb.get(k))
+    if files:
+        diffs.append(
+            f"input files changed since the run started: {', '.join(files[:5])}"
+            + (f" and {len(files) - 5} more" if len(files) > 5 else "")
+        )
+    return diffs
+
+
+def _own_files(out: Path, manifest: Mapping[str, Any] | None) -> list[Path]:
+    """The files an ssp run wrote in ``out`` (and temporary files of atomic writes)."""
+    names = [RUN_JSON, STATE_JSON, SUMMARY_JSON, OBJ_IDS_JSON]
+    if manifest and isinstance(manifest.get("csv"), str):
+        names.append(Path(manifest["csv"]).name)
+    files = [out / n for n in names if (out / n).exists()]
+    files += [p for p in out.glob(".*.tmp")]
+    frames = out / FRAMES_DIR
+    if frames.is_dir():
+        files += sorted(frames.glob("*.json")) + sorted(frames.glob(".*.tmp"))
+    return files
+
+
+def check_out_dir(out: str | os.PathLike, overwrite: bool = False) -> None:
+    """ArgumentError unless ``out`` can take a new run (absent, empty, or with ``overwrite``
+    an earlier ssp run); :func:`run` checks it too, a command checks it before slow work."""
+    _prepare_fresh(Path(out), overwrite, clear=False)
+
+
+def _prepare_fresh(out: Path, overwrite: bool, clear: bool = True) -> None:
+    """Make sure ``out`` can take a new run: absent or empty, or an earlier ssp run that
+    ``overwrite`` allows to clear (only its own files go; ``clear=False``: only check)."""
+    if out.exists() and not out.is_dir():
+        raise ArgumentError(f"{out}: the output folder is a file")
+    if not out.exists() or not any(out.iterdir()):
+        return
+    if not (out / RUN_JSON).exists():
+        raise ArgumentError(
+            f"{out}: the output folder is not empty and holds no ssp run ({RUN_JSON}); "
+            "choose a new or empty --out folder"
+        )
+    try:
+        old = read_run(out)
+    except ArgumentError:
+        old = None
+    if not overwrite:
+        state = (_read_state(out) if old is not None else None) or {}
+        n, total = state.get("next", 0), state.get("total")
+        finished = total is not None and n >= total
+        of = "" if old is None else f" of {old['input']} ({n} of {total} frames done)"
+        again = "" if finished else f"continue it with `ssp run --resume {out}`, "
+        raise ArgumentError(
+            f"{out}: the output folder already holds {'a finished' if finished else 'an'} ssp "
+            f"run{of}: {again}replace it with --overwrite, or choose a new --out folder"
+        )
+    if not clear:
+        return
+    for p in _own_files(out, old):
+        p.unlink()
+    frames = out / FRAMES_DIR
+    if frames.is_dir() and not any(frames.iterdir()):
+        frames.rmdir()
+    log.info("%s: cleared the earlier run's files", out)
+
+
+def _prepare_resume(
+    out: Path, manifest: dict[str, Any], csv_path: Path, inp: _Input
+) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """Check that ``out`` holds a resumable run of the same input, models, config and options,
+    cut its CSV back to the last committed frame and delete uncommitted frame JSONs; returns
+    the saved state (empty if the run stopped before its first commit) and the frame JSONs of
+    the committed frames, in order."""
+    old = read_run(out)
+    diffs = _differences(old, manifest)
+    if diffs:
+        raise ArgumentError(
+            f"{out}: cannot resume: the run was started with other inputs: "
+            + "; ".join(diffs)
+            + ". Resume with the same input, --models, --config and options, or start a new "
+            "run in a new --out folder"
+        )
+    state = _read_state(out)
+    if state is None:  # stopped before its first commit: start over (run.json is kept)
+        for p in _own_files(out, old):
+            if p.name != RUN_JSON:
+                p.unlink()
+        return {}, []
+    size = int(state.get("csv_bytes", 0))
+    have = csv_path.stat().st_size if csv_path.exists() else 0
+    if have < size:
+        raise ArgumentError(
+            f"{csv_path}: {have} bytes, but the run had written {size}: the output folder was "
+            "modified; start a new run"
+        )
+    with open(csv_path, "r+b") as f:
+        f.truncate(size)
+    names = [src.name for src in itertools.islice(inp.sources(0), int(state["next"]))]
+    for p in _own_files(out, old):
+        stale = p.parent.name == FRAMES_DIR and p.suffix == ".json" and p.stem not in names
+        if stale or p.name.endswith(".tmp"):
+            log.info("%s: not committed before the run stopped; removed", p)
+            p.unlink()
+    records = []
+    for name in names:
+        p = out / FRAMES_DIR / f"{name}.json"
+        try:
+            records.append(json.loads(p.read_text(encoding="utf-8")))
+        except (OSError, ValueError) as exc:
+            raise ArgumentError(
+                f"{p}: the result of a finished frame cannot be read ({exc}): the output "
+                "folder was modified; start a new run"
+            ) from exc
+    return state, records
+
+
+# ------------------------------------------------------------------------------ run
 def run(
     input_path: str | Path,
     library: Mapping,
@@ -149,13 +536,17 @@ def run(
     method: str = "ssp",
     scene_id: int = 1,
     progress: Callable[[int, int, str], None] | None = None,
+    resume: bool = False,
+    overwrite: bool = False,
+    models: str | None = None,
 ) -> RunSummary:
     """Run perception and the scene parser over every frame of ``input_path``.
 
     Args:
         input_path: a folder of clouds or a BOP scene folder (module docstring).
         library: the object library (every class the input may contain).
-        out_dir: output folder (created).
+        out_dir: output folder: absent or empty, or (``resume``) a stopped run of the same
+            input, or (``overwrite``) an earlier run whose files are cleared first.
         config: ssp's settings.
         hypotheses: one of :data:`HYPOTHESES_MODES`.
         classes: the estimator's candidate classes (default: the classes a BOP scene lists,
@@ -163,84 +554,184 @@ def run(
         method: BOP method name (no ``_``).
         scene_id: BOP ``scene_id`` of the CSV rows.
         progress: called as ``progress(done, total, message)`` after each frame.
+        resume: continue the run in ``out_dir`` from its saved state (every frame it finished
+            is kept; the rest are processed as an uninterrupted run would).
+        overwrite: clear an earlier run's files in ``out_dir`` (nothing else is touched).
+        models: where ``library`` came from (a model folder, None: built-in), recorded.
 
     Raises:
-        InputError: the input as a whole cannot be used (no frames, bad ``scene.json``).
+        InputError: the input as a whole cannot be used (missing folder, no frames, bad
+            ``scene.json``, classes of ``scene.json`` not in the library).
+        ArgumentError: a bad option, an output folder that holds something else, or a
+            resume whose input, models, config or options differ from the recorded ones.
     """
     cfg = config if config is not None else SSPConfig()
     if hypotheses not in HYPOTHESES_MODES:
-        raise ValueError(f"hypotheses must be one of {HYPOTHESES_MODES}, got {hypotheses!r}")
+        raise ArgumentError(
+            f"hypotheses must be one of {', '.join(HYPOTHESES_MODES)}, got {hypotheses!r}"
+        )
     src = Path(input_path)
-    if not src.is_dir():
-        raise InputError(f"{src}: not a folder")
+    check_folder(src)
+    csv_name = bop_csv_name(src.resolve().name, method)  # checks the method name
     out = Path(out_dir)
-    (out / "frames").mkdir(parents=True, exist_ok=True)
-    if is_bop_scene(src):
-        sources, kind = _bop_sources(src, library, cfg, classes, hypotheses), "bop"
+    kind = "bop" if is_bop_scene(src) else "folder"
+    manifest = {
+        "format": RUN_FORMAT,
+        "version": FORMAT_VERSION,
+        "ssp": __version__,
+        "input": str(src.resolve()),
+        "kind": kind,
+        "models": None if models is None else str(models),
+        "options": {
+            "hypotheses": hypotheses,
+            "classes": None if classes is None else list(classes),
+            "method": method,
+            "scene_id": int(scene_id),
+        },
+        "csv": csv_name,
+        "config": cfg.to_dict(),
+        "library": _library_digests(library),
+        "input_files": _input_files(src, kind),
+    }
+    if kind == "bop":
+        inp = _open_bop_input(src, library, cfg, classes, hypotheses)
     else:
-        perception = Perception(library, cfg, classes)
-        sources, kind = _folder_sources(src, perception, hypotheses), "folder"
-    summary = RunSummary(str(src), kind, frames=len(sources))
+        inp = _open_folder_input(src, library, Perception(library, cfg, classes), hypotheses)
     ids = ObjectIds.for_input(src, list(library))
-    csv_path = out / bop_csv_name(src.resolve().name, method)
-    parser = SceneParser(library, cfg)
-    with BopCsvWriter(csv_path, method) as csv:
-        for n, source in enumerate(sources):
-            record = _run_frame(source, parser, csv, ids, scene_id, out)
-            (summary.done if "error" not in record else summary.failed).append(record)
-            if progress is not None:
-                msg = record.get("error") or f"{record['objects']} objects"
-                progress(n + 1, len(sources), f"{source.name}: {msg}")
-    write_json(out / "obj_ids.json", ids.to_json())
-    summary.files = [str(csv_path), str(out / "obj_ids.json"), str(out / "frames")]
-    write_json(out / "summary.json", summary.to_dict())
+    csv_path = out / csv_name
+    if resume:
+        state, finished = _prepare_resume(out, manifest, csv_path, inp)
+    else:
+        _prepare_fresh(out, overwrite)
+        state, finished = {}, []
+    (out / FRAMES_DIR).mkdir(parents=True, exist_ok=True)
+    summary = RunSummary(str(src), inp.kind, frames=inp.total)
+    summary.files = [str(csv_path), str(out / OBJ_IDS_JSON), str(out / FRAMES_DIR)]
+    for frame_json in finished:
+        summary.add(frame_json)
+    start = int(state.get("next", 0))
+    if "parser" in state:
+        parser = SceneParser.from_state(library, state["parser"], cfg)
+    else:
+        parser = SceneParser(library, cfg)
+    if not resume:
+        write_json(out / RUN_JSON, manifest)
+    write_json(out / OBJ_IDS_JSON, ids.to_json())
+    write_json(out / SUMMARY_JSON, summary.to_dict())
+    fsync_dir(out)
+    if start:
+        log.info("%s: resuming at frame %d of %d", out, start, inp.total)
+    run_state = {
+        "format": STATE_FORMAT,
+        "version": FORMAT_VERSION,
+        "total": inp.total,
+        "resumes": int(state.get("resumes", -1)) + 1,
+    }
+    with BopCsvWriter(csv_path, method, append=resume) as csv:
+        committed_parser = parser.state()
+
+        def commit(n_next: int, parser_state: dict[str, Any]) -> None:
+            """The frames before ``n_next`` are finished once this atomic write is done."""
+            doc = {**run_state, "next": n_next, "csv_bytes": csv.sync(), "parser": parser_state}
+            write_json(out / STATE_JSON, doc, indent=None)
+
+        try:
+            if not state:
+                commit(0, committed_parser)
+            for n, source in enumerate(inp.sources(start), start=start):
+                frame_json, lines = _run_frame(source, parser, csv, ids, scene_id)
+                failed = frame_json["status"] == "failed"
+                if failed and parser.state() != committed_parser:
+                    # it failed after the parser took it: go on from the last good frame
+                    parser = SceneParser.from_state(library, committed_parser, cfg)
+                write_json(out / FRAMES_DIR / f"{source.name}.json", frame_json)
+                csv.write_rows(lines)
+                parser_state = parser.state()
+                commit(n + 1, parser_state)
+                committed_parser = parser_state
+                record = summary.add(frame_json)
+                atomic_write_text(out / SUMMARY_JSON, summary.to_json())
+                if progress is not None:
+                    msg = record.get("error") or f"{record['objects']} objects"
+                    progress(n + 1, inp.total, f"{source.name}: {msg}")
+        except BaseException as exc:
+            # the summary holds the committed frames only; --resume continues from there
+            summary.status = "stopped" if isinstance(exc, Exception) else "interrupted"
+            try:
+                write_json(out / SUMMARY_JSON, summary.to_dict())
+            except Exception:  # the original error matters more
+                log.exception("could not write %s", out / SUMMARY_JSON)
+            raise
+    summary.status = "finished"
+    write_json(out / SUMMARY_JSON, summary.to_dict())
     return summary
 
 
-def _run_frame(source: _Source, parser: SceneParser, csv, ids, scene_id: int, out: Path) -> dict:
-    """Perceive and parse one frame; a record for the summary (with ``error`` on failure)."""
+def _run_frame(
+    source: _Source, parser: SceneParser, csv: BopCsvWriter, ids: ObjectIds, scene_id: int
+) -> tuple[dict[str, Any], list[str]]:
+    """Perceive and parse one frame: ``(frame JSON, CSV lines)``. Nothing is written here;
+    a failure anywhere gives a frame JSON with ``status: failed`` and no lines."""
     t0 = time.perf_counter()
+    warnings: list[str] = []
     try:
-        perceived = source.perceive()
+        perceived, warnings = source.perceive()
         estimate = parser.update(perceived.frame)
-    except (SSPError, ValueError) as exc:  # bad data; anything else is a bug and propagates
-        log.warning("frame %s skipped: %s", source.name, exc)
-        return {"frame": source.name, "index": source.index, "error": str(exc)}
-    seconds = time.perf_counter() - t0
-    extra = {
-        "perception": {
-            "hypotheses": len(perceived.frame.hypotheses),
-            "segments": len(perceived.segmentation.segment_ids),
-            "timings": perceived.timings,
-        },
-        "T_world_cam": None
-        if perceived.frame.T_world_cam is None
-        else perceived.frame.T_world_cam.tolist(),
-        "seconds": seconds,
-    }
-    write_json(
-        out / "frames" / f"{source.name}.json",
-        frame_record(estimate, name=source.name, index=source.index, extra=extra),
-    )
-    T_cam_world = (
-        np.eye(4) if perceived.frame.T_world_cam is None else invert(perceived.frame.T_world_cam)
-    )
-    for obj in estimate.objects:
-        csv.add(
-            scene_id,
-            source.index,
-            ids[obj.class_name],
-            float(obj.fit),
-            T_cam_world @ obj.T_world_obj,
-            seconds,
-        )
+        seconds = time.perf_counter() - t0
+        frame = perceived.frame
+        T_cam_world = np.eye(4) if frame.T_world_cam is None else invert(frame.T_world_cam)
+        lines = [
+            csv.format_row(
+                scene_id,
+                source.index,
+                ids[obj.class_name],
+                float(obj.fit),
+                T_cam_world @ obj.T_world_obj,
+                seconds,
+            )
+            for obj in estimate.objects
+        ]
+        extra = {
+            "status": "done",
+            "perception": {
+                "hypotheses": len(frame.hypotheses),
+                "segments": len(perceived.segmentation.segment_ids),
+                "timings": perceived.timings,
+            },
+            "T_world_cam": None if frame.T_world_cam is None else frame.T_world_cam.tolist(),
+            "seconds": seconds,
+        }
+        frame_json = frame_record(estimate, name=source.name, index=source.index, extra=extra)
+        # one list of doubts: the input's and the front end's, then the parser's
+        frame_json["warnings"] = [*warnings, *frame_json["warnings"]]
+        # a segment the parser got no hypothesis for: say what the front end made of it
+        for label, verdict in perceived.verdicts.items():
+            key = str(label)
+            if frame_json["segments"].get(key, "").startswith("no object"):
+                frame_json["segments"][key] = f"no object: {verdict}"
+        return to_jsonable(frame_json), lines
+    except Exception as exc:
+        return _failure(source, exc, warnings, time.perf_counter() - t0), []
+
+
+def _failure(
+    source: _Source, exc: Exception, warnings: list[str], seconds: float
+) -> dict[str, Any]:
+    """The frame JSON of a frame that failed with ``exc`` (logged here)."""
+    unexpected = not isinstance(exc, SSPError)
+    message = source.where(str(exc) or repr(exc))
+    if unexpected:
+        log.error("frame %s failed with an unexpected %s", source.name, type(exc).__name__,
+                  exc_info=exc)  # fmt: skip
+    else:
+        log.warning("frame %s skipped: %s", source.name, message)
     return {
-        "frame": source.name,
+        "name": source.name,
         "index": source.index,
-        "objects": len(estimate.objects),
-        "hypotheses": len(perceived.frame.hypotheses),
-        "poses_in": "world" if perceived.frame.T_world_cam is None else "camera",
-        "perception_s": perceived.timings.get("total", 0.0),
-        "parser_s": estimate.timings.get("total", 0.0),
+        "status": "failed",
+        "error": message,
+        "error_type": type(exc).__name__,
+        "unexpected": unexpected,
+        "warnings": warnings,
         "seconds": seconds,
     }

@@ -91,8 +91,10 @@ class Frame:
         rows dropped (the count is logged; ``labels`` are dropped with them), at least one left;
         the cloud is in metres (median distance from the origin <= :data:`MM_CLOUD_MEDIAN`);
         ``labels`` integer-valued of length N; each segment ``(K, 3)`` (non-finite rows
-        dropped); ``T_world_cam`` and every hypothesis pose rigid (:func:`validate_pose`,
-        re-orthonormalised); hypothesis scores finite; every class name in ``library``.
+        dropped); ``T_world_cam`` rigid; ``hypotheses`` a list of :class:`Hypothesis` with a
+        class name (str) in ``library``, ``instance_id`` None or a str, ``segment`` None or an
+        int, a finite score and a rigid pose (:func:`validate_pose`, re-orthonormalised) within
+        :data:`MM_CLOUD_MEDIAN` of the origin; one instance id never names two classes.
 
         Args:
             library: the object library (anything with ``in`` and ``names``/iteration, such
@@ -131,6 +133,11 @@ class Frame:
 
         segments = None
         if self.segments is not None:
+            if not isinstance(self.segments, Mapping):
+                raise FrameError(
+                    "segments must be a mapping {instance id: (K, 3) points}, got "
+                    f"{type(self.segments).__name__}"
+                )
             segments = {}
             for key, seg in self.segments.items():
                 segments[str(key)], _ = _clean_points(seg, f"segment {key!r}", allow_empty=True)
@@ -142,24 +149,7 @@ class Frame:
             except InvalidPoseError as exc:
                 raise FrameError(f"camera pose is invalid: {exc}") from exc
 
-        known = ", ".join(getattr(library, "names", None) or list(library)) or "none"
-        hypotheses = []
-        for i, h in enumerate(self.hypotheses):
-            what = f"hypothesis {i} ({h.class_name!r})"
-            if h.class_name not in library:
-                raise FrameError(f"{what}: unknown object class; known classes: {known}")
-            try:
-                T = validate_pose(h.T_world_obj, what)
-            except InvalidPoseError as exc:
-                raise FrameError(f"invalid pose of {exc}") from exc
-            if np.linalg.norm(T[:3, 3]) > MM_CLOUD_MEDIAN:
-                raise FrameError(
-                    f"{what}: translation {np.linalg.norm(T[:3, 3]):.1f} m from the origin looks "
-                    "like millimetres (ssp works in metres): divide it by 1000"
-                )
-            score = _finite_float(h.score, f"{what}: score")
-            hypotheses.append(replace(h, T_world_obj=T, score=score))
-
+        hypotheses = _validate_hypotheses(self.hypotheses, library, points)
         return Frame(
             stamp=stamp,
             points=points,
@@ -168,6 +158,96 @@ class Frame:
             segments=segments,
             T_world_cam=T_world_cam,
         )
+
+
+def _validate_hypotheses(
+    hypotheses: Any, library: Mapping[str, Any], points: np.ndarray
+) -> list[Hypothesis]:
+    """Checked copies of a frame's hypotheses (:meth:`Frame.validate`); FrameError naming the
+    hypothesis (index and class) and the problem."""
+    if not isinstance(hypotheses, (list, tuple)):
+        raise FrameError(
+            "hypotheses must be a list of ssp.Hypothesis (an empty list for none), got "
+            f"{type(hypotheses).__name__}"
+        )
+    known = ", ".join(getattr(library, "names", None) or list(library)) or "none"
+    out: list[Hypothesis] = []
+    classes_of_id: dict[str, tuple[int, str]] = {}
+    for i, h in enumerate(hypotheses):
+        if not isinstance(h, Hypothesis):
+            raise FrameError(
+                f"hypothesis {i}: expected an ssp.Hypothesis, got {type(h).__name__} "
+                "(build one with Hypothesis(class_name, T_world_obj, score))"
+            )
+        if not isinstance(h.class_name, str) or not h.class_name:
+            raise FrameError(
+                f"hypothesis {i}: class_name must be a non-empty string, got "
+                f"{type(h.class_name).__name__} {h.class_name!r}"
+            )
+        what = f"hypothesis {i} ({h.class_name!r})"
+        if h.class_name not in library:
+            raise FrameError(f"{what}: unknown object class; known classes: {known}")
+        iid = h.instance_id
+        if iid is not None and (not isinstance(iid, str) or not iid):
+            raise FrameError(
+                f"{what}: instance_id must be None or a non-empty string, got "
+                f"{type(iid).__name__} {iid!r}" + (f" (use {str(iid)!r})" if iid != "" else "")
+            )
+        seg = h.segment
+        if seg is not None:
+            if isinstance(seg, bool) or not isinstance(seg, (int, np.integer)):
+                raise FrameError(
+                    f"{what}: segment must be None or an integer label, got "
+                    f"{type(seg).__name__} {seg!r}"
+                )
+            seg = int(seg)
+        if iid is not None:
+            first = classes_of_id.setdefault(iid, (i, h.class_name))
+            if first[1] != h.class_name:
+                raise FrameError(
+                    f"instance id {iid!r} is given to two classes in one frame: hypothesis "
+                    f"{first[0]} ({first[1]!r}) and {what}; one id is one object"
+                )
+        try:
+            T = validate_pose(h.T_world_obj, what)
+        except InvalidPoseError as exc:
+            raise FrameError(f"invalid pose of {exc}") from exc
+        score = _finite_float(h.score, f"{what}: score")
+        out.append(replace(h, T_world_obj=T, score=score, segment=seg))
+    far = [k for k, h in enumerate(out) if np.linalg.norm(h.T_world_obj[:3, 3]) > MM_CLOUD_MEDIAN]
+    if far:
+        raise FrameError(_far_message(out, far[0], points))
+    return out
+
+
+def _far_message(hypotheses: list[Hypothesis], k: int, points: np.ndarray) -> str:
+    """Why hypothesis ``k`` (farther than :data:`MM_CLOUD_MEDIAN` from the origin) is rejected:
+    its distance from the origin and from the cloud, and "millimetres" only when that is
+    plausible (scaled by 1/1000 it lies in the cloud's box, and no hypothesis of the frame
+    lies near the cloud in metres)."""
+    h = hypotheses[k]
+    t = h.T_world_obj[:3, 3]
+    lo, hi = points.min(axis=0), points.max(axis=0)
+
+    def gap(p: np.ndarray) -> float:  # distance from the cloud's bounding box, m
+        return float(np.linalg.norm(np.maximum(0.0, np.maximum(lo - p, p - hi))))
+
+    nearest = float(np.sqrt(np.min(np.sum((points - t) ** 2, axis=1))))
+    reach = float(np.max(np.linalg.norm(points, axis=1)))
+    msg = (
+        f"hypothesis {k} ({h.class_name!r}): translation {np.round(t, 3).tolist()} is "
+        f"{np.linalg.norm(t):.1f} m from the world origin and {nearest:.1f} m from the nearest "
+        f"point of the cloud (which lies within {reach:.2f} m of the origin)"
+    )
+    in_metres = [j for j, o in enumerate(hypotheses) if gap(o.T_world_obj[:3, 3]) < 1.0]
+    if gap(t / 1000.0) < 0.1 and not in_metres:
+        return msg + "; it looks like millimetres (ssp works in metres): divide it by 1000"
+    if in_metres:
+        return msg + (
+            f"; the frame's other hypotheses (e.g. {in_metres[0]}) lie at the cloud, so this "
+            "one is an outlier or a wrong pose"
+        )
+    return msg + "; no object of the scene can be there: check its frame and pose"
 
 
 def _clean_points(

@@ -10,9 +10,10 @@ at a pose, :func:`evidence` compares the model's surface samples with the frame:
   in front of it: the model is too small there, or inside what was seen), *seen through*
   (observed depth behind it: that space is empty), or *unknown* (no depth along its ray);
 * ``fit``: of the samples the camera could have seen (seen, seen through, or behind its own
-  surface), the fraction with a point of the object's segment within the inlier radius (model
-  to data; Eq. 10's ``c`` on the visible surface only, so a cube in full view scores near 1
-  and a half-hidden one too, and a cube proposed inside a ball does not);
+  surface), the fraction with a point of the object's segment within the inlier radius, or
+  within 0.75 point spacings of a sparser cloud (model to data; Eq. 10's ``c`` on the visible
+  surface only, so a cube in full view scores near 1 and a half-hidden one too, and a cube
+  proposed inside a ball does not);
 * ``explained``: the fraction of the segment's points within the inlier radius plus the sample
   spacing of the model surface (data to model), when the segment is the object's own instance
   segment;
@@ -88,6 +89,24 @@ class Verdict:
     evidence: Evidence | None = None
 
 
+#: A surface sample counts as explained within this many point spacings of the segment (at
+#: least the inlier radius): a grid of spacing s leaves no surface point farther than 0.71 s.
+SPACING_COVER = 0.75
+
+
+def point_spacing(tree: cKDTree, n: int = 256) -> float:
+    """Median distance (m) from a segment's points to their nearest other point (an evenly
+    strided subset of at most ``n``): the cloud's sampling on that object. A downsampled or
+    low-resolution cloud explains fewer model samples within a fixed radius; the fit counts
+    samples within :data:`SPACING_COVER` spacings, so it does not depend on the density."""
+    pts = tree.data
+    if len(pts) < 2:
+        return 0.0
+    q = pts[:: max(1, len(pts) // n)]
+    d, _ = tree.query(q, k=2)
+    return float(np.median(d[:, 1]))
+
+
 def _samples(model: ObjectModel, n: int) -> tuple[np.ndarray, np.ndarray]:
     p = np.asarray(model.surface_points, dtype=float)
     nrm = np.asarray(model.surface_normals, dtype=float)
@@ -131,7 +150,8 @@ def evidence(
         if tree is None and len(segment):
             tree = cKDTree(np.asarray(segment, dtype=float))
     if tree is not None and n_visible:
-        d, _ = tree.query(pw[visible], k=1, distance_upper_bound=config.data.inlier_radius)
+        radius = max(config.data.inlier_radius, SPACING_COVER * point_spacing(tree))
+        d, _ = tree.query(pw[visible], k=1, distance_upper_bound=radius)
         fit = float(np.count_nonzero(np.isfinite(d))) / n_visible
     explained = None
     if own_segment and tree is not None:

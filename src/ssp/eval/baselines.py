@@ -338,7 +338,7 @@ class SSPMethod:
     """ssp itself: :class:`SceneParser` (every object of :attr:`SceneEstimate.objects`,
     ephemeral and support-retained ones included). A frame the parser rejects
     (:class:`SSPError`) is logged and answered with the previous output (the parser's state
-    is that of the last good frame)."""
+    is that of the last good frame); any other exception too, logged with its traceback."""
 
     name = "ssp"
     tracks_ids = True
@@ -358,8 +358,11 @@ class SSPMethod:
     def update(self, frame: Frame) -> list[Detection]:
         try:
             est = self.parser.update(frame)
-        except SSPError as exc:
-            log.warning("ssp: frame at t = %s skipped: %s", frame.stamp, exc)
+        except Exception as exc:  # SSPError: bad frame; anything else a bug, with traceback
+            log.warning(
+                "ssp: frame at t = %s skipped: %s", frame.stamp, exc,
+                exc_info=None if isinstance(exc, SSPError) else exc,
+            )  # fmt: skip
             return [Detection(d.class_name, d.T_world_obj.copy()) for d in self._last]
         self.last_estimate = est
         self._last = [

@@ -1,11 +1,14 @@
-"""Small file helpers shared by :mod:`ssp.io`: atomic writes and JSON conversion."""
+"""Small file helpers shared by :mod:`ssp.io`: atomic writes, JSON conversion, and what is
+wrong with a path that should be a regular file."""
 
 from __future__ import annotations
 
 import enum
+import errno
 import json
 import math
 import os
+import stat
 import tempfile
 from collections.abc import Mapping
 from pathlib import Path
@@ -13,7 +16,56 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["atomic_write_bytes", "atomic_write_text", "to_jsonable", "write_json"]
+__all__ = [
+    "atomic_write_bytes",
+    "atomic_write_text",
+    "file_problem",
+    "fsync_dir",
+    "to_jsonable",
+    "write_json",
+]
+
+
+def file_problem(path: str | os.PathLike) -> str | None:
+    """Why ``path`` is not a readable regular file, as words that follow the path in a message
+    (``"is a FIFO ..."``), or None when it is one. Never opens the file (opening a FIFO blocks).
+    """
+    p = os.fspath(path)
+    try:
+        st = os.stat(p)  # follows symbolic links
+    except FileNotFoundError:
+        if os.path.islink(p):
+            return f"is a dangling symbolic link (its target {os.readlink(p)!r} does not exist)"
+        return "does not exist"
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            return "is a symbolic link loop (following it never reaches a file)"
+        return f"cannot be examined: {exc.strerror or exc}"
+    mode = st.st_mode
+    if stat.S_ISREG(mode):
+        return None
+    if stat.S_ISDIR(mode):
+        return "is a folder, not a file"
+    if stat.S_ISFIFO(mode):
+        return "is a FIFO (named pipe), not a regular file"
+    if stat.S_ISSOCK(mode):
+        return "is a socket, not a regular file"
+    return "is a device, not a regular file"
+
+
+def fsync_dir(path: str | os.PathLike) -> None:
+    """Flush a folder's entries (new and renamed files) to disk; a no-op where folders cannot
+    be opened (Windows)."""
+    try:
+        fd = os.open(os.fspath(path), os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:

@@ -46,7 +46,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ssp.errors import CloudFormatError
-from ssp.io._files import atomic_write_bytes
+from ssp.io._files import atomic_write_bytes, file_problem
 
 __all__ = ["CLOUD_SUFFIXES", "LABEL_FIELDS", "Cloud", "read_cloud", "write_cloud"]
 
@@ -118,8 +118,9 @@ def read_cloud(path: str | os.PathLike) -> Cloud:
         raise CloudFormatError(
             f"{p}: unknown point-cloud extension {p.suffix!r} (expected .ply or .pcd)"
         )
-    if not p.is_file():
-        raise CloudFormatError(f"{p}: no such file")
+    problem = file_problem(p)
+    if problem is not None:
+        raise CloudFormatError(f"{p}: {'no such file' if problem == 'does not exist' else problem}")
     try:
         raw = p.read_bytes()
     except OSError as exc:

@@ -10,7 +10,10 @@ Layout::
       frame10.ply
 
 Files starting with ``.``, sub-folders and other files are ignored. A frame's ``name`` is its
-cloud's file name without the extension (two clouds with one stem are an error).
+cloud's file name without the extension (two clouds with one stem are an error). A ``.ply`` /
+``.pcd`` entry that is not a regular file (a dangling symbolic link, a link loop, a FIFO, a
+device) is still a frame, in its place in the order: reading it fails with the reason, so the
+stamps and indices of the other frames never shift.
 
 ``scene.json`` (every key optional; an unknown key is an error naming the closest known one):
 
@@ -54,6 +57,7 @@ import numpy as np
 
 from ssp.errors import CloudFormatError, InputError, InvalidPoseError
 from ssp.geometry import validate_pose
+from ssp.io._files import file_problem
 from ssp.io.clouds import CLOUD_SUFFIXES, read_cloud
 from ssp.io.hypotheses import read_hypotheses
 from ssp.scene import MM_CLOUD_MEDIAN, Hypothesis
@@ -64,6 +68,7 @@ __all__ = [
     "FrameFile",
     "RawFrame",
     "SceneSpec",
+    "check_folder",
     "is_bop_scene",
     "natural_key",
     "open_folder",
@@ -163,6 +168,9 @@ class SceneSpec:
 def read_scene_json(path: str | os.PathLike) -> SceneSpec:
     """Read and validate a ``scene.json`` (InputError if unreadable or invalid)."""
     p = Path(path)
+    problem = file_problem(p)
+    if problem is not None:
+        raise InputError(f"{p}: {problem}")
     try:
         doc = json.loads(p.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError) as exc:
@@ -252,13 +260,16 @@ def _stamps(raw: Any, where: str) -> dict[str, float]:
 @dataclass(frozen=True)
 class FrameFile:
     """One frame of an input folder: ``index`` (0-based, natural-sort order), ``name`` (the
-    cloud's stem), its cloud, its hypotheses file or None, and ``stamp`` (s)."""
+    cloud's stem), its cloud, its hypotheses file or None, ``stamp`` (s; NaN for an entry
+    that cannot be read and has no stamp), and ``problem``: why the cloud entry is not a
+    regular file (:func:`ssp.io._files.file_problem`), None when it is one."""
 
     index: int
     name: str
     cloud_path: Path
     hypotheses_path: Path | None
     stamp: float
+    problem: str | None = None
 
 
 @dataclass
@@ -281,6 +292,8 @@ class RawFrame:
         hypotheses_frame: ``"world"`` or ``"camera"`` (then each ``T_world_obj`` holds
             ``T_cam_obj``; see :func:`ssp.io.hypotheses.to_world`), None without hypotheses.
         frame: ``"camera"`` or ``"world"``: the frame of ``points``.
+        warnings: what is suspicious but not fatal (a colour map that matches no point), for
+            the frame's output.
     """
 
     name: str
@@ -296,6 +309,7 @@ class RawFrame:
     hypotheses: list[Hypothesis] | None
     hypotheses_frame: str | None
     frame: str
+    warnings: list[str] = field(default_factory=list)
 
 
 def natural_key(name: str) -> tuple:
@@ -332,15 +346,18 @@ class FolderInput:
         """Read one frame's cloud and hypotheses.
 
         Raises:
-            CloudFormatError: the cloud cannot be read, has no finite point, or looks like
-                millimetres.
+            CloudFormatError: the cloud is not a regular file (:attr:`FrameFile.problem`),
+                cannot be read, has no finite point, or looks like millimetres.
             InputError: bad hypotheses file, label values not in ``classes``, or colours
                 required but missing. Every message names the file; other frames are unaffected.
         """
         ff = self.frames[frame] if isinstance(frame, int) else frame
+        if ff.problem is not None:
+            raise CloudFormatError(f"{ff.cloud_path}: {ff.problem}")
         cloud = read_cloud(ff.cloud_path)
         _check_metres(ff.cloud_path, cloud.points)
-        labels, kind, label_classes = _labels(self.spec, ff.cloud_path, cloud)
+        warnings: list[str] = []
+        labels, kind, label_classes = _labels(self.spec, ff.cloud_path, cloud, warnings)
         hyps, hframe = None, None
         if ff.hypotheses_path is not None:
             hf = read_hypotheses(ff.hypotheses_path)
@@ -359,6 +376,7 @@ class FolderInput:
             hypotheses=hyps,
             hypotheses_frame=hframe,
             frame=self.spec.frame,
+            warnings=warnings,
         )
 
 
@@ -367,20 +385,22 @@ def open_folder(path: str | os.PathLike) -> FolderInput:
 
     Raises:
         InputError: not a folder, no frame files, two clouds with one stem, invalid
-            ``scene.json``, or ``stamps`` that miss a frame, name no frame, or decrease.
+            ``scene.json``, or ``stamps`` that miss a readable frame, name no frame, or
+            decrease.
     """
     root = Path(path)
-    if not root.is_dir():
-        raise InputError(f"{root}: {'not a folder' if root.exists() else 'no such folder'}")
-    spec = read_scene_json(root / SCENE_JSON) if (root / SCENE_JSON).is_file() else SceneSpec()
+    check_folder(root)
+    scene = root / SCENE_JSON
+    spec = read_scene_json(scene) if os.path.lexists(scene) else SceneSpec()
     clouds = sorted(
         (
             p
             for p in root.iterdir()
-            if p.suffix.lower() in CLOUD_SUFFIXES and not p.name.startswith(".") and p.is_file()
+            if p.suffix.lower() in CLOUD_SUFFIXES and not p.name.startswith(".") and not p.is_dir()
         ),
         key=lambda p: natural_key(p.name),
     )
+    problems = {p: file_problem(p) for p in clouds}
     if not clouds:
         hint = (
             " (it looks like a BOP scene folder: read it as a BOP sequence)"
@@ -393,11 +413,16 @@ def open_folder(path: str | os.PathLike) -> FolderInput:
         if p.stem in stems:
             raise InputError(f"{root}: {stems[p.stem].name} and {p.name} are one frame name")
         stems[p.stem] = p
-    stamps = _frame_stamps(root, spec, clouds)
+    stamps = _frame_stamps(root, spec, clouds, problems)
     frames = []
     for i, (p, stamp) in enumerate(zip(clouds, stamps, strict=True)):
         hyp = root / f"{p.stem}{HYPOTHESES_SUFFIX}"
-        frames.append(FrameFile(i, p.stem, p, hyp if hyp.is_file() else None, stamp))
+        if problems[p] is not None:
+            log.warning("%s: %s; that frame will be reported failed", p, problems[p])
+        # any entry of that name counts (a broken one fails the frame when it is read)
+        frames.append(
+            FrameFile(i, p.stem, p, hyp if os.path.lexists(hyp) else None, stamp, problems[p])
+        )
     for h in root.glob(f"*{HYPOTHESES_SUFFIX}"):
         if h.name[: -len(HYPOTHESES_SUFFIX)] not in stems:
             log.warning(
@@ -407,8 +432,21 @@ def open_folder(path: str | os.PathLike) -> FolderInput:
     return FolderInput(path=root, spec=spec, frames=frames)
 
 
-def _frame_stamps(root: Path, spec: SceneSpec, clouds: list[Path]) -> list[float]:
-    """Stamps (s) of the frames in order, from ``period`` or ``stamps``."""
+def check_folder(root: Path) -> None:
+    """InputError unless ``root`` is an existing folder (the message says which it is)."""
+    if root.is_dir():
+        return
+    if not os.path.lexists(root):
+        raise InputError(f"{root}: the input folder does not exist")
+    problem = file_problem(root)
+    raise InputError(f"{root}: not a folder: it {problem or 'is a file'}")
+
+
+def _frame_stamps(
+    root: Path, spec: SceneSpec, clouds: list[Path], problems: Mapping[Path, str | None]
+) -> list[float]:
+    """Stamps (s) of the frames in order, from ``period`` or ``stamps``; an entry that cannot
+    be read needs no stamp (NaN)."""
     if spec.stamps is None:
         return [i * spec.period for i in range(len(clouds))]
     where = f"{root / SCENE_JSON}: stamps"
@@ -419,13 +457,14 @@ def _frame_stamps(root: Path, spec: SceneSpec, clouds: list[Path]) -> list[float
     out, missing = [], []
     for p in clouds:
         s = spec.stamps.get(p.name, spec.stamps.get(p.stem))
-        if s is None:
+        if s is None and problems.get(p) is None:
             missing.append(p.name)
-        out.append(s)
+        out.append(math.nan if s is None else s)
     if missing:
         raise InputError(f"{where}: no stamp for {', '.join(missing)}")
-    for k in range(1, len(out)):
-        a, b, pa, pb = out[k - 1], out[k], clouds[k - 1], clouds[k]
+    good = [k for k in range(len(out)) if not math.isnan(out[k])]
+    for j, k in zip(good[:-1], good[1:], strict=True):
+        a, b, pa, pb = out[j], out[k], clouds[j], clouds[k]
         if b < a:
             raise InputError(
                 f"{where}: {pb.name} ({b} s) is earlier than {pa.name} ({a} s); frames are "
@@ -448,11 +487,12 @@ def _check_metres(path: Path, points: np.ndarray) -> None:
 
 
 def _labels(
-    spec: SceneSpec, path: Path, cloud
+    spec: SceneSpec, path: Path, cloud, warnings: list[str]
 ) -> tuple[np.ndarray | None, str | None, dict[int, str] | None]:
-    """``(labels with -1 background, label kind, label classes)`` of one cloud."""
+    """``(labels with -1 background, label kind, label classes)`` of one cloud; suspicious
+    findings are appended to ``warnings``."""
     if spec.colors:
-        return _color_labels(spec, path, cloud)
+        return _color_labels(spec, path, cloud, warnings)
     if cloud.labels is None:
         return None, None, None
     raw = cloud.labels
@@ -471,8 +511,11 @@ def _labels(
     return labels, "instance", named
 
 
-def _color_labels(spec: SceneSpec, path: Path, cloud) -> tuple[np.ndarray, str, dict[int, str]]:
-    """Class labels from colour-coded points: label = index of the class in the sorted names."""
+def _color_labels(
+    spec: SceneSpec, path: Path, cloud, warnings: list[str]
+) -> tuple[np.ndarray, str, dict[int, str]]:
+    """Class labels from colour-coded points: label = index of the class in the sorted names.
+    A colour map that matches no point is a warning naming the cloud's most common colours."""
     if cloud.colors is None:
         raise InputError(f"{path}: scene.json lists 'colors' but the cloud has no colour fields")
     if cloud.labels is not None:
@@ -486,5 +529,15 @@ def _color_labels(spec: SceneSpec, path: Path, cloud) -> tuple[np.ndarray, str, 
     pos = np.clip(np.searchsorted(keys, packed), 0, len(keys) - 1)
     hit = keys[pos] == packed
     labels = np.where(hit, vals[pos], -1)
+    if not hit.any():
+        colours, counts = np.unique(packed, return_counts=True)
+        top = colours[np.argsort(-counts, kind="stable")[:5]]
+        msg = (
+            f"{path}: no point has a colour of scene.json 'colors' "
+            f"({', '.join(f'#{int(k):06x}' for k in keys)}), so the frame has no object "
+            f"segments; its most common colours are {', '.join(f'#{int(c):06x}' for c in top)}"
+        )
+        log.warning("%s", msg)
+        warnings.append(msg)
     present = sorted({int(v) for v in np.unique(labels[labels >= 0])})
     return labels, "class", {v: names[v] for v in present}

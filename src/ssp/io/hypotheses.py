@@ -40,7 +40,7 @@ from scipy.spatial.transform import Rotation
 
 from ssp.errors import InputError, InvalidPoseError
 from ssp.geometry import validate_pose
-from ssp.io._files import write_json
+from ssp.io._files import file_problem, write_json
 from ssp.scene import Hypothesis
 
 __all__ = [
@@ -86,6 +86,9 @@ def read_hypotheses(path: str | os.PathLike) -> HypothesisFile:
             file and the hypothesis index.
     """
     p = Path(path)
+    problem = file_problem(p)
+    if problem is not None:
+        raise InputError(f"{p}: {'no such file' if problem == 'does not exist' else problem}")
     try:
         doc = json.loads(p.read_text(encoding="utf-8"))
     except FileNotFoundError as exc:

@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ssp.errors import InputError, InvalidPoseError, UnknownObjectError
+from ssp.errors import ArgumentError, InputError, InvalidPoseError, UnknownObjectError
 from ssp.geometry import validate_pose
 from ssp.io._files import to_jsonable, write_json
 from ssp.io.hypotheses import matrix_to_quat_xyzw
@@ -95,24 +95,29 @@ def bop_csv_name(dataset: str, method: str = "ssp", split: str = "test") -> str:
 
 
 def _check_method(method: str) -> None:
+    """ArgumentError (a ValueError) unless ``method`` can be the METHOD of a BOP file name."""
     if not isinstance(method, str) or not method:
-        raise ValueError("BOP method name must be a non-empty string")
+        raise ArgumentError("BOP method name must be a non-empty string")
     if "_" in method:
-        raise ValueError(
-            f"BOP method name {method!r} must not contain '_' (files are METHOD_DATASET-SPLIT.csv)"
+        raise ArgumentError(
+            f"BOP method name {method!r} must not contain '_' (files are "
+            f"METHOD_DATASET-SPLIT.csv): try {method.replace('_', '')!r}"
         )
     if re.search(r"[\s,/\\]", method):
-        raise ValueError(f"BOP method name {method!r} must not contain spaces, ',' or slashes")
+        raise ArgumentError(f"BOP method name {method!r} must not contain spaces, ',' or slashes")
 
 
 class BopCsvWriter:
     """Stream rows of a BOP19 results CSV (format in the module docstring).
 
     The header is written on opening; rows are line-buffered, so every row added is on disk
-    even if the run dies later. Use as a context manager or call :meth:`close`.
+    even if the run dies later. Use as a context manager or call :meth:`close`. With
+    ``append=True`` an existing file (a resumed run's, already cut to its last whole frame)
+    is continued, the header written only if it is empty. :meth:`sync` makes the rows
+    durable and returns the file's size, which a resumed run cuts the file back to.
     """
 
-    def __init__(self, path: str | os.PathLike, method: str) -> None:
+    def __init__(self, path: str | os.PathLike, method: str, *, append: bool = False) -> None:
         _check_method(method)
         self.path = Path(path)
         self.method = method
@@ -122,12 +127,23 @@ class BopCsvWriter:
                 "%s: the BOP toolkit expects a file named %s_DATASET-SPLIT.csv", self.path, method
             )
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._f = open(self.path, "w", encoding="ascii", newline="\n", buffering=1)  # noqa: SIM115
-        self._f.write(BOP_CSV_HEADER + "\n")
+        mode = "a" if append else "w"
+        self._f = open(self.path, mode, encoding="ascii", newline="\n", buffering=1)  # noqa: SIM115
+        if self._f.tell() == 0:
+            self._f.write(BOP_CSV_HEADER + "\n")
         self._times: dict[tuple[int, int], float] = {}
         self.rows = 0
 
-    def add(
+    def add(self, *row: Any, **kw: Any) -> None:
+        """Add one estimate: ``add(scene_id, im_id, obj_id, score, T_cam_obj, time=None)``,
+        arguments as for :meth:`format_row`.
+
+        Raises:
+            ValueError: closed writer, a bad id, score, pose or time.
+        """
+        self.write_rows([self.format_row(*row, **kw)])
+
+    def format_row(
         self,
         scene_id: int,
         im_id: int,
@@ -135,17 +151,15 @@ class BopCsvWriter:
         score: float,
         T_cam_obj: np.ndarray,
         time: float | None = None,
-    ) -> None:
-        """Add one estimate: ``T_cam_obj`` (4x4, m) is the model-to-camera pose.
-
-        ``time`` (s) is the whole image's processing time, None or negative for unknown (-1);
-        every row of one ``(scene_id, im_id)`` must carry the same time.
+    ) -> str:
+        """The CSV line of one estimate, validated but not written (a caller that must write a
+        frame's rows all or none formats them first): ``T_cam_obj`` (4x4, m) is the
+        model-to-camera pose; ``time`` (s) the whole image's processing time, None or negative
+        for unknown (-1); every row of one ``(scene_id, im_id)`` must carry the same time.
 
         Raises:
-            ValueError: closed writer, a bad id, score, pose or time.
+            ValueError: a bad id, score, pose or time.
         """
-        if self._f.closed:
-            raise ValueError(f"{self.path}: writer is closed")
         ids = [_nonneg_int(v, k) for v, k in ((scene_id, "scene_id"), (im_id, "im_id"))]
         oid = _nonneg_int(obj_id, "obj_id")
         if oid < 1:
@@ -161,20 +175,35 @@ class BopCsvWriter:
         except InvalidPoseError as exc:
             raise ValueError(str(exc)) from exc
         key = (ids[0], ids[1])
-        if self._times.setdefault(key, t_img) != t_img:
+        if self._times.get(key, t_img) != t_img:
             raise ValueError(
                 f"scene {key[0]} image {key[1]}: time {t_img} differs from the {self._times[key]} "
                 "of its earlier rows (BOP wants the whole image's time on every row)"
             )
         R = " ".join(repr(float(v)) for v in T[:3, :3].reshape(-1))
         t = " ".join(repr(float(v)) for v in T[:3, 3] * 1000.0)
-        self._f.write(f"{ids[0]},{ids[1]},{oid},{s!r},{R},{t},{t_img!r}\n")
-        self.rows += 1
+        return f"{ids[0]},{ids[1]},{oid},{s!r},{R},{t},{t_img!r}\n"
+
+    def write_rows(self, lines: Iterable[str]) -> None:
+        """Write lines made by :meth:`format_row`."""
+        if self._f.closed:
+            raise ValueError(f"{self.path}: writer is closed")
+        for line in lines:
+            scene_id, im_id, *_rest, t_img = line.rstrip("\n").split(",")
+            self._times.setdefault((int(scene_id), int(im_id)), float(t_img))
+            self._f.write(line)
+            self.rows += 1
 
     def flush(self) -> None:
         """Flush buffered rows to the operating system (rows are line-buffered anyway)."""
         if not self._f.closed:
             self._f.flush()
+
+    def sync(self) -> int:
+        """Flush and fsync the rows written so far; returns the file's size in bytes."""
+        self._f.flush()
+        os.fsync(self._f.fileno())
+        return self._f.tell()
 
     def close(self) -> None:
         """Flush and close; further :meth:`add` calls raise. Closing twice is harmless."""

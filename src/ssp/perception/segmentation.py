@@ -1,7 +1,10 @@
 """Object segments of a scene cloud: Euclidean clustering and label handling.
 
 :func:`euclidean_clusters` joins points closer than ``tolerance`` (a kd-tree radius graph from
-scipy's ``cKDTree.query_pairs`` and its connected components). :func:`segment_cloud` turns a
+scipy's ``cKDTree.query_pairs`` and its connected components). Its cost is bounded: identical
+points are merged first (a sensor that writes invalid pixels as one point gives thousands), and
+a cloud so dense that the radius graph would exceed :data:`MAX_PAIRS` edges is clustered on a
+voxel grid instead (see the function). :func:`segment_cloud` turns a
 world-frame cloud, with or without per-point labels, into instance segments (:class:`Segmentation`).
 Labels are deterministic: clusters are numbered by descending size, ties by their lowest point
 index.
@@ -20,9 +23,13 @@ from scipy.spatial import cKDTree
 
 from ssp.errors import PerceptionError
 
-__all__ = ["Segmentation", "euclidean_clusters", "segment_cloud"]
+__all__ = ["MAX_PAIRS", "Segmentation", "euclidean_clusters", "segment_cloud"]
 
 log = logging.getLogger(__name__)
+
+#: Most point pairs the clustering's radius graph may hold (about 16 bytes each, so ~130 MB,
+#: plus the sparse matrix built from them); denser clouds are clustered on a voxel grid.
+MAX_PAIRS = 8_000_000
 
 
 @dataclass
@@ -55,6 +62,16 @@ def euclidean_clusters(
     Two points are in one cluster when a chain of points links them with steps of at most
     ``tolerance`` (m). Clusters are numbered 0, 1, ... by descending size, ties by their lowest
     point index; points of clusters smaller than ``min_points``, and non-finite points, get -1.
+
+    Time and memory are bounded (O(N log N), at most :data:`MAX_PAIRS` pairs): identical
+    points are merged before the radius graph is built (they still count in the cluster
+    sizes), which changes nothing else. If the
+    distinct points would still give more than :data:`MAX_PAIRS` pairs (a cloud with very
+    many points within ``tolerance`` of each other), the points are binned on a grid of cell
+    ``tolerance / 2`` (each cell's points lie within ``tolerance`` of each other, so a cell is
+    one cluster anyway), and cells are linked when their first points lie within
+    ``tolerance``; the grid is coarsened to ``tolerance`` if that is still too many. Both are
+    logged.
     """
     p = _check_points(points, "points")
     if not tolerance > 0:
@@ -64,15 +81,50 @@ def euclidean_clusters(
     if len(finite) == 0:
         return labels
     q = p[finite]
-    # sliding-midpoint tree: ~2x faster to build than the balanced one, queries as fast
-    tree = cKDTree(q, balanced_tree=False)
-    pairs = tree.query_pairs(float(tolerance), output_type="ndarray")
-    graph = coo_matrix(
-        (np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(len(q), len(q))
-    )
-    _, comp = connected_components(graph.tocsr(), directed=False)
-    labels[finite] = _renumber(comp, min_points)
+    _, first, inverse = np.unique(q, axis=0, return_index=True, return_inverse=True)
+    uniq, inverse = q[first], np.asarray(inverse).reshape(-1)
+    if len(uniq) < len(q):
+        log.info(
+            "euclidean_clusters: %d of %d points are copies of others (%d distinct)",
+            len(q) - len(uniq),
+            len(q),
+            len(uniq),
+        )
+    comp = _radius_components(uniq, float(tolerance))
+    labels[finite] = _renumber(comp[inverse], min_points)  # sizes and order over all points
     return labels
+
+
+def _radius_components(q: np.ndarray, tolerance: float) -> np.ndarray:
+    """Connected components ``(M,)`` of the ``tolerance`` radius graph of distinct points
+    ``q``, within the :data:`MAX_PAIRS` budget (voxel grid fallback: :func:`euclidean_clusters`)."""
+    for cell in (None, tolerance / 2.0, tolerance):
+        if cell is None:
+            nodes, of_point = q, None
+        else:
+            keys = np.floor(q / cell).astype(np.int64)
+            _, first, inv = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+            nodes, of_point = q[first], np.asarray(inv).reshape(-1)
+        # sliding-midpoint tree: ~2x faster to build than the balanced one, queries as fast
+        tree = cKDTree(nodes, balanced_tree=False)
+        pairs_needed = (int(tree.count_neighbors(tree, tolerance)) - len(nodes)) // 2
+        if pairs_needed <= MAX_PAIRS or cell == tolerance:
+            break
+    if cell is not None:
+        log.warning(
+            "euclidean_clusters: %d distinct points would give more than %d pairs within "
+            "%.4f m; clustered on a %.4f m grid (%d cells)",
+            len(q),
+            MAX_PAIRS,
+            tolerance,
+            cell,
+            len(nodes),
+        )
+    pairs = tree.query_pairs(tolerance, output_type="ndarray")
+    n = len(nodes)
+    graph = coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), (n, n))
+    _, comp = connected_components(graph.tocsr(), directed=False)
+    return comp if of_point is None else comp[of_point]
 
 
 def segment_cloud(
