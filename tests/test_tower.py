@@ -258,3 +258,14 @@ def test_realistic_trial_has_distractors_and_explains_a_missed_grasp(lib):
         assert tr.failure is None or tr.failure_detail is not None
     # the stream named cubes on the distractors: more detections than cubes at some frame
     assert max(len(dets) for _, dets in tr.frames) > 3
+
+
+def test_ghost_cubes_are_counted(lib):
+    T = pose(0.0, 0.0)
+    tr = tower.TowerTrial(
+        frames=[
+            ({"b0": T}, [Detection("cube", T)]),
+            ({"b0": T}, [Detection("cube", T), Detection("cube", pose(0.2, 0.0))]),  # a ghost
+        ]
+    )
+    assert tower.ghosts(tr, lib) == (1, 1)

@@ -536,6 +536,20 @@ def consistency(trial: TowerTrial, library, gate: float = DEFAULT_GATE):
     return mm, deg
 
 
+def ghosts(trial: TowerTrial, library, gate: float = DEFAULT_GATE) -> tuple[int, int]:
+    """``(ghost cubes, frames with one)``: perceived cubes with no true cube within ``gate``
+    (m), summed over the frames of a trial (a cube picked and stacked that stays in the
+    estimate at its old place, or a cube perceived on a distractor)."""
+    total = frames = 0
+    for poses, dets in trial.frames:
+        gt = {oid: (CUBE, T) for oid, T in poses.items()}
+        cubes = [d for d in dets if d[0] == CUBE]
+        n = len(match_frame(gt, cubes, library, gate).false_positives)
+        total += n
+        frames += int(n > 0)
+    return total, frames
+
+
 def _mean_std(values: Sequence[float], ddof: int = 0) -> tuple[float | None, float | None]:
     if len(values) == 0:
         return None, None
@@ -572,6 +586,7 @@ def run_tower(
     detail: dict[str, list[dict]] = {}
     for name in methods:
         stacks, s_mm, s_deg, c_mm, c_deg, secs = [], [], [], [], [], []
+        ghost_total = ghost_frames = 0
         failures: dict[str, int] = {}
         rows = []
         for t in range(trials):
@@ -584,6 +599,9 @@ def run_tower(
                 on_trial(name, t, tr)
             a, b = straightness(tr, model)
             c, d = consistency(tr, library)
+            g, g_frames = ghosts(tr, library)
+            ghost_total += g
+            ghost_frames += g_frames
             stacks.append(tr.stacks)
             s_mm += a
             s_deg += b
@@ -603,6 +621,8 @@ def run_tower(
                     "consistency_mm": _mean_std(c)[0],
                     "consistency_deg": _mean_std(d)[0],
                     "frames": len(tr.frames),
+                    "ghost_cubes": g,
+                    "ghost_frames": g_frames,
                     "placements": tr.placements,
                 }
             )
@@ -620,6 +640,8 @@ def run_tower(
             "consistency_deg": cs["rot_deg_mean"],
             "consistency_deg_std": cs["rot_deg_std"],
             "full_towers": int(sum(s == blocks for s in stacks)),
+            "ghost_cubes": ghost_total,
+            "ghost_frames": ghost_frames,
             "failures": failures,
             "sec_per_frame": float(np.mean(secs)) if secs else None,
         }
@@ -666,6 +688,11 @@ def _markdown(result: dict) -> str:
     full = " | ".join(f"{result['methods'][m]['full_towers']}/{result['trials']}" for m in methods)
     n = result["blocks"]
     rows.append(f"| Full towers ({n} of {n}) | | {full} |")
+    ghost = " | ".join(
+        f"{result['methods'][m]['ghost_cubes']} in {result['methods'][m]['ghost_frames']} frames"
+        for m in methods
+    )
+    rows.append(f"| Ghost cubes (no cube within 5 cm) | | {ghost} |")
     fails = []
     for m in methods:
         f = result["methods"][m]["failures"]
