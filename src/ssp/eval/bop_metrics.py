@@ -45,6 +45,7 @@ import numpy as np
 from ssp.camera import Camera
 from ssp.geometry import invert
 from ssp.library.symmetry import Symmetry
+from ssp.sim.render import ImageWindow, image_window, render
 
 __all__ = [
     "MIN_VISIB",
@@ -174,42 +175,9 @@ def _distance_factor(camera: Camera, u0: int, v0: int, h: int, w: int) -> np.nda
     return np.sqrt(x * x + y * y + 1.0)
 
 
-@dataclass(frozen=True)
-class _Window:
-    """An image window: rows ``v0 .. v0 + h``, columns ``u0 .. u0 + w``."""
-
-    u0: int
-    v0: int
-    w: int
-    h: int
-
-    def union(self, other: _Window) -> _Window:
-        u0, v0 = min(self.u0, other.u0), min(self.v0, other.v0)
-        u1 = max(self.u0 + self.w, other.u0 + other.w)
-        v1 = max(self.v0 + self.h, other.v0 + other.h)
-        return _Window(u0, v0, u1 - u0, v1 - v0)
-
-
-def _window(points_cam: np.ndarray, camera: Camera) -> _Window | None:
-    """The image window covering the projection of ``points_cam`` (in front of the camera)."""
-    if (points_cam[:, 2] <= 1e-6).any():
-        return _Window(0, 0, camera.width, camera.height)
-    uv = camera.project(points_cam)
-    u0 = max(0, int(np.floor(uv[:, 0].min())) - 1)
-    u1 = min(camera.width - 1, int(np.ceil(uv[:, 0].max())) + 1)
-    v0 = max(0, int(np.floor(uv[:, 1].min())) - 1)
-    v1 = min(camera.height - 1, int(np.ceil(uv[:, 1].max())) + 1)
-    if u1 < u0 or v1 < v0:
-        return None
-    return _Window(u0, v0, u1 - u0 + 1, v1 - v0 + 1)
-
-
-def _render_window(mesh, T_world_obj: np.ndarray, T_world_cam, camera: Camera, win: _Window):
+def _render_window(mesh, T_world_obj: np.ndarray, T_world_cam, camera: Camera, win: ImageWindow):
     """Depth (z, m) of ``mesh`` alone at ``T_world_obj``, in window ``win`` of ``camera``."""
-    from ssp.sim.render import render
-
-    roi = Camera(win.w, win.h, camera.fx, camera.fy, camera.cx - win.u0, camera.cy - win.v0)
-    return render([("o", mesh, T_world_obj)], T_world_cam, roi, table=False).depth
+    return render([("o", mesh, T_world_obj)], T_world_cam, win.camera(camera), table=False).depth
 
 
 # ---------------------------------------------------------------------------- evaluator
@@ -238,7 +206,7 @@ class BopEvaluator:
         self._syms: dict[str, np.ndarray] = {}
         self._counts = _Counts()
         self._per_class: dict[str, _Counts] = {}
-        self._gt_cache: dict[tuple, tuple[_Window, np.ndarray]] = {}
+        self._gt_cache: dict[tuple, tuple] = {}
 
     def _symmetries(self, cls: str) -> np.ndarray:
         if cls not in self._syms:
@@ -314,7 +282,7 @@ class BopEvaluator:
         key = (model.name, gid, np.asarray(T_gt).tobytes(), np.asarray(T_wc).tobytes(), camera)
         hit = self._gt_cache.get(key)
         if hit is None:
-            win_g = _window(_apply(T_cw @ T_gt, model.hull_vertices), camera)
+            win_g = image_window(_apply(T_gt, model.hull_vertices), T_wc, camera)
             if win_g is None:
                 return [1.0] * len(VSD_TAUS)
             hit = (win_g, _render_window(model.mesh, T_gt, T_wc, camera, win_g))
@@ -322,7 +290,7 @@ class BopEvaluator:
                 self._gt_cache.clear()
             self._gt_cache[key] = hit
         win_g, d_gt = hit
-        win_e = _window(_apply(T_cw @ T_est, model.hull_vertices), camera)
+        win_e = image_window(_apply(T_est, model.hull_vertices), T_wc, camera)
         win = win_g if win_e is None else win_g.union(win_e)
         d_est = (
             np.zeros((win.h, win.w))

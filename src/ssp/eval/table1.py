@@ -529,32 +529,35 @@ def _tails_markdown(result: dict) -> list[str]:
             + ("-" if sw is None else f"{sw} ({d['id_switches_static']})")
             + " |"
         )
-    conds = sorted({c for d in methods.values() for c in d.get("gross_by_condition", {})})
-    if conds:
-        lines += [
-            "",
-            "Gross object-frames by the stream's condition for the object in that frame "
-            "(`ssp.eval.failures`): gross / object-frames.",
-            "",
-            "| Method | " + " | ".join(conds) + " |",
-            "|---|" + "---|" * len(conds),
-        ]
-        for name, d in methods.items():
-            g = d.get("gross_by_condition", {})
-            cells = [f"{g[c]['gross']} / {g[c]['object_frames']}" if c in g else "" for c in conds]
-            lines.append(f"| {name} | " + " | ".join(cells) + " |")
-    causes = sorted({c for d in methods.values() for c in d.get("false_object_causes", {})})
-    if causes:
-        lines += [
-            "",
-            "False objects (object-frames) by what they lie on.",
-            "",
-            "| Method | " + " | ".join(causes) + " |",
-            "|---|" + "---|" * len(causes),
-        ]
-        for name, d in methods.items():
-            f = d.get("false_object_causes", {})
-            lines.append(f"| {name} | " + " | ".join(str(f.get(c, 0)) for c in causes) + " |")
+    lines += _column_table(
+        methods,
+        "gross_by_condition",
+        "Gross object-frames by the stream's condition for the object in that frame "
+        "(`ssp.eval.failures`): gross / object-frames.",
+        lambda v: f"{v['gross']} / {v['object_frames']}",
+    )
+    lines += _column_table(
+        methods,
+        "false_object_causes",
+        "False objects (object-frames) by what they lie on.",
+        str,
+        missing="0",
+    )
+    return lines
+
+
+def _column_table(methods: dict, key: str, title: str, cell, missing: str = "") -> list[str]:
+    """Markdown lines of a table with a row per method and a column per key of the methods'
+    ``key`` dicts (none when no method has one); ``cell(value)`` formats an entry, ``missing``
+    stands where a method lacks a column."""
+    cols = sorted({c for d in methods.values() for c in d.get(key, {})})
+    if not cols:
+        return []
+    lines = ["", title, "", "| Method | " + " | ".join(cols) + " |", "|---|" + "---|" * len(cols)]
+    for name, d in methods.items():
+        row = d.get(key, {})
+        cells = [cell(row[c]) if c in row else missing for c in cols]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return lines
 
 

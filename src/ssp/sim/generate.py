@@ -80,7 +80,14 @@ from ssp.sim.placement import (
     random_resting,
 )
 from ssp.sim.realistic import RealisticNoise, RealisticStream, SceneRealism
-from ssp.sim.render import KINECT_QUANTUM, Camera, add_depth_noise, look_at, render
+from ssp.sim.render import (
+    KINECT_QUANTUM,
+    Camera,
+    add_depth_noise,
+    image_window,
+    look_at,
+    render,
+)
 from ssp.sim.sequence import SimFrame, SimSequence
 
 __all__ = [
@@ -517,20 +524,10 @@ def _realistic_layout(
 def _alone_count(model: ObjectModel, T: np.ndarray, T_wc: np.ndarray, cam: Camera) -> int:
     """Pixels of the object rendered alone (table present), ray casting only its image
     bounding box (``cam`` is the already subsampled camera)."""
-    mesh = model.mesh
-    p = (hull_world(model, T) - T_wc[:3, 3]) @ T_wc[:3, :3]
-    if (p[:, 2] <= 1e-6).any():
-        r = render([("o", mesh, T)], T_wc, cam)
-        return int(r.pixel_counts()["o"])
-    uv = cam.project(p)
-    u0 = max(0, int(np.floor(uv[:, 0].min())) - 1)
-    u1 = min(cam.width - 1, int(np.ceil(uv[:, 0].max())) + 1)
-    v0 = max(0, int(np.floor(uv[:, 1].min())) - 1)
-    v1 = min(cam.height - 1, int(np.ceil(uv[:, 1].max())) + 1)
-    if u1 < u0 or v1 < v0:
+    win = image_window(hull_world(model, T), T_wc, cam)
+    if win is None:
         return 0
-    roi = Camera(u1 - u0 + 1, v1 - v0 + 1, cam.fx, cam.fy, cam.cx - u0, cam.cy - v0)
-    r = render([("o", mesh, T)], T_wc, roi)
+    r = render([("o", model.mesh, T)], T_wc, win.camera(cam))
     return int(r.pixel_counts()["o"])
 
 

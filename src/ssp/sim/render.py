@@ -37,9 +37,11 @@ __all__ = [
     "NO_HIT",
     "TABLE",
     "Camera",
+    "ImageWindow",
     "RenderResult",
     "add_depth_noise",
     "cloud",
+    "image_window",
     "look_at",
     "render",
 ]
@@ -225,6 +227,48 @@ def render(
         T_world_cam=T_wc,
         stride=int(stride),
     )
+
+
+@dataclass(frozen=True)
+class ImageWindow:
+    """A window of an image: columns ``u0 .. u0 + w``, rows ``v0 .. v0 + h`` (pixels)."""
+
+    u0: int
+    v0: int
+    w: int
+    h: int
+
+    def union(self, other: ImageWindow) -> ImageWindow:
+        u0, v0 = min(self.u0, other.u0), min(self.v0, other.v0)
+        u1 = max(self.u0 + self.w, other.u0 + other.w)
+        v1 = max(self.v0 + self.h, other.v0 + other.h)
+        return ImageWindow(u0, v0, u1 - u0, v1 - v0)
+
+    def camera(self, camera: Camera) -> Camera:
+        """The intrinsics of this window of ``camera``'s image."""
+        return Camera(
+            self.w, self.h, camera.fx, camera.fy, camera.cx - self.u0, camera.cy - self.v0
+        )
+
+
+def image_window(
+    points_world: np.ndarray, T_world_cam: np.ndarray, camera: Camera
+) -> ImageWindow | None:
+    """The window of ``camera``'s image (with a one-pixel margin) that covers the projection of
+    ``points_world`` ``(N, 3)`` (e.g. a model's hull vertices at a pose); the whole image when a
+    point is behind the camera, None when the projection misses the image."""
+    T = np.asarray(T_world_cam, dtype=float)
+    p = (np.asarray(points_world, dtype=float) - T[:3, 3]) @ T[:3, :3]
+    if (p[:, 2] <= 1e-6).any():
+        return ImageWindow(0, 0, camera.width, camera.height)
+    uv = camera.project(p)
+    u0 = max(0, int(np.floor(uv[:, 0].min())) - 1)
+    u1 = min(camera.width - 1, int(np.ceil(uv[:, 0].max())) + 1)
+    v0 = max(0, int(np.floor(uv[:, 1].min())) - 1)
+    v1 = min(camera.height - 1, int(np.ceil(uv[:, 1].max())) + 1)
+    if u1 < u0 or v1 < v0:
+        return None
+    return ImageWindow(u0, v0, u1 - u0 + 1, v1 - v0 + 1)
 
 
 def _edge_mask(depth: np.ndarray, threshold: float) -> np.ndarray:
