@@ -184,11 +184,11 @@ class _Tails:
             )
             self.fp_causes[cause] = self.fp_causes.get(cause, 0) + 1
 
-    def add_ids(self, ids: IdSwitches, tracked: bool) -> None:
+    def add_ids(self, ids: IdSwitches, tracked: bool, sequence: int) -> None:
         self.tracked |= tracked
         self.switches += ids.switches
         self.static_switches += ids.static_switches
-        self.switch_events += ids.events[:20]
+        self.switch_events += [{"sequence": sequence, **e} for e in ids.events[:20]]
 
     def result(self) -> dict:
         n = max(self.object_frames, 1)
@@ -355,7 +355,7 @@ def run_table1(
                 ):
                     fr[name].append(value)
         for m in methods:
-            tails[m].add_ids(ids[m], tracked=getattr(runners[m], "tracks_ids", False))
+            tails[m].add_ids(ids[m], getattr(runners[m], "tracks_ids", False), s)
 
     out_methods = {}
     for m in methods:
