@@ -155,3 +155,20 @@ def test_the_search_does_not_move_an_object_off_strong_data():
     (obj,) = est.objects
     assert abs(obj.T_world_obj[2, 3] - held["a"][1][2, 3]) < 0.003
     assert any("off its data" in w for w in est.warnings), est.warnings
+
+
+def test_a_known_object_the_depth_contradicts_hands_its_id_to_the_new_one_beside_it():
+    """A static object's id switched when the estimator's hypotheses of it (wrong, kept by
+    association) held the known object in empty space while its true place got a new id."""
+    rng = np.random.default_rng(9)
+    A = on_table(CUBE, 0.0, 0.0)
+    B = on_table(CUBE, 0.07, 0.0)  # where it really is in the second frame: beyond the gate
+    parser = SceneParser(LIB)
+    (old,) = parser.update(frame({"a": ("cube", A)}, rng)).ids
+    f = frame({"a": ("cube", B)}, rng, stamp=1.0)
+    wrong = on_table(CUBE, 0.008, 0.0)  # hypotheses that keep the known cube near A
+    f.hypotheses = [Hypothesis("cube", wrong, 0.95), *f.hypotheses]
+    est = parser.update(f)
+    near_b = [o for o in est.objects if np.linalg.norm(o.T_world_obj[:2, 3] - B[:2, 3]) < 0.01]
+    assert len(near_b) == 1 and near_b[0].id == old, [(o.id, o.reason) for o in est.objects]
+    assert all(np.linalg.norm(o.T_world_obj[:2, 3] - A[:2, 3]) > 0.02 for o in est.objects)

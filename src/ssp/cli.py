@@ -91,6 +91,15 @@ def main(
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
 
 
+@bench_app.callback()
+def bench_main() -> None:
+    """Benchmarks; results are written to files."""
+    # every frame's doubts (an object that would fall, one the camera sees through) are in the
+    # estimates and the results; printed for every method and frame they would bury the table
+    if logging.getLogger().level >= logging.WARNING:
+        logging.getLogger("ssp.parser").setLevel(logging.ERROR)
+
+
 ConfigOption = typer.Option(None, "--config", "-c", help="YAML config file (partial is fine).")
 
 

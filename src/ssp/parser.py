@@ -728,21 +728,38 @@ class SceneParser:
                          verdict.reason)  # fmt: skip
         gone = set(out.removed) | set(rejected)
 
-        # a new object where a known one of its class just vanished is that object, moved
+        # a new object where a known one of its class just vanished is that object, moved;
+        # so is one beside a known object that the depth contradicts (seen through): the known
+        # object's pose was wrong, and the new one is where it really is
+        through = cfg.temporal.seen_through_fraction
         vanished = {
             oid: (models[oid].name, prev_pose[oid])
             for oid in out.removed
             if out.verdicts.get(oid) is not None
             and out.verdicts[oid].state in ("replaced", "seen_empty")
         }
+        contradicted = {
+            oid: (models[oid].name, score.poses[ids.index(oid)])
+            for oid in ids
+            if oid in prev_pose
+            and oid not in gone
+            and out.evidence[oid].facing
+            and out.evidence[oid].seen_through >= through
+        }
         added = {
             oid: (models[oid].name, score.poses[ids.index(oid)])
             for oid in ids
             if oid not in gone and oid not in prev_pose
         }
-        renamed = reidentify(vanished, added)
+        renamed = reidentify(
+            {**vanished, **contradicted},
+            added,
+            {oid: models[oid].diameter for oid in contradicted},  # beside it, not elsewhere
+        )
         old_of = dict(renamed)  # new id -> old id
         moved_away = set(renamed.values())
+        superseded = moved_away & set(contradicted)  # their new pose replaces them
+        gone |= superseded
 
         objects: list[ObjectEstimate] = []
         known: dict[str, _Known] = {}
@@ -761,7 +778,12 @@ class SceneParser:
             retained = oid in out.retained or (ephemeral and supports)
             mode = classify(prev, T, model.symmetry, cfg.temporal, retained, model.center_of_mass)
             terms = score.object_terms(i)
-            if oid in old_of:
+            if oid in old_of and out_id in superseded:
+                reason = (
+                    f"found again where the depth puts it (re-identified: {oid} is {out_id}, "
+                    "whose pose the camera saw through)"
+                )
+            elif oid in old_of:
                 dist = np.linalg.norm(T[:3, 3] - prev[:3, 3])
                 reason = f"moved {1000 * dist:.0f} mm (re-identified: {oid} is {out_id})"
             elif oid in out.retained:

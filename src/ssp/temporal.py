@@ -381,23 +381,30 @@ def duplicates_of_undetected(
 def reidentify(
     gone: Mapping[str, tuple[str, np.ndarray]],
     new: Mapping[str, tuple[str, np.ndarray]],
+    max_distance: Mapping[str, float] | None = None,
 ) -> dict[str, str]:
     """A new object where a known one of its class just vanished is that object, moved.
 
-    ``gone``: objects removed this frame because their place is seen empty or taken,
-    ``id -> (class, last pose)``; ``new``: objects added this frame, ``id -> (class, pose)``.
-    Per class, the pairs of a globally optimal assignment on the distance between positions
-    (:func:`scipy.optimize.linear_sum_assignment`) are matched. Returns ``new id -> old id``.
+    ``gone``: objects removed this frame because their place is seen empty or taken (or whose
+    pose the depth contradicts), ``id -> (class, last pose)``; ``new``: objects added this
+    frame, ``id -> (class, pose)``; ``max_distance``: per gone id, the farthest a new object may
+    be to be it (m; missing: any distance). Per class, the pairs of a globally optimal
+    assignment on the distance between positions (:func:`scipy.optimize.linear_sum_assignment`)
+    are matched. Returns ``new id -> old id``.
     """
+    limit = dict(max_distance or {})
     out: dict[str, str] = {}
     for cls in sorted({c for c, _ in gone.values()} & {c for c, _ in new.values()}):
         a = sorted(k for k, (c, _) in gone.items() if c == cls)
         b = sorted(k for k, (c, _) in new.items() if c == cls)
-        cost = np.array(
+        dist = np.array(
             [[float(np.linalg.norm(gone[i][1][:3, 3] - new[j][1][:3, 3])) for j in b] for i in a]
         )
+        allowed = dist <= np.array([limit.get(i, np.inf) for i in a])[:, None]
+        cost = np.where(allowed, dist, _FORBIDDEN)
         for r, c in zip(*linear_sum_assignment(cost), strict=True):
-            out[b[c]] = a[r]
+            if allowed[r, c]:
+                out[b[c]] = a[r]
     return out
 
 
