@@ -3,11 +3,12 @@
 An estimator misses objects: hidden ones, and visible ones too (a dropout). :func:`triage`
 decides, for each undetected known object at its previous pose, in this order:
 
-``replaced``
-    another object's first guess fills ``temporal.replaced_overlap`` of its volume: removed;
 ``visible``
     still visible (:func:`ssp.verification.still_visible`: its visible surface explained,
-    its volume not seen empty): kept where it was (a missed detection);
+    its volume not seen empty): kept where it was (a missed detection), whatever other
+    objects' hypotheses say (the data outranks them; the paper tests replacement first);
+``replaced``
+    another object's first guess fills ``temporal.replaced_overlap`` of its volume: removed;
 ``seen_empty``
     its camera-facing surface is seen through (``temporal.seen_through_fraction``): the
     camera sees empty space where it was; removed (what it held up, if anything, is then
@@ -84,6 +85,11 @@ def triage(
     det_ids = sorted(first)
     for oid in missing:
         model, T = models[oid], prev_pose[oid]
+        ev = evidence(model, T, segments.get(oid), view, config, own_label=owner.get(oid))
+        if still_visible(ev, config):  # the data says it is there: no hypothesis overrules it
+            reason = f"undetected but still visible: explains {100 * ev.fit:.0f} % of its surface"
+            out[oid] = Triage("visible", reason, ev)
+            continue
         if det_ids:
             members = [oid, *det_ids]
             frac = overlap_fractions(
@@ -95,11 +101,7 @@ def triage(
             if frac >= t.replaced_overlap:
                 out[oid] = Triage("replaced", f"another object fills {100 * frac:.0f} % of it")
                 continue
-        ev = evidence(model, T, segments.get(oid), view, config, own_label=owner.get(oid))
-        if still_visible(ev, config):
-            reason = f"undetected but still visible: explains {100 * ev.fit:.0f} % of its surface"
-            out[oid] = Triage("visible", reason, ev)
-        elif view is not None and ev.facing and ev.seen_through >= t.seen_through_fraction:
+        if view is not None and ev.facing and ev.seen_through >= t.seen_through_fraction:
             reason = f"its volume is seen empty ({100 * ev.seen_through:.0f} % seen through)"
             out[oid] = Triage("seen_empty", reason, ev)
         elif view is not None and ev.facing and ev.occluded >= t.occluded_fraction:
