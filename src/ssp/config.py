@@ -397,8 +397,8 @@ class VerificationConfig(_Section):
         le=1,
         description=(
             "... and account for at least this fraction of the points of its instance segment "
-            "(with instance labels; real objects account for 95-100 % of theirs, stray mask "
-            "pixels included, a cube proposed on a ball for about 70 %)."
+            "(with instance labels; a real object accounts for nearly all of its segment, "
+            "stray mask pixels included, a cube proposed on a ball for much less)."
         ),
     )
     min_visible_samples: int = Field(
