@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from ssp import visibility as vis
 from ssp.geometry import make_pose
 from ssp.visibility import (
     FALLBACK_ANGULAR_RESOLUTION,
@@ -290,3 +291,51 @@ def test_deterministic(cloud, T_cam):
     assert CameraView(cloud[perm], T_cam).angular_resolution == pytest.approx(a.angular_resolution)
     shuffled = CameraView(cloud[perm], T_cam, angular_resolution=a.angular_resolution)
     assert [shuffled.report_pose(pts, nrm, T) for T in poses] == first
+
+
+def _union_samples(boxes, n: int = 2000):
+    """(points, normals, spacing) on the surface of a union of disjoint boxes (one object)."""
+    mesh = trimesh.util.concatenate(
+        [trimesh.creation.box(extents=e, transform=at(c)) for e, c in boxes]
+    )
+    pts, faces = trimesh.sample.sample_surface_even(mesh, n, seed=0)
+    return np.asarray(pts), np.asarray(mesh.face_normals[faces]), float(np.sqrt(mesh.area / n))
+
+
+def test_an_objects_own_parts_hide_what_lies_behind_them(T_cam):
+    """Issue 15, item 5: a concave object's facing samples behind its own other parts are not
+    part of what the camera could see (they were scored as unexplained surface)."""
+    front, back = ((0.10, 0.02, 0.10), (0.0, -0.1, 0.05)), ((0.10, 0.02, 0.10), (0.0, 0.0, 0.05))
+    pts, nrm, spacing = _union_samples([front, back])
+    view = CameraView(render(T_cam, [front, back], noise=0.001), T_cam)
+    state = view.classify(pts, nrm, self_spacing=spacing)
+    # the back plate's face towards the camera (-y) below z = 0.037 m (the front plate's top
+    # edge as seen from the camera) is hidden by the front plate
+    back_face = np.isclose(nrm @ [0, -1, 0], 1.0) & np.isclose(pts[:, 1], -0.01)
+    low = back_face & (pts[:, 2] < 0.03)
+    assert low.sum() > 20
+    assert np.mean(state[low] == vis.SELF_HIDDEN) > 0.9
+    # without the test they are classified against the front plate's points in front of them
+    assert np.all(view.classify(pts, nrm)[low] != vis.SELF_HIDDEN)
+    assert np.mean(view.classify(pts, nrm)[low] == vis.OCCLUDED) > 0.9
+    # the front plate and the top of both are not hidden by anything
+    seen_parts = (np.isclose(pts[:, 1], -0.11) & np.isclose(nrm @ [0, -1, 0], 1.0)) | np.isclose(
+        nrm @ [0, 0, 1], 1.0
+    )
+    assert np.mean(state[seen_parts] == vis.SELF_HIDDEN) < 0.02
+
+
+@pytest.mark.parametrize("eye", [EYE, (0.5, -0.1, 0.12), (0.02, 0.0, 0.6)])
+def test_a_convex_object_never_hides_itself(eye):
+    """A sphere and a box, seen from above and at grazing angles: no sample is self-hidden
+    (neighbours on one smooth face are not occluders)."""
+    T = look_at(eye, (0.0, 0.0, 0.05))
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.05)
+    sphere.apply_translation([0.0, 0.0, 0.05])
+    box = trimesh.creation.box(extents=(0.12, 0.05, 0.08), transform=at((0, 0, 0.04)))
+    for mesh in (sphere, box):
+        pts, faces = trimesh.sample.sample_surface_even(mesh, 1000, seed=1)
+        nrm = mesh.face_normals[faces]
+        view = CameraView(render(T, [], noise=0.0), T)
+        state = view.classify(np.asarray(pts), nrm, self_spacing=float(np.sqrt(mesh.area / 1000)))
+        assert np.count_nonzero(state == vis.SELF_HIDDEN) == 0

@@ -4,7 +4,9 @@ The role of global hypothesis verification (Aldoma et al., ECCV 2012; DESIGN sec
 estimator proposes objects; only those the data supports become part of the scene. Per object
 at a pose, :func:`evidence` compares the model's surface samples with the frame:
 
-* the camera classifies every camera-facing sample (:meth:`ssp.visibility.CameraView.classify`):
+* the camera classifies every camera-facing sample that the object's own other parts do not
+  hide (:meth:`ssp.visibility.CameraView.classify` with the samples' spacing: the inner wall
+  of a clamp behind its jaw is not part of what the camera could see):
   *seen* (observed depth at the sample), *occluded* (another object observed in front of it:
   the data says nothing about it), *behind its own surface* (the object's own segment observed
   in front of it: the model is too small there, or inside what was seen), *seen through*
@@ -36,7 +38,15 @@ from ssp.config import SSPConfig
 from ssp.geometry import transform_points
 from ssp.library.model import ObjectModel
 from ssp.segments import explained_fraction
-from ssp.visibility import BEHIND_OWN, NOT_FACING, OCCLUDED, SEEN, SEEN_THROUGH, CameraView
+from ssp.visibility import (
+    BEHIND_OWN,
+    NOT_FACING,
+    OCCLUDED,
+    SEEN,
+    SEEN_THROUGH,
+    SELF_HIDDEN,
+    CameraView,
+)
 
 __all__ = [
     "Evidence",
@@ -54,7 +64,8 @@ class Evidence:
     """What the frame says about an object at one pose (module docstring).
 
     Attributes:
-        facing: camera-facing samples (all samples without a camera).
+        facing: camera-facing samples not hidden by the object itself (all samples without a
+            camera).
         visible: facing samples the camera could have seen (seen or seen through).
         fit: fraction of the visible samples with a segment point within the inlier radius.
         explained: fraction of the instance segment's points the model accounts for, or None.
@@ -133,8 +144,9 @@ def evidence(
     T = np.asarray(T_world_obj, dtype=float)
     pw = transform_points(T, pts)
     if view is not None:
-        state = view.classify(pw, nrm @ T[:3, :3].T, own_label)
-        facing = state != NOT_FACING
+        spacing = float(np.sqrt(model.mesh.area / len(pts))) if len(pts) else None
+        state = view.classify(pw, nrm @ T[:3, :3].T, own_label, self_spacing=spacing)
+        facing = (state != NOT_FACING) & (state != SELF_HIDDEN)
         visible = (state == SEEN) | (state == SEEN_THROUGH) | (state == BEHIND_OWN)
         n_facing = int(np.count_nonzero(facing))
         through = int(np.count_nonzero(state == SEEN_THROUGH)) / n_facing if n_facing else 0.0

@@ -39,9 +39,13 @@ Limits
   small fraction of an object's facing samples.
 * ``depth_tolerance`` (m) absorbs sensor noise and small pose errors; surfaces seen at grazing
   angles change depth quickly from pixel to pixel and may need a larger tolerance.
-* Self-occlusion is handled only through the facing test (exact for convex objects); a concave
-  object's facing samples hidden by its own other parts are classified against what the camera
-  saw in front of them.
+* Self-occlusion: with ``self_spacing`` (the samples are one object's, that far apart on its
+  surface), a facing sample whose ray passes within :data:`SELF_COVER` sample spacings of
+  another facing sample of the object that lies in front of it (closer by ``depth_tolerance``,
+  and off its tangent plane by as much, so neighbours on one smooth surface seen at a grazing
+  angle do not hide each other) is :data:`SELF_HIDDEN`: the object's own parts hide it, as
+  the handle of a mug hides the wall behind it. Without it only the facing test applies
+  (exact for convex objects).
 * Depth is compared along the optical axis (``z``), as in a depth image; for points on the same
   ray this orders them exactly as range does.
 """
@@ -67,7 +71,15 @@ RESOLUTION_FACTOR = 1.5
 ESTIMATE_MAX_QUERIES = 20_000
 
 #: Sample states of :meth:`CameraView.classify`.
-NOT_FACING, SEEN, OCCLUDED, SEEN_THROUGH, UNKNOWN, BEHIND_OWN = 0, 1, 2, 3, 4, 5
+NOT_FACING, SEEN, OCCLUDED, SEEN_THROUGH, UNKNOWN, BEHIND_OWN, SELF_HIDDEN = 0, 1, 2, 3, 4, 5, 6
+
+#: A sample is hidden by one of its object's own samples whose ray passes within this many
+#: sample spacings (at the occluder's depth) of its own: samples ``s`` apart on a surface leave
+#: no ray through it farther than about ``0.71 s`` from one of them.
+SELF_COVER = 0.75
+
+#: Neighbours (in the image) searched for a sample's self-occluders.
+SELF_NEIGHBOURS = 16
 
 #: Lookup radius (normalised image coordinates, ~rad) used when the cloud has too few points
 #: (fewer than 2 distinct rays) to estimate one: about one pixel of a 640 px wide, 60 deg camera.
@@ -115,6 +127,30 @@ def _positive(value: float, what: str, *, allow_zero: bool) -> float:
         bound = ">= 0" if allow_zero else "> 0"
         raise ValueError(f"{what}: must be finite and {bound}, got {value!r}")
     return v
+
+
+def _self_hidden(
+    p_cam: np.ndarray, p_world: np.ndarray, n_world: np.ndarray, spacing: float, tol: float
+) -> np.ndarray:
+    """(F,) bool: which of one object's facing samples (camera frame ``p_cam`` (F, 3), world
+    ``p_world`` and normals ``n_world``) lie behind another of them (module docstring,
+    "Self-occlusion"). ``spacing``: sample spacing on the surface (m); ``tol``: m."""
+    n = len(p_cam)
+    if n < 2 or spacing <= 0.0:
+        return np.zeros(n, dtype=bool)
+    depth = p_cam[:, 2]
+    rays = p_cam[:, :2] / depth[:, None]
+    cover = SELF_COVER * spacing / depth  # each sample's footprint radius in the image
+    k = min(SELF_NEIGHBOURS + 1, n)
+    dist, idx = cKDTree(rays).query(rays, k=k, distance_upper_bound=float(cover.max()))
+    ok = np.isfinite(dist)
+    j = np.where(ok, idx, 0)
+    ok &= dist <= cover[j]  # within the occluder's footprint
+    ok &= depth[j] < depth[:, None] - tol  # in front of the sample
+    nrm = n_world / np.maximum(np.linalg.norm(n_world, axis=1, keepdims=True), 1e-12)
+    off_plane = np.einsum("ikd,id->ik", p_world[j] - p_world[:, None, :], nrm)
+    ok &= off_plane > tol  # not a neighbour on the sample's own smooth surface
+    return ok.any(axis=1)
 
 
 def estimate_angular_resolution(rays: np.ndarray, tree: cKDTree | None = None) -> float:
@@ -209,20 +245,29 @@ class CameraView:
         return self._T_world_cam.copy()
 
     def classify(
-        self, points_world: np.ndarray, normals_world: np.ndarray, own_label: int | None = None
+        self,
+        points_world: np.ndarray,
+        normals_world: np.ndarray,
+        own_label: int | None = None,
+        *,
+        self_spacing: float | None = None,
     ) -> np.ndarray:
         """Per-sample state ``(M,)`` int8 of model samples placed in the world:
         :data:`NOT_FACING` (facing away or behind the camera), :data:`SEEN`,
         :data:`OCCLUDED`, :data:`SEEN_THROUGH` or :data:`UNKNOWN` (module docstring); with
         ``own_label`` (the object's instance label; needs ``labels``), a sample hidden only
         by points of that label is :data:`BEHIND_OWN`: the object's own observed surface lies
-        in front of it, so the model is too small there or placed inside what was seen.
+        in front of it, so the model is too small there or placed inside what was seen; with
+        ``self_spacing``, a facing sample behind the object's own surface is
+        :data:`SELF_HIDDEN` (module docstring, "Self-occlusion").
 
         Args:
             points_world: (M, 3) surface samples (m, world frame).
             normals_world: (M, 3) their outward normals (world frame; need not be unit length;
                 a zero normal never faces the camera).
             own_label: the object's label in the cloud, or None.
+            self_spacing: spacing of the samples on the object's surface (m) when they are
+                one object's; None: no self-occlusion test.
         """
         pts = _as_points(points_world, "points_world")
         nrm = _as_points(normals_world, "normals_world")
@@ -237,6 +282,15 @@ class CameraView:
         facing &= p_cam[:, 2] > MIN_DEPTH
         if not facing.any():
             return out
+        if self_spacing is not None:
+            hidden = _self_hidden(
+                p_cam[facing], pts[facing], nrm[facing], float(self_spacing), self._depth_tolerance
+            )
+            idx_f = np.flatnonzero(facing)
+            out[idx_f[hidden]] = SELF_HIDDEN
+            facing[idx_f[hidden]] = False
+            if not facing.any():
+                return out
         if self._tree is None:
             out[facing] = UNKNOWN
             return out
@@ -259,10 +313,17 @@ class CameraView:
         out[facing] = state
         return out
 
-    def report(self, points_world: np.ndarray, normals_world: np.ndarray) -> VisibilityReport:
-        """Fractions of the facing model samples in each state (:meth:`classify`)."""
-        state = self.classify(points_world, normals_world)
-        n = int(np.count_nonzero(state != NOT_FACING))
+    def report(
+        self,
+        points_world: np.ndarray,
+        normals_world: np.ndarray,
+        *,
+        self_spacing: float | None = None,
+    ) -> VisibilityReport:
+        """Fractions of the facing model samples in each state (:meth:`classify`; samples
+        hidden behind the object's own surface, with ``self_spacing``, do not face the camera)."""
+        state = self.classify(points_world, normals_world, self_spacing=self_spacing)
+        n = int(np.count_nonzero((state != NOT_FACING) & (state != SELF_HIDDEN)))
         if n == 0:
             return VisibilityReport(0, 0.0, 0.0, 0.0, 0.0)
         counts = [int(np.count_nonzero(state == k)) for k in (SEEN, OCCLUDED, SEEN_THROUGH)]
