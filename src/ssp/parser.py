@@ -78,7 +78,14 @@ from ssp.temporal import (
     snap_symmetric,
 )
 from ssp.timing import StageTimer
-from ssp.verification import Evidence, check_new, data_fallbacks, evidence, verify_final
+from ssp.verification import (
+    Evidence,
+    check_new,
+    data_fallbacks,
+    evidence,
+    supports_unverified,
+    verify_final,
+)
 from ssp.visibility import CameraView
 
 __all__ = [
@@ -715,17 +722,20 @@ class SceneParser:
                 reasons[oid] = verdict.reason
                 continue
             holds = [ids[c] for c in score.graph.children(i) if ids[c] not in out.removed]
-            if holds:
+            if supports_unverified(verdict, holds, cfg):
                 reasons[oid] = f"unverified ({verdict.reason}) but holds up {', '.join(holds)}"
                 warnings.append(f"{oid}: {reasons[oid]}")
             else:
                 seg = out.groups[oid][0].segment if oid in out.groups else None
+                why = verdict.reason
+                if holds:
+                    why += f" (what rests on it, {', '.join(holds)}, does not keep it)"
                 rejected[oid] = Rejected(
-                    oid, models[oid].name, score.poses[i].copy(), verdict.reason,
+                    oid, models[oid].name, score.poses[i].copy(), why,
                     verdict.evidence.as_dict(), seg,
                 )  # fmt: skip
                 log.info("%s (%s) rejected at its final pose: %s", oid, models[oid].name,
-                         verdict.reason)  # fmt: skip
+                         why)  # fmt: skip
         gone = set(out.removed) | set(rejected)
 
         # a new object where a known one of its class just vanished is that object, moved;

@@ -55,6 +55,7 @@ __all__ = [
     "data_fallbacks",
     "evidence",
     "still_visible",
+    "supports_unverified",
     "verify_final",
 ]
 
@@ -257,6 +258,18 @@ def verify_final(
             verdict.evidence,
         )
     return verdict
+
+
+def supports_unverified(verdict: Verdict, holds: Sequence[str], config: SSPConfig) -> bool:
+    """Whether a new object that failed :func:`verify_final` stays because it holds up the
+    objects ``holds`` (something is there: they would fall without it). Not when its volume is
+    seen empty (``temporal.seen_through_fraction``): the camera's direct view of free space is
+    not overruled by objects resting on it (as for known objects, :mod:`ssp.retention`); a
+    false hypothesis on an object not in the library would otherwise stay as long as what lies
+    on that object is in the scene."""
+    ev, through = verdict.evidence, config.temporal.seen_through_fraction
+    seen_empty = ev is not None and ev.facing > 0 and ev.seen_through >= through
+    return bool(holds) and not seen_empty
 
 
 def data_fallbacks(score, scorer, groups, config: SSPConfig) -> dict[str, tuple[np.ndarray, str]]:
