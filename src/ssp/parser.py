@@ -122,6 +122,34 @@ class _Known:
     held: bool = False  # its data holds it where nothing in the scene does (data fallback)
 
 
+def _report_moved(
+    estimate: SceneEstimate, moved: Mapping[str, np.ndarray | None], gone: Mapping[str, _Known]
+) -> SceneEstimate:
+    """The estimate with :attr:`Frame.moved` said: a moved object that is still in the scene
+    is ``perturbed``, with the reason; one that left is among the removed objects."""
+    note = "moved by the caller (Frame.moved)"
+    objects = tuple(
+        replace(o, mode=TransitionMode.PERTURBED, reason=f"{o.reason}; {note}")
+        if o.id in moved and o.mode == TransitionMode.STATIC
+        else replace(o, reason=f"{o.reason}; {note}")
+        if o.id in moved
+        else o
+        for o in estimate.objects
+    )
+    removed = estimate.removed + tuple(
+        ObjectEstimate(
+            oid,
+            k.class_name,
+            k.T_world_obj.copy(),
+            TransitionMode.REMOVED,
+            source="removed",
+            reason="left the scene (Frame.moved: None)",
+        )  # fmt: skip
+        for oid, k in sorted(gone.items())
+    )
+    return replace(estimate, objects=objects, removed=removed)
+
+
 def first_guess(
     hypotheses: Sequence[Hypothesis],
     T_prev: np.ndarray | None,
@@ -304,13 +332,36 @@ class SceneParser:
                     f"frame stamp {frame.stamp} is earlier than the previous frame's "
                     f"({self._last_stamp}); frames must come in time order"
                 )
+            known_before = dict(self._known)
+            gone = self._apply_moved(frame.moved or {})
             try:
                 estimate, commit = self._update(frame, timer)
             except BaseException:
+                self._known = known_before  # the state is that of the last good frame
                 self._world, self._world_key = None, None  # never reuse a half-used world
                 raise
         commit()
+        if frame.moved:
+            estimate = _report_moved(estimate, frame.moved, gone)
         return replace(estimate, timings=dict(timer.seconds))
+
+    def _apply_moved(self, moved: Mapping[str, np.ndarray | None]) -> dict[str, _Known]:
+        """Take :attr:`Frame.moved` into the remembered scene: a moved object's previous pose
+        becomes the one it was put at; one that left the scene is forgotten (returned, for
+        the report). FrameError for an id the parser does not know."""
+        unknown = sorted(set(moved) - set(self._known))
+        if unknown:
+            raise FrameError(
+                f"moved names objects not in the scene: {', '.join(unknown)} (known: "
+                f"{', '.join(sorted(self._known)) or 'none'})"
+            )
+        gone: dict[str, _Known] = {}
+        for oid, T in moved.items():
+            if T is None:
+                gone[oid] = self._known.pop(oid)
+            else:
+                self._known[oid] = _Known(self._known[oid].class_name, np.array(T, dtype=float))
+        return gone
 
     def _associate(self, frame: Frame) -> _Association:
         """Stage 2: hypotheses grouped per object (module docstring)."""

@@ -75,6 +75,12 @@ class Frame:
             of no object (table, background).
         segments: optional points ``(K, 3)`` per instance id (the object's own segment).
         T_world_cam: optional camera pose (OpenCV camera frame), for visibility reasoning.
+        moved: optional ``{id: T_world_obj or None}``: known objects that something which
+            knows (the robot that picked and placed them) moved since the previous frame, with
+            the pose it put each one at (4, 4, m), or None when it left the scene (held in
+            the gripper, taken away). The parser takes that pose as the object's previous
+            one; the data still decides where it is. Without it, an object picked from a place
+            the camera cannot see (hidden behind a tower) stays there as a ghost.
     """
 
     stamp: float
@@ -83,6 +89,7 @@ class Frame:
     labels: np.ndarray | None = None
     segments: dict[str, np.ndarray] | None = None
     T_world_cam: np.ndarray | None = None
+    moved: dict[str, np.ndarray | None] | None = None
 
     def validate(self, library: Mapping[str, Any]) -> Frame:
         """Return a cleaned copy of this frame, or raise :class:`FrameError`.
@@ -94,7 +101,8 @@ class Frame:
         dropped); ``T_world_cam`` rigid; ``hypotheses`` a list of :class:`Hypothesis` with a
         class name (str) in ``library``, ``instance_id`` None or a str, ``segment`` None or an
         int, a finite score and a rigid pose (:func:`validate_pose`, re-orthonormalised) within
-        :data:`MM_CLOUD_MEDIAN` of the origin; one instance id never names two classes.
+        :data:`MM_CLOUD_MEDIAN` of the origin; one instance id never names two classes; ``moved``
+        a mapping of ids to rigid poses or None.
 
         Args:
             library: the object library (anything with ``in`` and ``names``/iteration, such
@@ -157,7 +165,31 @@ class Frame:
             labels=labels,
             segments=segments,
             T_world_cam=T_world_cam,
+            moved=_validate_moved(self.moved),
         )
+
+
+def _validate_moved(moved: Any) -> dict[str, np.ndarray | None] | None:
+    """Checked copy of :attr:`Frame.moved` (ids are strings, poses rigid or None)."""
+    if moved is None:
+        return None
+    if not isinstance(moved, Mapping):
+        raise FrameError(
+            f"moved must be a mapping {{object id: T_world_obj or None}}, got "
+            f"{type(moved).__name__}"
+        )
+    out: dict[str, np.ndarray | None] = {}
+    for oid, T in moved.items():
+        if not isinstance(oid, str) or not oid:
+            raise FrameError(f"moved: object ids must be non-empty strings, got {oid!r}")
+        if T is None:
+            out[oid] = None
+            continue
+        try:
+            out[oid] = validate_pose(T, f"moved[{oid!r}]")
+        except InvalidPoseError as exc:
+            raise FrameError(f"invalid pose: {exc}") from exc
+    return out
 
 
 def _validate_hypotheses(

@@ -31,6 +31,10 @@ tower can really fall (:mod:`ssp.sim.robot`; MuJoCo dynamics).
    tilted less than :data:`REST_TILT_DEG`. The first cube must rest flat on the table.
    Perception failures end the trial too: no tower seen, no cube to pick, a grasp that misses
    (:data:`GRASP_TOLERANCE`).
+   The robot tells the method what it did: the next frame's :attr:`ssp.Frame.moved` names
+   the perceived cube it picked (its id in the method's output) and the pose it put it at
+   (the target). The camera may not see the place it was taken from (a grown tower hides
+   it); the robot knows. Methods that track ids (ssp) use it; the others ignore it.
 5. The trial ends at the first failure or after eight stacks. A last round of frames is then
    perceived, so the final tower enters the consistency measure.
 
@@ -400,6 +404,8 @@ def run_trial(
     out = TowerTrial()
     n_frames = 0
 
+    moved: dict[str, np.ndarray] = {}  # what the robot moved since the last frame
+
     def look() -> list[Detection]:
         nonlocal n_frames
         dets: list[Detection] = []
@@ -407,6 +413,9 @@ def run_trial(
             poses = world.poses()
             rng = np.random.default_rng([seed, trial, 1, n_frames])
             frame = cam.frame(poses, rng, float(n_frames))
+            if moved:
+                frame.moved = dict(moved)
+                moved.clear()
             t0 = time.perf_counter()
             dets = method.update(frame)
             out.seconds.append(time.perf_counter() - t0)
@@ -458,6 +467,8 @@ def run_trial(
             }
         )
         release(world)
+        if candidates[0].id is not None:
+            moved[candidates[0].id] = target
         reason = _judge(world, model, size, out.tower, before, held.oid)
         if reason is not None:
             out.failure = reason
