@@ -78,7 +78,14 @@ from ssp.temporal import (
     snap_symmetric,
 )
 from ssp.timing import StageTimer
-from ssp.verification import Evidence, check_new, data_fallbacks, evidence, verify_final
+from ssp.verification import (
+    Evidence,
+    Verdict,
+    check_new,
+    data_fallbacks,
+    evidence,
+    verify_final,
+)
 from ssp.visibility import CameraView
 
 __all__ = [
@@ -697,6 +704,8 @@ class SceneParser:
         warnings: list[str] = [f"{oid}: {note}" for oid, note in sorted(out.fallbacks.items())]
         rejected = dict(out.rejected)
         reasons: dict[str, str] = {}
+        evidences: dict[str, Evidence] = {}
+        failed: dict[str, Verdict] = {}
         for oid in ids:
             if oid in out.removed or oid in prev_pose:
                 continue
@@ -711,12 +720,26 @@ class SceneParser:
                 own_label=out.owner.get(oid),
                 stability=float(score.terms[i, 0]),
             )
+            evidences[oid] = verdict.evidence
             if verdict.keep:
                 reasons[oid] = verdict.reason
-                continue
-            holds = [ids[c] for c in score.graph.children(i) if ids[c] not in out.removed]
-            if holds:
-                reasons[oid] = f"unverified ({verdict.reason}) but holds up {', '.join(holds)}"
+            else:
+                failed[oid] = verdict
+        holds = {
+            oid: kids
+            for oid in failed
+            if (
+                kids := [
+                    ids[c]
+                    for c in score.graph.children(ids.index(oid))
+                    if ids[c] not in out.removed
+                ]
+            )
+        }
+        for oid, verdict in failed.items():
+            i = ids.index(oid)
+            if oid in holds:
+                reasons[oid] = f"unverified ({verdict.reason}) but holds up {', '.join(holds[oid])}"
                 warnings.append(f"{oid}: {reasons[oid]}")
             else:
                 seg = out.groups[oid][0].segment if oid in out.groups else None
@@ -814,6 +837,7 @@ class SceneParser:
                     source=out.chosen.get(oid, "current"),
                     fit=float(score.fit[i]),
                     reason=reason,
+                    evidence=evidences[oid].as_dict() if oid in evidences else None,
                 )
             )
             known[out_id] = _Known(

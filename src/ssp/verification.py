@@ -231,30 +231,39 @@ def verify_final(
     own_label: int | None,
     stability: float,
 ) -> Verdict:
-    """The verdict on a new object after the search: :func:`check_new` at the best of its
-    final pose ``T_final`` and its ``hypotheses`` (physics may have moved it off its data when
-    what holds it is undetected; the data decides whether it is there), and, when its
-    ``stability`` term at the final pose says it would fall (below
-    ``verification.fall_stability``), kept only if its data is strong
+    """The verdict on a new object after the search: :func:`check_new` at its final pose
+    ``T_final``, the pose it is kept at (an object is never kept at a pose its data does not
+    support). Where physics moved it off its data, the data fallbacks (stage 7) have already
+    put it back at its best hypothesis when the scene can hold it there; when the final pose
+    fails but one of its ``hypotheses`` would pass, the reason says so (the scene could not hold
+    it where its data puts it). When its ``stability`` term at the final pose says it would
+    fall (below ``verification.fall_stability``), it is kept only if its data is strong
     (``verification.stand_explained``): a cube proposed on a ball explains half of the ball
     and cannot rest on it."""
     tree = None if segment is None or not len(segment) else cKDTree(segment)
-    best: tuple[tuple, Verdict] | None = None
-    for T in (T_final, *hypotheses):
-        ev = evidence(model, T, tree, view, config, own_label=own_label)
-        verdict = check_new(ev, config)
-        key = (verdict.keep, ev.fit if ev.explained is None else ev.explained, ev.fit)
-        if best is None or key > best[0]:
-            best = (key, verdict)
-    key, verdict = best
+    ev = evidence(model, T_final, tree, view, config, own_label=own_label)
+    verdict = check_new(ev, config)
+    if not verdict.keep:
+        for T in hypotheses:
+            hv = check_new(evidence(model, T, tree, view, config, own_label=own_label), config)
+            if hv.keep:
+                return Verdict(
+                    False,
+                    f"{verdict.reason} at the pose the scene allows (at its hypothesis it "
+                    f"explains {100 * hv.evidence.fit:.0f} %, where nothing holds it or it "
+                    "would be inside another object)",
+                    ev,
+                )
+        return verdict
     v = config.verification
-    if verdict.keep and stability < v.fall_stability and key[1] < v.stand_explained:
-        what = "of its visible surface" if verdict.evidence.explained is None else "of its segment"
+    strength = ev.fit if ev.explained is None else ev.explained
+    if stability < v.fall_stability and strength < v.stand_explained:
+        what = "of its visible surface" if ev.explained is None else "of its segment"
         return Verdict(
             False,
             f"would fall where the data puts it (stability term {stability:.0f}) and accounts "
-            f"for only {100 * key[1]:.0f} % {what}",
-            verdict.evidence,
+            f"for only {100 * strength:.0f} % {what}",
+            ev,
         )
     return verdict
 
