@@ -8,7 +8,7 @@ import numpy as np
 from ssp.config import SSPConfig
 from ssp.geometry import make_pose, transform_points
 from ssp.library.library import ObjectLibrary
-from ssp.verification import verify_final
+from ssp.verification import held_up, verify_final
 
 LIB = ObjectLibrary.builtin()
 CFG = SSPConfig()
@@ -28,3 +28,14 @@ def test_an_object_is_verified_at_the_pose_it_is_kept_at():
     # at its data it is kept, and the evidence is that of the kept pose
     v = verify_final(cube, T_data, [T_final], segment, None, CFG, own_label=None, stability=0.0)
     assert v.keep and v.evidence.fit >= CFG.verification.min_fit
+
+
+def test_unverified_objects_do_not_vouch_for_each_other():
+    """Two unverified boxes, each holding up the other or a rejected one, stayed ('unverified
+    ... but holds up box30_0' with box30_0 itself rejected)."""
+    graph = {"a": ["b"], "b": ["a"], "c": ["r"], "d": ["k"], "e": ["d"], "r": []}
+    kids = graph.get
+    # a and b hold up only each other; c only a rejected object r; d holds up the kept k,
+    # e holds up d: a chain down to the table stays
+    assert held_up(["a", "b", "c", "d", "e"], ["k"], kids) == {"d": ["k"], "e": ["d"]}
+    assert held_up(["e", "d"], ["k"], kids) == {"d": ["k"], "e": ["d"]}  # any order

@@ -84,6 +84,7 @@ from ssp.verification import (
     check_new,
     data_fallbacks,
     evidence,
+    held_up,
     verify_final,
 )
 from ssp.visibility import CameraView
@@ -725,17 +726,14 @@ class SceneParser:
                 reasons[oid] = verdict.reason
             else:
                 failed[oid] = verdict
-        holds = {
-            oid: kids
-            for oid in failed
-            if (
-                kids := [
-                    ids[c]
-                    for c in score.graph.children(ids.index(oid))
-                    if ids[c] not in out.removed
-                ]
-            )
-        }
+        # an unverified object stays if it holds up an object that stays (verified, known, or
+        # itself kept so); unverified objects holding up only each other, or only rejected
+        # ones, go together
+        holds = held_up(
+            failed,
+            [oid for oid in ids if oid not in out.removed and oid not in failed | rejected.keys()],
+            lambda oid: [ids[c] for c in score.graph.children(ids.index(oid))],
+        )
         for oid, verdict in failed.items():
             i = ids.index(oid)
             if oid in holds:

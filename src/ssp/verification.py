@@ -28,7 +28,7 @@ before; :func:`still_visible` decides whether an undetected known object is stil
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -54,6 +54,7 @@ __all__ = [
     "check_new",
     "data_fallbacks",
     "evidence",
+    "held_up",
     "still_visible",
     "verify_final",
 ]
@@ -266,6 +267,32 @@ def verify_final(
             ev,
         )
     return verdict
+
+
+def held_up(
+    unverified: Iterable[str], stays: Iterable[str], children: Callable[[str], Iterable[str]]
+) -> dict[str, list[str]]:
+    """The unverified objects that stay because they hold up an object that stays: ``id ->``
+    the staying objects it holds up. ``stays``: the objects kept on their own (verified or
+    known); ``children(id)``: the objects ``id`` supports (support graph). An object kept this
+    way counts as staying for the objects under it (a chain down to the table stays), but
+    unverified objects that hold up only each other, or only rejected ones, do not: two false
+    objects stacked on one another do not vouch for each other."""
+    pending = list(unverified)
+    staying = set(stays)
+    out: dict[str, list[str]] = {}
+    changed = True
+    while changed:
+        changed = False
+        for oid in pending:
+            if oid in out:
+                continue
+            kids = [c for c in children(oid) if c in staying]
+            if kids:
+                out[oid] = kids
+                staying.add(oid)
+                changed = True
+    return out
 
 
 def data_fallbacks(score, scorer, groups, config: SSPConfig) -> dict[str, tuple[np.ndarray, str]]:
