@@ -39,3 +39,21 @@ def test_unverified_objects_do_not_vouch_for_each_other():
     # e holds up d: a chain down to the table stays
     assert held_up(["a", "b", "c", "d", "e"], ["k"], kids) == {"d": ["k"], "e": ["d"]}
     assert held_up(["e", "d"], ["k"], kids) == {"d": ["k"], "e": ["d"]}  # any order
+
+
+def test_a_segment_whose_object_was_rejected_says_so():
+    """A cluster (no instance segment on the hypotheses) whose only object was rejected was
+    reported 'no object: no hypothesis was given for it' (ssp run: '5 hypotheses of carton')."""
+    from ssp.parser import SceneParser
+    from ssp.scene import Hypothesis
+    from test_parser import LIB as TLIB
+    from test_parser import frame, on_table
+
+    rng = np.random.default_rng(7)
+    T = on_table(TLIB["block"], yaw_deg=20)
+    f = frame({"b": ("block", T)}, rng, detect=set())
+    f.hypotheses = [Hypothesis("cube", T, 0.9)]  # the wrong class: explains half the block
+    est = SceneParser(TLIB).update(f)
+    assert not est.objects and len(est.rejected) == 1
+    r = est.rejected[0]
+    assert est.segments == {0: f"rejected cube {r.id}: {r.reason}"}

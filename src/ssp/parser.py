@@ -906,9 +906,13 @@ def _segment_verdicts(
         out_id = old_of.get(oid, oid)
         if out_id in kept:
             out[int(label)] = f"object {out_id}"
-    for r in rejected.values():
-        if r.segment is not None and int(r.segment) not in out:
-            out[int(r.segment)] = f"rejected {r.class_name} {r.id}: {r.reason}"
+    said: dict[int, list[str]] = {}
+    for r in sorted(rejected.values(), key=lambda r: r.id):
+        # the segment its hypotheses came from, else the one it took (a cluster, a class mask)
+        label = r.segment if r.segment is not None else owner.get(r.id)
+        if label is not None and int(label) not in out:
+            said.setdefault(int(label), []).append(f"rejected {r.class_name} {r.id}: {r.reason}")
+    out.update({label: "; ".join(texts) for label, texts in said.items()})
     for label in np.unique(np.asarray(frame.labels)):
         if label >= 0 and int(label) not in out:
             out[int(label)] = "no object: no hypothesis was given for it"
