@@ -35,6 +35,9 @@ class ObjectEstimate:
             ``unchanged``, ``retained``), or ``removed``.
         fit: data fit fraction c at the output pose (0..1).
         reason: why the object is in the scene (or why it was removed), in words.
+        evidence: for an object new in this frame, the figures verification judged it by at
+            its output pose (``Evidence.as_dict``: ``fit`` of its visible surface,
+            ``explained``, ...); None otherwise.
     """
 
     id: str
@@ -46,6 +49,7 @@ class ObjectEstimate:
     source: str = ""
     fit: float = 0.0
     reason: str = ""
+    evidence: dict | None = None
 
     @property
     def log_prob(self) -> float:
@@ -65,6 +69,7 @@ class ObjectEstimate:
             "source": self.source,
             "fit": self.fit,
             "reason": self.reason,
+            "evidence": None if self.evidence is None else dict(self.evidence),
         }
 
 

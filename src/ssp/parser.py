@@ -80,10 +80,12 @@ from ssp.temporal import (
 from ssp.timing import StageTimer
 from ssp.verification import (
     Evidence,
+    Verdict,
     check_new,
     data_fallbacks,
     evidence,
-    supports_unverified,
+    held_up,
+    may_hold_up,
     verify_final,
 )
 from ssp.visibility import CameraView
@@ -755,6 +757,9 @@ class SceneParser:
         warnings: list[str] = [f"{oid}: {note}" for oid, note in sorted(out.fallbacks.items())]
         rejected = dict(out.rejected)
         reasons: dict[str, str] = {}
+        evidences: dict[str, Evidence] = {}
+        failed: dict[str, Verdict] = {}
+        placed: dict[str, np.ndarray] = {}
         for oid in ids:
             if oid in out.removed or oid in prev_pose:
                 continue
@@ -769,18 +774,33 @@ class SceneParser:
                 own_label=out.owner.get(oid),
                 stability=float(score.terms[i, 0]),
             )
+            evidences[oid] = verdict.evidence
             if verdict.keep:
                 reasons[oid] = verdict.reason
-                continue
-            holds = [ids[c] for c in score.graph.children(i) if ids[c] not in out.removed]
-            if supports_unverified(verdict, holds, cfg):
-                reasons[oid] = f"unverified ({verdict.reason}) but holds up {', '.join(holds)}"
+                if verdict.T_world_obj is not None:  # kept where its data puts it
+                    placed[oid] = verdict.T_world_obj
+                    warnings.append(f"{oid}: {verdict.reason}")
+            else:
+                failed[oid] = verdict
+        # an unverified object stays if it holds up an object that stays (verified, known, or
+        # itself kept so) and the camera does not see through it; unverified objects holding
+        # up only each other, or only rejected ones, go together
+        holds = held_up(
+            [oid for oid, v in failed.items() if may_hold_up(v, cfg)],
+            [oid for oid in ids if oid not in out.removed and oid not in failed | rejected.keys()],
+            lambda oid: [ids[c] for c in score.graph.children(ids.index(oid))],
+        )
+        for oid, verdict in failed.items():
+            i = ids.index(oid)
+            if oid in holds:
+                reasons[oid] = f"unverified ({verdict.reason}) but holds up {', '.join(holds[oid])}"
                 warnings.append(f"{oid}: {reasons[oid]}")
             else:
                 seg = out.groups[oid][0].segment if oid in out.groups else None
                 why = verdict.reason
-                if holds:
-                    why += f" (what rests on it, {', '.join(holds)}, does not keep it)"
+                on_it = [ids[c] for c in score.graph.children(i) if ids[c] not in out.removed]
+                if on_it:
+                    why += f" (what rests on it, {', '.join(on_it)}, does not keep it)"
                 rejected[oid] = Rejected(
                     oid, models[oid].name, score.poses[i].copy(), why,
                     verdict.evidence.as_dict(), seg,
@@ -808,7 +828,7 @@ class SceneParser:
             and out.evidence[oid].seen_through >= through
         }
         added = {
-            oid: (models[oid].name, score.poses[ids.index(oid)])
+            oid: (models[oid].name, placed.get(oid, score.poses[ids.index(oid)]))
             for oid in ids
             if oid not in gone and oid not in prev_pose
         }
@@ -828,7 +848,7 @@ class SceneParser:
             if oid in gone:
                 continue
             model = models[oid]
-            T = score.poses[i]
+            T = placed.get(oid, score.poses[i])
             out_id = old_of.get(oid, oid)
             prev = prev_pose.get(out_id)
             if prev is not None:
@@ -858,7 +878,7 @@ class SceneParser:
                 reason = f"detected; the search kept its {src} pose"
             ev = out.evidence.get(oid)
             through = cfg.temporal.seen_through_fraction
-            if ev is not None and ev.facing and ev.seen_through >= through:
+            if oid not in placed and ev is not None and ev.facing and ev.seen_through >= through:
                 warnings.append(
                     f"{out_id}: the camera sees through {100 * ev.seen_through:.0f} % of it"
                 )
@@ -875,6 +895,7 @@ class SceneParser:
                     source=out.chosen.get(oid, "current"),
                     fit=float(score.fit[i]),
                     reason=reason,
+                    evidence=evidences[oid].as_dict() if oid in evidences else None,
                 )
             )
             known[out_id] = _Known(
@@ -945,9 +966,13 @@ def _segment_verdicts(
         out_id = old_of.get(oid, oid)
         if out_id in kept:
             out[int(label)] = f"object {out_id}"
-    for r in rejected.values():
-        if r.segment is not None and int(r.segment) not in out:
-            out[int(r.segment)] = f"rejected {r.class_name} {r.id}: {r.reason}"
+    said: dict[int, list[str]] = {}
+    for r in sorted(rejected.values(), key=lambda r: r.id):
+        # the segment its hypotheses came from, else the one it took (a cluster, a class mask)
+        label = r.segment if r.segment is not None else owner.get(r.id)
+        if label is not None and int(label) not in out:
+            said.setdefault(int(label), []).append(f"rejected {r.class_name} {r.id}: {r.reason}")
+    out.update({label: "; ".join(texts) for label, texts in said.items()})
     for label in np.unique(np.asarray(frame.labels)):
         if label >= 0 and int(label) not in out:
             out[int(label)] = "no object: no hypothesis was given for it"

@@ -28,7 +28,7 @@ before; :func:`still_visible` decides whether an undetected known object is stil
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -54,8 +54,9 @@ __all__ = [
     "check_new",
     "data_fallbacks",
     "evidence",
+    "held_up",
+    "may_hold_up",
     "still_visible",
-    "supports_unverified",
     "verify_final",
 ]
 
@@ -94,11 +95,14 @@ class Evidence:
 
 @dataclass(frozen=True)
 class Verdict:
-    """Whether an object is kept, and why (a short sentence for people)."""
+    """Whether an object is kept, and why (a short sentence for people); ``T_world_obj``:
+    the pose to keep it at when that is not the pose it was judged for (:func:`verify_final`),
+    else None."""
 
     keep: bool
     reason: str
     evidence: Evidence | None = None
+    T_world_obj: np.ndarray | None = None
 
 
 #: A surface sample counts as explained within this many point spacings of the segment (at
@@ -232,44 +236,84 @@ def verify_final(
     own_label: int | None,
     stability: float,
 ) -> Verdict:
-    """The verdict on a new object after the search: :func:`check_new` at the best of its
-    final pose ``T_final`` and its ``hypotheses`` (physics may have moved it off its data when
-    what holds it is undetected; the data decides whether it is there), and, when its
-    ``stability`` term at the final pose says it would fall (below
-    ``verification.fall_stability``), kept only if its data is strong
+    """The verdict on a new object after the search: :func:`check_new` at its final pose
+    ``T_final``. An object is never reported at a pose its data does not support: when the
+    final pose fails (physics moved it off its data: what holds it is undetected, or its
+    hypothesis interpenetrates another object, so the data fallbacks could not put it back)
+    but one of its ``hypotheses`` passes, it is kept at the best such hypothesis
+    (:attr:`Verdict.T_world_obj`; the data decides whether and where it is; the reason
+    says so). When its ``stability`` term at the final pose says it would fall (below
+    ``verification.fall_stability``), it is kept only if its data is strong
     (``verification.stand_explained``): a cube proposed on a ball explains half of the ball
     and cannot rest on it."""
     tree = None if segment is None or not len(segment) else cKDTree(segment)
-    best: tuple[tuple, Verdict] | None = None
-    for T in (T_final, *hypotheses):
-        ev = evidence(model, T, tree, view, config, own_label=own_label)
-        verdict = check_new(ev, config)
-        key = (verdict.keep, ev.fit if ev.explained is None else ev.explained, ev.fit)
-        if best is None or key > best[0]:
-            best = (key, verdict)
-    key, verdict = best
+    ev = evidence(model, T_final, tree, view, config, own_label=own_label)
+    verdict = check_new(ev, config)
+    if not verdict.keep:
+        best: tuple[float, np.ndarray, Verdict] | None = None
+        for T in hypotheses:
+            hv = check_new(evidence(model, T, tree, view, config, own_label=own_label), config)
+            e = hv.evidence
+            strength = e.fit if e.explained is None else e.explained
+            if hv.keep and (best is None or strength > best[0]):
+                best = (strength, np.asarray(T, dtype=float), hv)
+        if best is None:
+            return verdict
+        _, T, hv = best
+        return Verdict(
+            True,
+            f"{hv.reason}, kept at its hypothesis: the searched scene could not hold it where "
+            f"its data puts it ({verdict.reason} there)",
+            hv.evidence,
+            T.copy(),
+        )
     v = config.verification
-    if verdict.keep and stability < v.fall_stability and key[1] < v.stand_explained:
-        what = "of its visible surface" if verdict.evidence.explained is None else "of its segment"
+    strength = ev.fit if ev.explained is None else ev.explained
+    if stability < v.fall_stability and strength < v.stand_explained:
+        what = "of its visible surface" if ev.explained is None else "of its segment"
         return Verdict(
             False,
             f"would fall where the data puts it (stability term {stability:.0f}) and accounts "
-            f"for only {100 * key[1]:.0f} % {what}",
-            verdict.evidence,
+            f"for only {100 * strength:.0f} % {what}",
+            ev,
         )
     return verdict
 
 
-def supports_unverified(verdict: Verdict, holds: Sequence[str], config: SSPConfig) -> bool:
-    """Whether a new object that failed :func:`verify_final` stays because it holds up the
-    objects ``holds`` (something is there: they would fall without it). Not when its volume is
-    seen empty (``temporal.seen_through_fraction``): the camera's direct view of free space is
-    not overruled by objects resting on it (as for known objects, :mod:`ssp.retention`); a
-    false hypothesis on an object not in the library would otherwise stay as long as what lies
-    on that object is in the scene."""
+def may_hold_up(verdict: Verdict, config: SSPConfig) -> bool:
+    """Whether a new object that failed :func:`verify_final` may stay for holding others up
+    (:func:`held_up`): not when its volume is seen empty (``temporal.seen_through_fraction``):
+    the camera's direct view of free space is not overruled by objects resting on it (as for
+    known objects, :mod:`ssp.retention`); a false hypothesis on an object not in the library
+    would otherwise stay as long as what lies on that object is in the scene."""
     ev, through = verdict.evidence, config.temporal.seen_through_fraction
-    seen_empty = ev is not None and ev.facing > 0 and ev.seen_through >= through
-    return bool(holds) and not seen_empty
+    return not (ev is not None and ev.facing > 0 and ev.seen_through >= through)
+
+
+def held_up(
+    unverified: Iterable[str], stays: Iterable[str], children: Callable[[str], Iterable[str]]
+) -> dict[str, list[str]]:
+    """The unverified objects that stay because they hold up an object that stays: ``id ->``
+    the staying objects it holds up. ``stays``: the objects kept on their own (verified or
+    known); ``children(id)``: the objects ``id`` supports (support graph). An object kept this
+    way counts as staying for the objects under it (a chain down to the table stays), but
+    unverified objects that hold up only each other, or only rejected ones, do not: two false
+    objects stacked on one another do not vouch for each other."""
+    pending = list(unverified)
+    staying = set(stays)
+    out: dict[str, list[str]] = {}
+    changed = True
+    while changed:
+        changed = False
+        for oid in pending:
+            if oid in out:
+                continue
+            kids = [c for c in children(oid) if c in staying]
+            if kids:
+                out[oid] = kids
+                staying.add(oid)
+                changed = True
+    return out
 
 
 def data_fallbacks(score, scorer, groups, config: SSPConfig) -> dict[str, tuple[np.ndarray, str]]:

@@ -38,6 +38,10 @@ stamps and indices of the other frames never shift.
     is not listed is background. Labels then come from the colours, not from a label field.
 ``background_labels``
     label values that mean table / background (default ``[0]``); negative labels always do.
+``camera_axes``
+    the axes of ``"camera"`` clouds: ``"opencv"`` (default: x right, y down, z forward) or
+    ``"opengl"`` (x right, y up, z backward, as PCL's Kinect tutorial clouds); ``"opengl"``
+    clouds (and their camera-frame hypotheses) are turned to OpenCV axes when read.
 """
 
 from __future__ import annotations
@@ -49,7 +53,7 @@ import math
 import os
 import re
 from collections.abc import Iterator, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -89,7 +93,10 @@ _SCENE_KEYS = (
     "classes",
     "colors",
     "background_labels",
+    "camera_axes",
 )
+#: ``camera_axes`` value -> the rotation from those axes to OpenCV's.
+CAMERA_AXES = {"opencv": np.eye(3), "opengl": np.diag([1.0, -1.0, -1.0])}
 _HEX_COLOR = re.compile(r"^#([0-9a-fA-F]{6})$")
 
 
@@ -107,6 +114,7 @@ class SceneSpec:
         classes: ``{label value: class name}``.
         colors: ``{0xRRGGBB: class name}``.
         background_labels: label values that mean background (besides negative ones).
+        camera_axes: ``"opencv"`` or ``"opengl"``: the axes of camera-frame clouds.
     """
 
     frame: str = "camera"
@@ -117,6 +125,7 @@ class SceneSpec:
     classes: dict[int, str] = field(default_factory=dict)
     colors: dict[int, str] = field(default_factory=dict)
     background_labels: frozenset[int] = frozenset({0})
+    camera_axes: str = "opencv"
 
     @classmethod
     def from_dict(cls, doc: Any, where: str = SCENE_JSON) -> SceneSpec:
@@ -133,6 +142,14 @@ class SceneSpec:
         frame = doc.get("frame", "camera")
         if frame not in ("camera", "world"):
             raise InputError(f"{where}: 'frame' must be 'camera' or 'world', got {frame!r}")
+        axes = doc.get("camera_axes", "opencv")
+        if axes not in CAMERA_AXES:
+            raise InputError(
+                f"{where}: 'camera_axes' must be 'opencv' (x right, y down, z forward) or "
+                f"'opengl' (x right, y up, z backward), got {axes!r}"
+            )
+        if axes != "opencv" and frame != "camera":
+            raise InputError(f"{where}: 'camera_axes' applies to 'frame': 'camera' clouds only")
         labels = doc.get("labels", "instance")
         if labels not in ("instance", "class"):
             raise InputError(f"{where}: 'labels' must be 'instance' or 'class', got {labels!r}")
@@ -162,6 +179,7 @@ class SceneSpec:
             classes=classes,
             colors=colors,
             background_labels=background,
+            camera_axes=axes,
         )
 
 
@@ -356,18 +374,26 @@ class FolderInput:
             raise CloudFormatError(f"{ff.cloud_path}: {ff.problem}")
         cloud = read_cloud(ff.cloud_path)
         _check_metres(ff.cloud_path, cloud.points)
+        points = cloud.points
+        R = CAMERA_AXES[self.spec.camera_axes]
+        if self.spec.camera_axes != "opencv":
+            points = points @ R.T
         warnings: list[str] = []
         labels, kind, label_classes = _labels(self.spec, ff.cloud_path, cloud, warnings)
         hyps, hframe = None, None
         if ff.hypotheses_path is not None:
             hf = read_hypotheses(ff.hypotheses_path)
             hyps, hframe = hf.hypotheses, hf.frame
+            if self.spec.camera_axes != "opencv" and hframe == "camera":
+                D = np.eye(4)
+                D[:3, :3] = R
+                hyps = [replace(h, T_world_obj=D @ h.T_world_obj) for h in hyps]
         return RawFrame(
             name=ff.name,
             index=ff.index,
             stamp=ff.stamp,
             cloud_path=ff.cloud_path,
-            points=cloud.points,
+            points=points,
             labels=labels,
             label_kind=kind,
             label_classes=label_classes,

@@ -39,9 +39,29 @@ from ssp.perception.segmentation import Segmentation, segment_cloud
 from ssp.perception.table import table_frame
 from ssp.scene import Frame, Hypothesis
 
-__all__ = ["Perception", "PerceptionResult"]
+__all__ = ["Perception", "PerceptionResult", "check_camera_axes"]
 
 log = logging.getLogger(__name__)
+
+
+#: A camera-frame cloud with fewer than this fraction of its points in front of the camera
+#: (z > 0, OpenCV axes) is in other axes.
+MIN_IN_FRONT = 0.5
+
+
+def check_camera_axes(points: np.ndarray) -> None:
+    """PerceptionError when a camera-frame cloud ``(N, 3)`` lies mostly behind the camera
+    (z <= 0): it is not in OpenCV axes (x right, y down, z forward). An OpenGL-style cloud (y
+    up, z backward: PCL's Kinect tutorials) otherwise gave every object 'not in the camera's
+    view' and an upside-down world."""
+    front = float(np.mean(points[:, 2] > 0.0)) if len(points) else 1.0
+    if front < MIN_IN_FRONT:
+        raise PerceptionError(
+            f"only {100 * front:.0f} % of the points are in front of the camera (z > 0): the "
+            "cloud is not in the camera frame with OpenCV axes (x right, y down, z forward); "
+            "a cloud with y up and z backward is in OpenGL axes: negate y and z (ssp run: "
+            'scene.json "camera_axes": "opengl")'
+        )
 
 
 @dataclass
@@ -175,6 +195,7 @@ class Perception:
 
         t0 = time.perf_counter()
         if frame == "camera":
+            check_camera_axes(pts)
             if T_world_cam is None:
                 T_world_cam, _ = table_frame(pts, distance=self.cfg.table_distance)
             pts = transform_points(np.asarray(T_world_cam, dtype=float), pts)
