@@ -812,7 +812,6 @@ class SceneParser:
         # a new object where a known one of its class just vanished is that object, moved;
         # so is one beside a known object that the depth contradicts (seen through): the known
         # object's pose was wrong, and the new one is where it really is
-        through = cfg.temporal.seen_through_fraction
         vanished = {
             oid: (models[oid].name, prev_pose[oid])
             for oid in out.removed
@@ -822,10 +821,7 @@ class SceneParser:
         contradicted = {
             oid: (models[oid].name, score.poses[ids.index(oid)])
             for oid in ids
-            if oid in prev_pose
-            and oid not in gone
-            and out.evidence[oid].facing
-            and out.evidence[oid].seen_through >= through
+            if oid in prev_pose and oid not in gone and out.evidence[oid].seen_empty(cfg)
         }
         added = {
             oid: (models[oid].name, placed.get(oid, score.poses[ids.index(oid)]))
@@ -877,8 +873,7 @@ class SceneParser:
                 src = out.chosen.get(oid, "current")
                 reason = f"detected; the search kept its {src} pose"
             ev = out.evidence.get(oid)
-            through = cfg.temporal.seen_through_fraction
-            if oid not in placed and ev is not None and ev.facing and ev.seen_through >= through:
+            if oid not in placed and ev is not None and ev.seen_empty(cfg):
                 warnings.append(
                     f"{out_id}: the camera sees through {100 * ev.seen_through:.0f} % of it"
                 )

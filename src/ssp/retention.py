@@ -101,7 +101,7 @@ def triage(
             if frac >= t.replaced_overlap:
                 out[oid] = Triage("replaced", f"another object fills {100 * frac:.0f} % of it")
                 continue
-        if view is not None and ev.facing and ev.seen_through >= t.seen_through_fraction:
+        if view is not None and ev.seen_empty(config):
             reason = f"its volume is seen empty ({100 * ev.seen_through:.0f} % seen through)"
             out[oid] = Triage("seen_empty", reason, ev)
         elif view is not None and ev.facing and ev.occluded >= t.occluded_fraction:

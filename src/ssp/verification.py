@@ -82,6 +82,11 @@ class Evidence:
     seen_through: float
     occluded: float
 
+    def seen_empty(self, config: SSPConfig) -> bool:
+        """The camera sees through at least ``temporal.seen_through_fraction`` of the facing
+        surface: the object's volume is observed empty."""
+        return self.facing > 0 and self.seen_through >= config.temporal.seen_through_fraction
+
     def as_dict(self) -> dict:
         return {
             "facing": self.facing,
@@ -286,8 +291,7 @@ def may_hold_up(verdict: Verdict, config: SSPConfig) -> bool:
     the camera's direct view of free space is not overruled by objects resting on it (as for
     known objects, :mod:`ssp.retention`); a false hypothesis on an object not in the library
     would otherwise stay as long as what lies on that object is in the scene."""
-    ev, through = verdict.evidence, config.temporal.seen_through_fraction
-    return not (ev is not None and ev.facing > 0 and ev.seen_through >= through)
+    return verdict.evidence is None or not verdict.evidence.seen_empty(config)
 
 
 def held_up(
