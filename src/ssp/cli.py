@@ -1015,11 +1015,23 @@ def run_cmd(
     ),  # fmt: skip
     config: Path | None = ConfigOption,
     cache: Path | None = CacheOption,
+    record: Path | None = typer.Option(
+        None,
+        "--record",
+        help="Also write a 3D recording of the run (rerun .rrd file; open it with ssp view).",
+        show_default=False,
+        metavar="RUN.rrd",
+    ),
 ) -> None:
     """Perception and scene parsing over recorded frames: per-frame JSON, a BOP19 CSV and a
     summary, kept current after every frame (formats: docs/formats.md). A stopped run
     (Ctrl-C, a crash, a killed process) continues with --resume OUT."""
     from ssp.runner import HYPOTHESES_MODES, run
+
+    if record is not None:
+        from ssp.viz.record import check_recording
+
+        check_recording(record)  # before the models load
 
     names = [c.strip() for c in classes.split(",") if c.strip()] if classes else None
     if resume is not None:
@@ -1078,6 +1090,7 @@ def run_cmd(
                 resume=resume is not None,
                 overwrite=overwrite,
                 models=None if models is None else str(models.resolve()),
+                record=record,
             )
     except KeyboardInterrupt:
         err_console.print(
@@ -1089,8 +1102,40 @@ def run_cmd(
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
     _print_run(summary, input_path)
+    if record is not None:
+        console.print(f"wrote [bold]{record}[/]; view it with: ssp view {record}")
     if not summary.done:
         raise typer.Exit(1)
+
+
+@app.command()
+@_friendly
+def view(
+    recording: Path = typer.Argument(..., help="A recording (.rrd) written by --record."),
+    web: bool = typer.Option(
+        False, "--web", help="Serve it to a browser instead (no display needed here)."
+    ),
+    dry_run: bool = typer.Option(
+        False, "--dry-run", help="Print the viewer command instead of running it."
+    ),
+) -> None:
+    """Open a 3D recording of a run (ssp run --record, ssp demo) in the rerun viewer."""
+    from ssp.viz.record import prepare_view, view_command
+    from ssp.viz.record import view as open_viewer
+
+    if dry_run:
+        console.print(" ".join(view_command(recording, web=web)), highlight=False)
+        return
+    cmd = prepare_view(recording, web=web)
+    if web:
+        console.print(
+            f"serving {recording} to a browser ({' '.join(cmd)}); open the address it prints "
+            "(by default http://localhost:9090). Ctrl-C stops it.",
+            highlight=False,
+        )
+    else:
+        console.print(f"opening {recording} in the rerun viewer", highlight=False)
+    open_viewer(recording, web=web)
 
 
 def _stop_on_sigterm():
@@ -1159,6 +1204,12 @@ def demo(
         result = run_sequence_demo(out, _config(config), progress=status.update)
     _print_table1(result)
     console.print(f"{result['seconds']:.0f} s; open [bold]{Path(out) / 'report.html'}[/]")
+    if result.get("recording"):
+        console.print(f"3D recording of ssp's run: [bold]ssp view {result['recording']}[/]")
+    else:
+        from ssp.viz.record import INSTALL_HINT
+
+        console.print(f"no 3D recording (rerun is not installed: {INSTALL_HINT})")
 
 
 def _foundation_demo(out: Path, config: Path | None) -> None:

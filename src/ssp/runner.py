@@ -539,6 +539,7 @@ def run(
     resume: bool = False,
     overwrite: bool = False,
     models: str | None = None,
+    record: str | Path | None = None,
 ) -> RunSummary:
     """Run perception and the scene parser over every frame of ``input_path``.
 
@@ -558,14 +559,24 @@ def run(
             is kept; the rest are processed as an uninterrupted run would).
         overwrite: clear an earlier run's files in ``out_dir`` (nothing else is touched).
         models: where ``library`` came from (a model folder, None: built-in), recorded.
+        record: write a 3D recording of the run to this rerun ``.rrd`` file
+            (:class:`ssp.viz.record.Recorder`; needs the ``record`` extra): each finished
+            frame's cloud, objects, hypotheses, support and terms, failed frames as error
+            lines. A resumed run records the frames it processes itself.
 
     Raises:
         InputError: the input as a whole cannot be used (missing folder, no frames, bad
             ``scene.json``, classes of ``scene.json`` not in the library).
         ArgumentError: a bad option, an output folder that holds something else, or a
             resume whose input, models, config or options differ from the recorded ones.
+        RecordingError: ``record`` given and rerun is not installed or the file cannot be
+            written (:mod:`ssp.viz.record`).
     """
     cfg = config if config is not None else SSPConfig()
+    if record is not None:
+        from ssp.viz.record import check_recording
+
+        check_recording(record)  # rerun installed: checked before any output is written
     if hypotheses not in HYPOTHESES_MODES:
         raise ArgumentError(
             f"hypotheses must be one of {', '.join(HYPOTHESES_MODES)}, got {hypotheses!r}"
@@ -627,7 +638,9 @@ def run(
         "total": inp.total,
         "resumes": int(state.get("resumes", -1)) + 1,
     }
-    with BopCsvWriter(csv_path, method, append=resume) as csv:
+    from ssp.viz.record import RunRecording  # rerun itself only when recording
+
+    with BopCsvWriter(csv_path, method, append=resume) as csv, RunRecording(record, library) as rec:
         committed_parser = parser.state()
 
         def commit(n_next: int, parser_state: dict[str, Any]) -> None:
@@ -639,7 +652,8 @@ def run(
             if not state:
                 commit(0, committed_parser)
             for n, source in enumerate(inp.sources(start), start=start):
-                frame_json, lines = _run_frame(source, parser, csv, ids, scene_id)
+                kept: dict[str, Any] = {}
+                frame_json, lines = _run_frame(source, parser, csv, ids, scene_id, kept)
                 failed = frame_json["status"] == "failed"
                 if failed and parser.state() != committed_parser:
                     # it failed after the parser took it: go on from the last good frame
@@ -649,10 +663,11 @@ def run(
                 parser_state = parser.state()
                 commit(n + 1, parser_state)
                 committed_parser = parser_state
-                record = summary.add(frame_json)
+                done = summary.add(frame_json)
                 atomic_write_text(out / SUMMARY_JSON, summary.to_json())
+                rec.add(n, source.name, frame_json, **kept)
                 if progress is not None:
-                    msg = record.get("error") or f"{record['objects']} objects"
+                    msg = done.get("error") or f"{done['objects']} objects"
                     progress(n + 1, inp.total, f"{source.name}: {msg}")
         except BaseException as exc:
             # the summary holds the committed frames only; --resume continues from there
@@ -668,16 +683,24 @@ def run(
 
 
 def _run_frame(
-    source: _Source, parser: SceneParser, csv: BopCsvWriter, ids: ObjectIds, scene_id: int
+    source: _Source,
+    parser: SceneParser,
+    csv: BopCsvWriter,
+    ids: ObjectIds,
+    scene_id: int,
+    kept: dict[str, Any] | None = None,
 ) -> tuple[dict[str, Any], list[str]]:
     """Perceive and parse one frame: ``(frame JSON, CSV lines)``. Nothing is written here;
-    a failure anywhere gives a frame JSON with ``status: failed`` and no lines."""
+    a failure anywhere gives a frame JSON with ``status: failed`` and no lines. ``kept``
+    receives the ``perceived`` result and the parser's ``estimate`` of a frame that succeeds."""
     t0 = time.perf_counter()
     warnings: list[str] = []
     try:
         perceived, warnings = source.perceive()
         estimate = parser.update(perceived.frame)
         seconds = time.perf_counter() - t0
+        if kept is not None:
+            kept.update(perceived=perceived, estimate=estimate)
         frame = perceived.frame
         T_cam_world = np.eye(4) if frame.T_world_cam is None else invert(frame.T_world_cam)
         lines = [

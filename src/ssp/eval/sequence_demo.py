@@ -8,13 +8,17 @@ Table I (:func:`ssp.eval.table1.run_table1`). Writes into ``out``:
 * ``error_vs_visibility.png``, ``error_over_frames.png``;
 * ``frames/NNN.png``: the last frame of each static scene, outlines of the truth (white), ssp
   and the pose estimator alone over the depth image;
-* ``report.html``: all of it on one page.
+* ``report.html``: all of it on one page;
+* ``run.rrd``: a 3D recording of ssp's run (:mod:`ssp.viz.record`, with the ground truth),
+  when rerun is installed (the ``record`` extra); ``ssp view OUT/run.rrd`` opens it.
 """
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable
+from contextlib import ExitStack
 from pathlib import Path
 
 from ssp.config import SSPConfig
@@ -24,7 +28,12 @@ from ssp.sim.generate import generate_sequence
 from ssp.viz.overlay import overlay, save_png
 from ssp.viz.report import write_html_report
 
-__all__ = ["run_sequence_demo"]
+__all__ = ["RECORDING", "run_sequence_demo"]
+
+log = logging.getLogger(__name__)
+
+#: The demo's 3D recording, in its output folder.
+RECORDING = "run.rrd"
 
 #: Methods in the demo's table (the benchmark's, but the costly memoryless parser), and those
 #: drawn on the frame images.
@@ -42,8 +51,10 @@ def run_sequence_demo(
     frames_per_stage: int = 4,
     stride: int = 1,
     progress: Callable[[str], None] | None = None,
+    record: bool = True,
 ) -> dict:
-    """Run the demo; returns the Table I result dict plus ``files`` and ``seconds``."""
+    """Run the demo; returns the Table I result dict plus ``files``, ``seconds`` and
+    ``recording`` (the path of ``run.rrd``, or None: ``record`` off or rerun not installed)."""
     t0 = time.perf_counter()
     config = config if config is not None else SSPConfig()
     lib = ObjectLibrary.builtin(config.library)
@@ -63,8 +74,24 @@ def run_sequence_demo(
         if i in last_of_stage and method in DRAWN:
             outputs.setdefault(i, {})[method] = [(d[0], d[1]) for d in dets]
 
-    result = run_table1([seq], lib, config, METHODS, progress=progress, on_output=keep)
     out = Path(out)
+    with ExitStack() as stack:
+        recorder = _recorder(out / RECORDING, lib) if record else None
+        on_estimate = None
+        if recorder is not None:
+            stack.enter_context(recorder)
+            last = [None]
+
+            def on_estimate(_s: int, i: int, frame, est) -> None:
+                if est is None or est is last[0]:  # the parser rejected this frame
+                    recorder.log_failure(i, f"{i:03d}", "ssp skipped the frame (see the log)")
+                else:
+                    recorder.log_frame(i, frame, est, name=f"{i:03d}", truth=seq.ground_truth(i))
+                last[0] = est
+
+        result = run_table1(
+            [seq], lib, config, METHODS, progress=progress, on_output=keep, on_estimate=on_estimate
+        )
     files = write_table1(result, out)
     frames = []
     for i in sorted(outputs):
@@ -85,8 +112,27 @@ def run_sequence_demo(
             f"Sequence: {experiment}, seed {seed}, {len(seq)} frames "
             f"({stages} static scenes x {frames_per_stage} frames), camera "
             f"{seq.camera.width} x {seq.camera.height}. Rerun: ssp demo --out {out}",
+            *(
+                [f"3D recording of ssp's run: ssp view {recorder.path}"]
+                if recorder is not None
+                else []
+            ),
         ],
     )
-    result["files"] = [str(p) for p in (*files, *(p for _, p in frames), page)]
+    recording = None if recorder is None else recorder.path
+    shown = (*files, *(p for _, p in frames), page, *([recording] if recording else []))
+    result["files"] = [str(p) for p in shown]
+    result["recording"] = None if recording is None else str(recording)
     result["seconds"] = time.perf_counter() - t0
     return result
+
+
+def _recorder(path: Path, lib):
+    """A :class:`ssp.viz.record.Recorder` of ``path``, or None (logged) without rerun."""
+    from ssp.viz.record import Recorder, RecordingError
+
+    try:
+        return Recorder(path, lib)
+    except RecordingError as exc:
+        log.warning("no 3D recording: %s", exc)
+        return None

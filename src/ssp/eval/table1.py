@@ -235,6 +235,7 @@ def run_table1(
     gate: float = DEFAULT_GATE,
     on_output: Callable[[int, int, str, list[Detection]], None] | None = None,
     vsd: bool = True,
+    on_estimate: Callable[..., None] | None = None,
 ) -> dict:
     """Run every method on every frame of ``sequences``; a JSON-ready dict (module docstring).
 
@@ -250,6 +251,10 @@ def run_table1(
             after each method's update (e.g. to draw estimate-vs-truth images).
         vsd: include VSD in the BOP metrics (one render per estimate-object pair that
             overlaps in the image).
+        on_estimate: called as ``on_estimate(sequence index, frame index, frame, estimate)``
+            after the ``ssp`` method's update, with the parser's input and its last
+            :class:`ssp.estimate.SceneEstimate` (that of an earlier frame when this one failed;
+            e.g. to record the run, :mod:`ssp.viz.record`).
     """
     config = config if config is not None else SSPConfig()
     methods = tuple(methods)
@@ -305,6 +310,8 @@ def run_table1(
                 wall = time.perf_counter() - t0
                 if on_output is not None:
                     on_output(s, i, m, dets)
+                if on_estimate is not None and m == "ssp":
+                    on_estimate(s, i, frame, runner.last_estimate)
                 fm = match_frame(sf.gt, dets, library, gate)
                 bop[m].add_frame(
                     sf.gt,
