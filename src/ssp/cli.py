@@ -1124,7 +1124,8 @@ def view(
     from ssp.viz.record import view as open_viewer
 
     if dry_run:
-        console.print(" ".join(view_command(recording, web=web)), highlight=False)
+        cmd = " ".join(view_command(recording, web=web))
+        console.print(cmd, highlight=False, markup=False, soft_wrap=True)
         return
     cmd = prepare_view(recording, web=web)
     if web:
