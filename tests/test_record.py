@@ -18,7 +18,10 @@ from ssp.runner import run
 from ssp.scene import Frame, Hypothesis, TransitionMode
 from ssp.sim.bop import simulate_to_disk
 from ssp.viz.record import (
+    GREY,
     INSTALL_HINT,
+    MODE_COLOURS,
+    OBJECT_ALPHA,
     TERMS,
     Recorder,
     RecordingError,
@@ -193,14 +196,16 @@ def test_objects_that_leave_are_cleared_and_colours_follow_the_mode(lib, tmp_pat
     assert len(at(hyp, 0, "InstancePoses3D:translations")) == 2
     assert at(hyp, 1, "Clear:is_recursive") == [False]  # no hypothesis in frame 1
     mesh = data["/world/objects/a/mesh"]
-    rgba0, rgba1 = at(mesh, 0, "Mesh3D:albedo_factor"), at(mesh, 1, "Mesh3D:albedo_factor")
-    assert rgba0 != rgba1 and rgba1[0] % 256 < 255  # another colour, ephemeral: translucent
+    rgba = [at(mesh, f, "Mesh3D:albedo_factor")[0] for f in (0, 1)]  # 0xRRGGBBAA
+    unpacked = [(c >> 24, (c >> 16) & 255, (c >> 8) & 255, c & 255) for c in rgba]
+    assert unpacked[0] == (*MODE_COLOURS[TransitionMode.ADDED], OBJECT_ALPHA[0])
+    assert unpacked[1] == (*MODE_COLOURS[TransitionMode.STATIC], OBJECT_ALPHA[1])  # ephemeral
     v = np.asarray(at(data["/world/support"], 0, "Arrows3D:vectors"))
     o = np.asarray(at(data["/world/support"], 0, "Arrows3D:origins"))
     assert np.allclose(o[0], [0, 0, 0]) and np.allclose(v[0], [0, 0, e / 2])  # table -> a
     assert np.allclose(o[1] + v[1], [0, 0, 1.5 * e])  # a -> b ends at b's centre
     colours = label_colours(labels, 3)
-    assert (colours[0] == 150).all() and not (colours[1] == colours[2]).all()
+    assert (colours[0] == GREY).all() and not (colours[1] == colours[2]).all()
     stamps = [c for f, c in data["/terms/objects/a/transition"] if f is not None]
     assert len(stamps) == 2
 
@@ -231,3 +236,21 @@ def test_view_without_display_says_what_to_do(lib, tmp_path, monkeypatch):
     assert r.exit_code == 0 and r.output.splitlines() == [" ".join(view_command(path))]
     assert view_command(path)[-1] == str(path) and "rerun" in " ".join(view_command(path))
     assert view_command(path, web=True)[-2:] == ["--serve-web", str(path)]
+
+
+def test_a_recording_that_breaks_does_not_stop_the_run(lib, scene, tmp_path, monkeypatch):
+    calls = []
+    original = Recorder.log_frame
+
+    def flaky(self, index, *args, **kwargs):
+        calls.append(index)
+        if index == 1:
+            raise OSError("disk full")
+        original(self, index, *args, **kwargs)
+
+    monkeypatch.setattr(Recorder, "log_frame", flaky)
+    summary = run(scene, lib, tmp_path / "out", record=tmp_path / "run.rrd")
+    assert len(summary.done) == 3 and not summary.failed
+    assert calls == [0, 1]  # stopped recording after the failure
+    frames = {f for rows in read(tmp_path / "run.rrd").values() for f, _ in rows}
+    assert frames - {None} == {0}

@@ -97,9 +97,16 @@ PALETTE = np.array(
     ],
     dtype=np.uint8,
 )  # fmt: skip
-GREY = np.array((150, 150, 150), dtype=np.uint8)
-HYPOTHESIS_RGBA = (120, 200, 255, 50)
-TRUTH_RGBA = (255, 255, 255, 60)
+GREY = np.array((110, 110, 110), dtype=np.uint8)
+#: Object mesh opacity (0-255): seen, ephemeral (kept unseen). Slightly translucent, so the
+#: support arrows between centres and the object's own points show through.
+OBJECT_ALPHA = (200, 100)
+#: Cloud point radius on screen (ui points): table and background, segments.
+POINT_RADIUS = (1.0, 2.0)
+#: The viewer's eye is put at this fraction of the way from the objects to the camera.
+EYE_DISTANCE = 0.6
+HYPOTHESIS_RGBA = (210, 210, 210, 22)
+TRUTH_RGBA = (255, 255, 255, 35)
 SUPPORT_RGB = (250, 220, 60)
 #: Meshes up to this many faces are sent with one vertex triple per face (flat shading: boxes
 #: keep sharp edges); larger ones share vertices, with smooth normals.
@@ -202,6 +209,7 @@ class Recorder:
         self._objects: set[str] = set()  # ids whose mesh is logged and not cleared
         self._instanced: set[str] = set()  # instanced entities whose mesh is logged
         self._closed = False
+        self._layout_sent = False
         self._log_static()
 
     # ------------------------------------------------------------------ setup
@@ -214,11 +222,31 @@ class Recorder:
                 rr.SeriesLines(colors=[TERM_COLOURS[name]], names=[name]),
                 static=True,
             )
+
+    def _send_layout(self, frame: Frame | None, estimate: SceneEstimate | None) -> None:
+        """The viewer's layout (a blueprint): the 3D scene beside the term plots and the log,
+        the eye at the first frame's camera (when known) looking at its objects."""
+        self._layout_sent = True
+        rr = self._rr
+        bp = rr.blueprint
+        eye = None
+        if frame is not None and estimate is not None:
+            if estimate.objects:
+                target = np.mean([o.T_world_obj[:3, 3] for o in estimate.objects], axis=0)
+            else:
+                target = np.median(np.asarray(frame.points, dtype=float), axis=0)
+            if frame.T_world_cam is not None:  # from the camera, a little closer
+                cam = np.asarray(frame.T_world_cam, dtype=float)[:3, 3]
+                position = target + EYE_DISTANCE * (cam - target)
+            else:
+                position = target + np.array([-0.3, -0.3, 0.3])
+            eye = bp.EyeControls3D(
+                position=position.tolist(), look_target=target.tolist(), eye_up=[0.0, 0.0, 1.0]
+            )
         try:
-            bp = rr.blueprint
             layout = bp.Blueprint(
                 bp.Horizontal(
-                    bp.Spatial3DView(origin="world", name="scene"),
+                    bp.Spatial3DView(origin="world", name="scene", eye_controls=eye),
                     bp.Vertical(
                         bp.TimeSeriesView(origin="terms/scene", name="terms (scene)"),
                         bp.TimeSeriesView(origin="terms/objects", name="terms (objects)"),
@@ -226,9 +254,10 @@ class Recorder:
                     ),
                     column_shares=[3, 2],
                 ),
+                bp.TimePanel(timeline="frame"),
                 collapse_panels=False,
             )
-            rec.send_blueprint(layout)
+            self._rec.send_blueprint(layout)
         except Exception as exc:  # a layout is a convenience: the viewer makes its own
             log.warning("rerun blueprint not sent (%s); the viewer picks a layout", exc)
 
@@ -272,6 +301,8 @@ class Recorder:
             truth: ground truth ``{id: (class, T_world_obj (4, 4))}``, when known.
         """
         rr, rec = self._rr, self._rec
+        if not self._layout_sent:
+            self._send_layout(frame, estimate)
         self._set_time(index, frame.stamp)
         self._log_cloud(frame)
         if frame.T_world_cam is not None:
@@ -314,12 +345,15 @@ class Recorder:
             keep = np.linspace(0, len(points) - 1, self.max_points).astype(np.int64)
             points = points[keep]
             labels = None if labels is None else np.asarray(labels)[keep]
+        radii = np.full(len(points), POINT_RADIUS[1], dtype=np.float32)
+        if labels is not None:
+            radii[np.asarray(labels) < 0] = POINT_RADIUS[0]
         self._rec.log(
             "world/cloud",
             self._rr.Points3D(
                 points,
                 colors=label_colours(labels, len(points)),
-                radii=self._rr.Radius.ui_points(1.5),
+                radii=self._rr.Radius.ui_points(radii),
             ),
         )
 
@@ -331,7 +365,7 @@ class Recorder:
             present.add(obj.id)
             T = np.asarray(obj.T_world_obj, dtype=float)
             rec.log(path, rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]))
-            rgba = (*MODE_COLOURS.get(obj.mode, (200, 200, 200)), 140 if obj.ephemeral else 255)
+            rgba = (*MODE_COLOURS.get(obj.mode, (200, 200, 200)), OBJECT_ALPHA[obj.ephemeral])
             if obj.id not in self._objects:
                 rec.log(f"{path}/mesh", rr.Mesh3D(**self._mesh(obj.class_name), albedo_factor=rgba))
                 self._objects.add(obj.id)
@@ -393,7 +427,7 @@ class Recorder:
                 vectors=np.reshape(vectors, (-1, 3)),
                 labels=labels,
                 colors=[SUPPORT_RGB] * len(labels),
-                radii=0.002,
+                radii=0.003,
                 show_labels=False,
             ),
         )
@@ -419,6 +453,8 @@ class Recorder:
         if self._closed:
             return
         self._closed = True
+        if not self._layout_sent:
+            self._send_layout(None, None)
         self._rec.flush()
         self._rec.disconnect()
         log.info("%s: recording written", self.path)
