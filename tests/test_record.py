@@ -254,3 +254,16 @@ def test_a_recording_that_breaks_does_not_stop_the_run(lib, scene, tmp_path, mon
     assert calls == [0, 1]  # stopped recording after the failure
     frames = {f for rows in read(tmp_path / "run.rrd").values() for f, _ in rows}
     assert frames - {None} == {0}
+
+
+def test_demo_records_ssp_with_the_truth(tmp_path):
+    from ssp.eval.sequence_demo import RECORDING, run_sequence_demo
+
+    result = run_sequence_demo(tmp_path, stages=2, frames_per_stage=1, stride=4)
+    assert (
+        result["recording"] == str(tmp_path / RECORDING) and result["recording"] in result["files"]
+    )
+    data = read(tmp_path / RECORDING)
+    assert sorted(f for f, _ in data["/world/cloud"]) == [0, 1]
+    assert any(e.startswith("/world/truth/") for e in data)
+    assert "ssp view" in (tmp_path / "report.html").read_text()
