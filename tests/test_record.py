@@ -232,6 +232,9 @@ def test_view_without_display_says_what_to_do(lib, tmp_path, monkeypatch):
     assert r.exit_code == 1 and "no display" in text and "ssp view --web" in text
     r = cli.invoke(app, ["view", str(tmp_path / "missing.rrd")])
     assert r.exit_code == 1 and "no such recording" in " ".join(r.output.split())
+    (tmp_path / "file").write_text("")
+    with pytest.raises(RecordingError, match="not a writable folder"):
+        Recorder(tmp_path / "file" / "run.rrd", lib)
     r = cli.invoke(app, ["view", "--dry-run", str(path)])
     assert r.exit_code == 0 and r.output.splitlines() == [" ".join(view_command(path))]
     assert view_command(path)[-1] == str(path) and "rerun" in " ".join(view_command(path))

@@ -8,7 +8,8 @@ the run, 0-based) and ``time`` (its stamp, s):
   table and background, negative labels, grey), at most ``max_points`` points;
 * ``world/objects/<id>``: each object's pose ``T_world_obj`` (a transform), its model mesh
   (``mesh``, object frame, logged once when the object appears) coloured by its transition
-  mode (:data:`MODE_COLOURS`; an ephemeral object, kept although unseen, half transparent) and
+  mode (:data:`MODE_COLOURS`; slightly translucent, an ephemeral object, kept although
+  unseen, more so: :data:`OBJECT_ALPHA`) and
   a point at its centre of mass labelled with its id and mode (``label``); an object that
   leaves the scene is cleared;
 * ``world/hypotheses/<class>``: the frame's pose hypotheses, faint: one mesh per class
@@ -130,11 +131,16 @@ def require_rerun() -> ModuleType:
 
 
 def check_recording(path: str | os.PathLike) -> None:
-    """RecordingError unless a recording can be written to ``path``: rerun is installed and
-    ``path`` is not a folder (checked before a run writes anything)."""
+    """RecordingError unless a recording can be written to ``path``: rerun is installed,
+    ``path`` is not a folder and its nearest existing parent is a writable folder (checked
+    before a run writes anything; nothing is created here)."""
     require_rerun()
-    if Path(path).is_dir():
-        raise RecordingError(f"{path}: is a folder; give a file name such as run.rrd")
+    p = Path(path)
+    if p.is_dir():
+        raise RecordingError(f"{p}: is a folder; give a file name such as run.rrd")
+    base = next(a for a in (p.absolute().parent, *p.absolute().parents) if a.exists())
+    if not base.is_dir() or not os.access(base, os.W_OK):
+        raise RecordingError(f"{p}: cannot be written ({base} is not a writable folder)")
 
 
 def label_colours(labels: np.ndarray | None, n: int) -> np.ndarray:
