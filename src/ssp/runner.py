@@ -305,6 +305,10 @@ def _input_files(path: Path, kind: str) -> dict[str, Any]:
     """``{relative name: [size, mtime_ns]}`` (or the problem of an entry that is not a regular
     file) of the files the run reads: the input folder's own files, and for a BOP scene those
     of ``depth/``, ``instance/`` and ``mask_visib/``. Never opens a file."""
+    if kind == "bag":
+        from ssp.inputs_bag import bag_input_files
+
+        return bag_input_files(path)
     out: dict[str, Any] = {}
     folders = [path] + (
         [path / d for d in ("depth", "instance", "mask_visib")] if kind == "bop" else []
@@ -539,6 +543,7 @@ def run(
     resume: bool = False,
     overwrite: bool = False,
     models: str | None = None,
+    bag: Mapping[str, Any] | None = None,
 ) -> RunSummary:
     """Run perception and the scene parser over every frame of ``input_path``.
 
@@ -558,6 +563,7 @@ def run(
             is kept; the rest are processed as an uninterrupted run would).
         overwrite: clear an earlier run's files in ``out_dir`` (nothing else is touched).
         models: where ``library`` came from (a model folder, None: built-in), recorded.
+        bag: for a ROS bag / MCAP input, :class:`ssp.io.rosbag.BagOptions` as a dict.
 
     Raises:
         InputError: the input as a whole cannot be used (missing folder, no frames, bad
@@ -571,10 +577,15 @@ def run(
             f"hypotheses must be one of {', '.join(HYPOTHESES_MODES)}, got {hypotheses!r}"
         )
     src = Path(input_path)
-    check_folder(src)
-    csv_name = bop_csv_name(src.resolve().name, method)  # checks the method name
+    from ssp.io.rosbag import is_bag  # imports no rosbags
+
+    kind = "bag" if is_bag(src) else None
+    if kind is None:
+        check_folder(src)
+        kind = "bop" if is_bop_scene(src) else "folder"
+    name = src.resolve().stem if kind == "bag" and src.is_file() else src.resolve().name
+    csv_name = bop_csv_name(name, method)  # checks the method name
     out = Path(out_dir)
-    kind = "bop" if is_bop_scene(src) else "folder"
     manifest = {
         "format": RUN_FORMAT,
         "version": FORMAT_VERSION,
@@ -587,13 +598,18 @@ def run(
             "classes": None if classes is None else list(classes),
             "method": method,
             "scene_id": int(scene_id),
+            **({"bag": dict(bag or {})} if kind == "bag" else {}),
         },
         "csv": csv_name,
         "config": cfg.to_dict(),
         "library": _library_digests(library),
         "input_files": _input_files(src, kind),
     }
-    if kind == "bop":
+    if kind == "bag":
+        from ssp.inputs_bag import open_bag_input
+
+        inp = open_bag_input(src, library, cfg, classes, hypotheses, bag)
+    elif kind == "bop":
         inp = _open_bop_input(src, library, cfg, classes, hypotheses)
     else:
         inp = _open_folder_input(src, library, Perception(library, cfg, classes), hypotheses)
