@@ -546,3 +546,27 @@ def test_class_map_parsing(tmp_path):
     assert parse_class_map(y) == {"4": "drill", "obj_5": "wrench"}
     with pytest.raises(ValueError, match="id=class"):
         parse_class_map("1:cube")
+
+
+def test_cli_run_bag_with_results_bag_and_resume(lib, scene_dir, tmp_path):
+    from typer.testing import CliRunner
+
+    from ssp.cli import app
+
+    bag = tmp_path / "rec.bag"
+    write_scene_bag(bag, scene_dir, lib, "ros1")
+    out, res = tmp_path / "out", tmp_path / "res.mcap"
+    args = ["run", str(bag), "--out", str(out), "--hypotheses", "given"]
+    r = CliRunner().invoke(app, [*args, "--world-frame", WORLD, "--results-bag", str(res)])
+    assert r.exit_code == 0, r.output
+    assert "2 of 2 frames done" in r.output and res.is_file()
+    with AnyReader([res]) as reader:
+        assert sum(c.msgcount for c in reader.connections) == 4
+    # resume takes the recorded bag options; other ones are refused
+    r = CliRunner().invoke(app, ["run", "--resume", str(out)])
+    assert r.exit_code == 0, r.output
+    r = CliRunner().invoke(app, ["run", "--resume", str(out), "--world-frame", "map"])
+    assert r.exit_code == 1 and "world_frame" in r.output
+    # bag options on a folder input are refused before anything runs
+    r = CliRunner().invoke(app, ["run", str(scene_dir), "--world-frame", WORLD])
+    assert r.exit_code != 0 and "ROS bag input" in r.output

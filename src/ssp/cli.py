@@ -959,14 +959,24 @@ def bench_tower(
         console.print(f"wrote [bold]{f}[/]")
 
 
+def _bag_option(name: str, what: str):
+    return typer.Option(
+        None,
+        name,
+        help=f"ROS bag input: the {what} (default: detected).",
+        show_default=False,
+        rich_help_panel="ROS bag input",
+    )
+
+
 @app.command("run")
 @_friendly
 def run_cmd(
     input_path: Path | None = typer.Argument(
         None,
         help=(
-            "A folder of PLY/PCD frames, or a BOP scene folder written by ssp simulate "
-            "(with --resume: the recorded one when omitted)."
+            "A folder of PLY/PCD frames, a BOP scene folder written by ssp simulate, or a ROS "
+            "bag (.bag, .mcap, ROS 2 folder) (with --resume: the recorded one when omitted)."
         ),
         show_default=False,
         metavar="INPUT",
@@ -1015,6 +1025,27 @@ def run_cmd(
     ),  # fmt: skip
     config: Path | None = ConfigOption,
     cache: Path | None = CacheOption,
+    topic_cloud: str | None = _bag_option("--topic-cloud", "PointCloud2 topic of the frames"),
+    topic_depth: str | None = _bag_option("--topic-depth", "depth Image topic of the frames"),
+    topic_camera_info: str | None = _bag_option("--topic-camera-info", "CameraInfo topic"),
+    topic_mask: str | None = _bag_option("--topic-mask", "instance mask Image topic"),
+    topic_hypotheses: str | None = _bag_option(
+        "--topic-hypotheses", "Detection3DArray (or JSON String) topic of the hypotheses"
+    ),
+    world_frame: str | None = _bag_option(
+        "--world-frame", "tf frame of the world (z up, table top at z = 0) for the camera pose"
+    ),
+    class_map: str | None = _bag_option(
+        "--class-map", "detection class id -> class: ID=CLASS,... or a JSON/YAML file"
+    ),
+    results_bag: Path | None = typer.Option(
+        None,
+        "--results-bag",
+        help="ROS bag input: also write the results to this new bag (.bag: ROS 1, .mcap: "
+        "MCAP, else a ROS 2 folder).",
+        show_default=False,
+        rich_help_panel="ROS bag input",
+    ),
 ) -> None:
     """Perception and scene parsing over recorded frames: per-frame JSON, a BOP19 CSV and a
     summary, kept current after every frame (formats: docs/formats.md). A stopped run
@@ -1022,6 +1053,19 @@ def run_cmd(
     from ssp.runner import HYPOTHESES_MODES, run
 
     names = [c.strip() for c in classes.split(",") if c.strip()] if classes else None
+    bag_given = {
+        "topic_cloud": topic_cloud,
+        "topic_depth": topic_depth,
+        "topic_camera_info": topic_camera_info,
+        "topic_mask": topic_mask,
+        "topic_hypotheses": topic_hypotheses,
+        "world_frame": world_frame,
+    }
+    bag_given = {k: v for k, v in bag_given.items() if v is not None}
+    if class_map is not None:
+        from ssp.io.rosbag import parse_class_map
+
+        bag_given["class_map"] = parse_class_map(class_map)
     if resume is not None:
         from ssp.config import SSPConfig
         from ssp.runner import read_run
@@ -1039,6 +1083,7 @@ def run_cmd(
         hypotheses = hypotheses or opts["hypotheses"]
         method = method or opts["method"]
         names = names if names is not None else opts["classes"]
+        bag_given = bag_given or opts.get("bag") or {}
         cfg = _config(config) if config is not None else SSPConfig.from_dict(rec["config"])
     else:
         if input_path is None:
@@ -1049,6 +1094,17 @@ def run_cmd(
         cfg = _config(config)
     if hypotheses not in HYPOTHESES_MODES:
         raise typer.BadParameter(f"--hypotheses must be one of {', '.join(HYPOTHESES_MODES)}")
+    from ssp.io.rosbag import BagOptions, is_bag
+
+    input_is_bag = is_bag(input_path)
+    if (bag_given or results_bag is not None) and not input_is_bag:
+        raise typer.BadParameter(
+            "--topic-*, --world-frame, --class-map and --results-bag are for a ROS bag input "
+            "(.bag, .mcap, or a folder with metadata.yaml)"
+        )
+    bag_opts = BagOptions.from_dict(bag_given).to_dict() if input_is_bag else None
+    if results_bag is not None and results_bag.exists():
+        raise typer.BadParameter(f"--results-bag {results_bag}: exists; give a new path")
     from ssp.io.results import bop_csv_name
     from ssp.runner import check_out_dir
 
@@ -1078,7 +1134,13 @@ def run_cmd(
                 resume=resume is not None,
                 overwrite=overwrite,
                 models=None if models is None else str(models.resolve()),
+                bag=bag_opts,
             )
+        if results_bag is not None:
+            from ssp.inputs_bag import write_run_results_bag
+
+            write_run_results_bag(out, input_path, results_bag, lib, bag_opts)
+            summary.files.append(str(results_bag))
     except KeyboardInterrupt:
         err_console.print(
             f"[bold red]interrupted[/] after {frames_done[0]} frames; the results so far are in "

@@ -548,7 +548,8 @@ def run(
     """Run perception and the scene parser over every frame of ``input_path``.
 
     Args:
-        input_path: a folder of clouds or a BOP scene folder (module docstring).
+        input_path: a folder of clouds, a BOP scene folder (module docstring), or a ROS bag
+            (``.bag``, ``.mcap``, a ROS 2 bag folder: :mod:`ssp.io.rosbag`).
         library: the object library (every class the input may contain).
         out_dir: output folder: absent or empty, or (``resume``) a stopped run of the same
             input, or (``overwrite``) an earlier run whose files are cleared first.
@@ -577,7 +578,7 @@ def run(
             f"hypotheses must be one of {', '.join(HYPOTHESES_MODES)}, got {hypotheses!r}"
         )
     src = Path(input_path)
-    from ssp.io.rosbag import is_bag  # imports no rosbags
+    from ssp.io.rosbag import BagOptions, is_bag  # imports no rosbags
 
     kind = "bag" if is_bag(src) else None
     if kind is None:
@@ -598,7 +599,7 @@ def run(
             "classes": None if classes is None else list(classes),
             "method": method,
             "scene_id": int(scene_id),
-            **({"bag": dict(bag or {})} if kind == "bag" else {}),
+            **({"bag": BagOptions.from_dict(bag).to_dict()} if kind == "bag" else {}),
         },
         "csv": csv_name,
         "config": cfg.to_dict(),
