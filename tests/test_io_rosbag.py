@@ -260,12 +260,15 @@ def write_scene_bag(
             bw.image("/camera/depth/image_rect", ns, depth, encoding)
             bw.camera_info("/camera/depth/camera_info", ns, scene.camera)
             width = scene.camera.width + 3 if corrupt.get("mask_size") == k else None
-            bw.image("/camera/segmentation_mask", ns, mask, "mono16", width=width)
+            mns = ns + corrupt.get("mask_offset", {}).get(k, 0)
+            bw.image("/camera/segmentation_mask", mns, mask, "mono16", width=width)
         if driver == "cloud" or extra_cloud:
             pts = scene.camera.backproject(np.asarray(sf.depth, float)).reshape(-1, 3)
             pts[np.asarray(sf.depth).reshape(-1) <= 0] = np.nan
             bw.cloud("/camera/points", ns, pts, mask.reshape(-1), scene.camera.shape)
-        if hyps == "json":
+        if k in corrupt.get("no_hypotheses", ()):
+            pass
+        elif hyps == "json":
             doc = {
                 "frame": "world",
                 "hypotheses": [
@@ -570,3 +573,25 @@ def test_cli_run_bag_with_results_bag_and_resume(lib, scene_dir, tmp_path):
     # bag options on a folder input are refused before anything runs
     r = CliRunner().invoke(app, ["run", str(scene_dir), "--world-frame", WORLD])
     assert r.exit_code != 0 and "ROS bag input" in r.output
+
+
+def test_sync_tolerance(lib, scene_dir, tmp_path):
+    """A mask 30 ms off is matched (tolerance 50 ms), one 80 ms off is not (the frame is
+    segmented without it, with a warning); a frame without hypotheses is estimated in auto
+    mode (warning) and fails in given mode."""
+    bag = tmp_path / "rec.bag"
+    corrupt = {"mask_offset": {0: 30_000_000, 1: 80_000_000}, "no_hypotheses": {1}}
+    write_scene_bag(bag, scene_dir, lib, "ros1", corrupt=corrupt)
+    b = open_bag(bag, {"world_frame": WORLD})
+    f0, f1 = (fs.load() for fs in b.frames())
+    assert f0.labels is not None and f1.labels is None
+    assert f0.hypotheses and f1.hypotheses is None
+    assert any("segmentation_mask" in w and "0.05 s" in w for w in f1.warnings)
+    assert any("/ssp/hypotheses" in w for w in f1.warnings)
+    wider = open_bag(bag, {"world_frame": WORLD, "sync_tolerance": 0.1})
+    assert all(fs.load().labels is not None for fs in wider.frames())
+    s = run(bag, lib, tmp_path / "auto", classes=["cube", "block"], bag={"world_frame": WORLD})
+    assert [d["frame"] for d in s.done] == ["000000", "000001"]
+    assert any("/ssp/hypotheses" in w["warning"] for w in s.warnings)
+    s = run(bag, lib, tmp_path / "given", hypotheses="given", bag={"world_frame": WORLD})
+    assert [f["frame"] for f in s.failed] == ["000001"] and len(s.done) == 1

@@ -588,6 +588,7 @@ class BagInput:
             self.topics = detect_topics(types, options, mode, str(path))
             self.tf = TfBuffer()
             self._index: dict[str, list[_Entry]] = {}
+            self._sorted: dict[str, tuple[np.ndarray, np.ndarray]] = {}
             self._scan(reader)
         self.entries = self._index[self.topics.main]
         if not self.entries:
@@ -600,15 +601,12 @@ class BagInput:
     # -- reading
     def _open(self):
         try:
-            reader = self._reader_cls(bag_paths(self.path) if self._is_file() else [self.path])
+            reader = self._reader_cls([self.path])
             reader.open()
         except (self._reader_err, OSError, ValueError) as exc:
             raise InputError(f"{self.path}: cannot open the bag: {exc}") from exc
         _complete_types(reader, 2 if reader.is2 else 1)
         return _Closing(reader)
-
-    def _is_file(self) -> bool:
-        return self.path.is_file()
 
     def _roles(self) -> dict[str, str]:
         t = self.topics
@@ -648,13 +646,21 @@ class BagInput:
                 )
 
     def _nearest(self, topic: str, stamp: int, tolerance: int | None) -> int | None:
-        entries = self._index.get(topic) or []
-        if not entries:
+        """Position (in bag order) of the ``topic`` message whose stamp is nearest ``stamp``
+        (the earlier one of a tie), None if none lies within ``tolerance`` ns."""
+        if topic not in self._sorted:
+            stamps = np.array([e.stamp for e in self._index.get(topic) or []], dtype=np.int64)
+            order = np.argsort(stamps, kind="stable")
+            self._sorted[topic] = (stamps[order], order)
+        stamps, order = self._sorted[topic]
+        if not len(stamps):
             return None
-        best = min(range(len(entries)), key=lambda i: (abs(entries[i].stamp - stamp), i))
-        if tolerance is not None and abs(entries[best].stamp - stamp) > tolerance:
+        i = int(np.searchsorted(stamps, stamp))
+        near = [j for j in (i - 1, i) if 0 <= j < len(stamps)]
+        best = min(near, key=lambda j: (abs(int(stamps[j]) - stamp), int(stamps[j])))
+        if tolerance is not None and abs(int(stamps[best]) - stamp) > tolerance:
             return None
-        return best
+        return int(order[best])
 
     def _match(self, e: _Entry) -> dict[str, int | None]:
         t = self.topics
