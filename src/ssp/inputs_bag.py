@@ -91,7 +91,7 @@ def open_bag_input(
 
         return perceive
 
-    files = tuple(str(p) for p in bag_paths(path))
+    files = (str(path),)  # the bag (file or ROS 2 folder) is named in a frame's errors
 
     def sources(start: int) -> Iterator[_Source]:
         for fs in bag.frames(start):

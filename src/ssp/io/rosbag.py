@@ -226,9 +226,9 @@ def parse_class_map(text: str | os.PathLike | None) -> dict[str, str]:
             if p.suffix.lower() == ".json":
                 doc = json.loads(raw)
             else:
-                from ruamel.yaml import YAML
+                import yaml
 
-                doc = YAML(typ="safe").load(raw)
+                doc = yaml.safe_load(raw)
         except Exception as exc:  # JSON or YAML syntax
             raise ArgumentError(f"{p}: invalid class map: {exc}") from exc
         if not isinstance(doc, Mapping) or not all(isinstance(v, str) for v in doc.values()):
@@ -572,7 +572,13 @@ class BagInput:
     """
 
     def __init__(self, path: Path, options: BagOptions, mode: str, classes) -> None:
-        from rosbags.highlevel import AnyReader, AnyReaderError
+        try:
+            from rosbags.highlevel import AnyReader, AnyReaderError
+        except ImportError as exc:
+            raise InputError(
+                f"{path}: reading ROS bags needs the rosbags package (>= 0.11): pip install "
+                "'sequential-scene-parsing[ros]'"
+            ) from exc
 
         self.path = path
         self.options = options
@@ -894,10 +900,17 @@ def _image(msg, encodings: Mapping[str, Any], what: str, where: str) -> tuple[np
         dtype = dtype.newbyteorder(">")
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     data = np.asarray(msg.data, dtype=np.uint8)
-    if h < 1 or w < 1 or step < w * dtype.itemsize or data.size < h * step:
+    if h < 1 or w < 1:
+        raise InputError(f"{where}: {what} of size {w} x {h}")
+    if step < w * dtype.itemsize:
         raise InputError(
-            f"{where}: {what} {w} x {h} ({enc}, step {step}) needs {h * max(step, 1)} bytes of "
-            f"data, the message has {data.size}"
+            f"{where}: {what} {w} x {h} ({enc}): step {step} bytes is less than a row of "
+            f"{w * dtype.itemsize}"
+        )
+    if data.size < h * step:
+        raise InputError(
+            f"{where}: {what} {w} x {h} ({enc}, step {step}) needs {h * step} bytes of data, "
+            f"the message has {data.size}"
         )
     rows = data[: h * step].reshape(h, step)[:, : w * dtype.itemsize]
     return np.ascontiguousarray(rows).view(dtype).reshape(h, w), spec
