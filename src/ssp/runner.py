@@ -1,9 +1,10 @@
 """``ssp run``: the whole pipeline over recorded frames, with files in and files out.
 
-Inputs (``docs/formats.md``): a folder of PLY/PCD clouds (:func:`ssp.io.folder.open_folder`)
-or a BOP scene folder written by ``ssp simulate`` (:func:`ssp.sim.bop.open_bop`). Both are
-read frame by frame: a frame's files are read when its turn comes, so one unreadable frame
-fails alone and a long input is never in memory at once. Each frame goes through the
+Inputs (``docs/formats.md``): a folder of PLY/PCD clouds (:func:`ssp.io.folder.open_folder`),
+a BOP scene folder written by ``ssp simulate`` (:func:`ssp.sim.bop.open_bop`), or a ROS bag /
+MCAP file (:func:`ssp.inputs_bag.open_bag_input`). All are read frame by frame: a frame's files
+are read when its turn comes, so one unreadable frame fails alone and a long input is never in
+memory at once. Each frame goes through the
 perception front end (:class:`ssp.perception.Perception`; given hypotheses replace its
 estimator) and the scene parser. Outputs in ``out``:
 
