@@ -357,7 +357,7 @@ def _open_bop_input(
                     pass  # that frame failed in the run too, leaving the frame as it was
         for k in range(start, len(scene)):
             im = scene.im_ids[k]
-            hyp = str(estimates.path) if estimates is not None else str(hyp_file)
+            hyp = str(estimates.source) if estimates is not None else str(hyp_file)
             files = (str(path / "depth" / f"{im:06d}.png"), hyp)
             yield _Source(f"{im:06d}", im, files, make(k))
 
@@ -683,7 +683,7 @@ def run(
             "classes": None if classes is None else list(classes),
             "method": method,
             "scene_id": int(scene_id),
-            "estimates": None if estimates is None else str(Path(estimates.path).resolve()),
+            "estimates": None if estimates is None else str(Path(estimates.source).resolve()),
             "masks": masks,
             "period": period,
         },
@@ -693,7 +693,7 @@ def run(
         "input_files": _input_files(src, kind),
     }
     if estimates is not None:
-        manifest["input_files"]["estimates"] = _file_stamp(Path(estimates.path))
+        manifest["input_files"]["estimates"] = _file_stamp(Path(estimates.source))
     if kind == "bop":
         inp = _open_bop_input(src, library, cfg, classes, hypotheses, estimates=estimates,
                               masks=masks, period=period)  # fmt: skip
