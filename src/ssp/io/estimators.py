@@ -224,7 +224,7 @@ class _Collector:
     def problem(self, key: ImageKey, message: str) -> None:
         self.image(key)
         self.out._problems.setdefault(key, []).append(message)
-        log.warning("%s", message)
+        log.debug("%s", message)
 
     def add(self, key: ImageKey, label: Any, T: np.ndarray, score: float, where: str) -> None:
         """One hypothesis (``T`` 4x4 camera-frame, m); a bad one becomes a problem."""
@@ -243,6 +243,14 @@ class _Collector:
     def result(self) -> EstimatorHypotheses:
         for hyps in self.out._hyps.values():
             hyps.sort(key=lambda h: -h.score)  # stable: ties keep the file's order
+        bad = self.out.bad_images()
+        if bad:
+            first = self.out._problems[bad[0]][0]
+            log.warning(
+                "%s: %d of %d images have entries that cannot be used (they fail when asked "
+                "for), the first: %s",
+                self.out.source, len(bad), len(self.out.names), first,
+            )  # fmt: skip
         return self.out
 
 
