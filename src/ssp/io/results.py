@@ -5,7 +5,8 @@
   (bop_toolkit ``docs/bop_challenge_2019.md``): header ``scene_id,im_id,obj_id,score,R,t,time``,
   ``R`` the 9 row-major entries of the model-to-camera rotation and ``t`` the model-to-camera
   translation in **mm**, space-separated; ``time`` the seconds spent on the whole image (the
-  same on every row of the image), -1 if unknown.
+  same on every row of the image), -1 if unknown. :func:`read_bop_csv` reads it back (the
+  first bad line fails it), :func:`scan_bop_csv` line by line (bad lines apart).
 * :class:`ObjectIds`: class name -> BOP ``obj_id``, written as ``OUT/obj_ids.json``.
 """
 
