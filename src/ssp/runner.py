@@ -14,7 +14,9 @@ estimator) and the scene parser. Outputs in ``out``:
 * ``obj_ids.json``: class name -> BOP ``obj_id``;
 * ``summary.json``: frames done and failed (with the reason), warnings, objects, times;
 * ``run.json``: what the run reads (input files, models, config, options), to check a resume;
-* ``state.json``: the parser's state after the last finished frame, and where to go on.
+* ``state.json``: the parser's state after the last finished frame, and where to go on;
+* ``tum/<object id>.txt``: each object's trajectory in the TUM format (:mod:`ssp.io.tum`),
+  written when the run ends (finished or stopped).
 
 **Containment.** Any exception in one frame (reading, perception, parser, formatting its
 results) is logged (with its traceback when it is not an :class:`SSPError`: a bug) and the
@@ -54,6 +56,7 @@ from ssp.geometry import invert
 from ssp.io._files import atomic_write_text, file_problem, fsync_dir, to_jsonable
 from ssp.io.folder import SCENE_JSON, check_folder, is_bop_scene, open_folder
 from ssp.io.results import BopCsvWriter, ObjectIds, bop_csv_name, frame_record, write_json
+from ssp.io.tum import TUM_DIR, write_tum
 from ssp.parser import SceneParser
 from ssp.perception.pipeline import Perception, PerceptionResult
 
@@ -517,6 +520,9 @@ def _own_files(out: Path, manifest: Mapping[str, Any] | None) -> list[Path]:
     frames = out / FRAMES_DIR
     if frames.is_dir():
         files += sorted(frames.glob("*.json")) + sorted(frames.glob(".*.tmp"))
+    tum = out / TUM_DIR
+    if tum.is_dir():
+        files += sorted(tum.glob("*.txt")) + sorted(tum.glob(".*.tmp"))
     return files
 
 
@@ -556,9 +562,9 @@ def _prepare_fresh(out: Path, overwrite: bool, clear: bool = True) -> None:
         return
     for p in _own_files(out, old):
         p.unlink()
-    frames = out / FRAMES_DIR
-    if frames.is_dir() and not any(frames.iterdir()):
-        frames.rmdir()
+    for sub in (out / FRAMES_DIR, out / TUM_DIR):
+        if sub.is_dir() and not any(sub.iterdir()):
+            sub.rmdir()
     log.info("%s: cleared the earlier run's files", out)
 
 
@@ -709,7 +715,8 @@ def run(
         state, finished = {}, []
     (out / FRAMES_DIR).mkdir(parents=True, exist_ok=True)
     summary = RunSummary(str(src), inp.kind, frames=inp.total)
-    summary.files = [str(csv_path), str(out / OBJ_IDS_JSON), str(out / FRAMES_DIR)]
+    summary.files = [str(csv_path), str(out / OBJ_IDS_JSON), str(out / FRAMES_DIR),
+                     str(out / TUM_DIR)]  # fmt: skip
     for frame_json in finished:
         summary.add(frame_json)
     start = int(state.get("next", 0))
@@ -761,11 +768,13 @@ def run(
             # the summary holds the committed frames only; --resume continues from there
             summary.status = "stopped" if isinstance(exc, Exception) else "interrupted"
             try:
+                write_tum(out)  # the committed frames' trajectories
                 write_json(out / SUMMARY_JSON, summary.to_dict())
             except Exception:  # the original error matters more
                 log.exception("could not write %s", out / SUMMARY_JSON)
             raise
     summary.status = "finished"
+    write_tum(out)
     write_json(out / SUMMARY_JSON, summary.to_dict())
     return summary
 
