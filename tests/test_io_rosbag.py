@@ -30,7 +30,7 @@ from ssp.io.rosbag import (  # noqa: E402
     typestore,
 )
 from ssp.runner import run  # noqa: E402
-from ssp.sim.bop import open_bop, simulate_to_disk  # noqa: E402
+from ssp.sim.bop import open_bop, read_bop, simulate_to_disk  # noqa: E402
 
 BASE_S = 1_700_000_000  # bag stamps: this + the scene's stamp
 CAM, WORLD = "camera_optical", "world"
@@ -226,17 +226,16 @@ def write_scene_bag(
     extra_cloud: bool = False,
 ) -> dict:
     """Write the BOP scene as a bag; returns facts about it (stamps, numbers)."""
-    scene = open_bop(scene_dir, lib)
+    scene = read_bop(scene_dir, lib)  # SimSequence: ground truth in the world frame
     bw = BagWriter(path, storage)
     T_wc = scene.T_world_cam
     T_cw = invert(T_wc)
-    numbers = {c: int(i) for i, c in scene._classes.items()}
+    numbers = {c: int(i) for i, c in open_bop(scene_dir, lib).classes.items()}
     corrupt = corrupt or {}
     stamps = []
     if tf == "static":
         bw.tf("/tf_static", _ns(0), [bw.transform(WORLD, CAM, 0, T_wc)])
-    for k in range(len(scene)):
-        sf = scene.load(k)
+    for k, sf in enumerate(scene.frames):
         ns = _ns(sf.stamp)
         stamps.append(ns)
         if tf == "chain":  # world -> base (moving, interpolated) -> camera (static)
@@ -342,7 +341,7 @@ def test_detection3d_arrays_ros1_and_ros2(lib, scene_dir, tmp_path, storage):
     assert b.topics.hypotheses == "/pose_estimation/output"
     assert b.topics.mask == "/camera/segmentation_mask" and b.topics.driver == "depth"
     f = next(iter(b.frames())).load()
-    sf = facts["scene"].load(0)
+    sf = facts["scene"].frames[0]
     assert f.hypotheses_frame == "camera" and len(f.hypotheses) == len(sf.hypotheses)
     assert {h.segment for h in f.hypotheses} <= set(range(1, len(sf.gt) + 1))
     np.testing.assert_array_equal(f.depth, sf.depth)
@@ -483,7 +482,7 @@ def test_16uc1_depth_and_missing_hypotheses(lib, scene_dir, tmp_path):
     write_scene_bag(bag, scene_dir, lib, "ros1", hyps=None, encoding="16UC1")
     b = open_bag(bag)
     f = next(iter(b.frames())).load()
-    sf = open_bop(scene_dir, lib).load(0)
+    sf = read_bop(scene_dir, lib).frames[0]
     assert np.abs(f.depth - sf.depth).max() <= 5e-4 + 1e-6
     assert f.hypotheses is None and f.T_world_cam is None
     s = run(bag, lib, tmp_path / "out", hypotheses="given")
