@@ -1073,8 +1073,8 @@ def test_existing_out_keeps_no_stale_frames(lib, seq, folder, tmp_path):
 # ------------------------------------------------------------------------- streaming, baselines
 def test_inputs_are_read_frame_by_frame(lib, folder, bop, tmp_path, monkeypatch):
     """Neither reader reads a frame before the previous one is parsed and written."""
-    from ssp.io.folder import FolderInput
     from ssp.io.bop import BopScene
+    from ssp.io.folder import FolderInput
 
     loaded = []
     for cls in (FolderInput, BopScene):

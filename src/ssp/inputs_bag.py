@@ -3,6 +3,7 @@ the results bag written from a run's output folder."""
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
 from collections.abc import Callable, Iterator, Mapping
@@ -12,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from ssp.config import SSPConfig
-from ssp.errors import InputError
+from ssp.errors import InputError, SSPError
 from ssp.geometry import invert
 from ssp.io.rosbag import (
     BagOptions,
@@ -23,7 +24,9 @@ from ssp.io.rosbag import (
     open_bag,
     write_results_bag,
 )
+from ssp.perception.depth import cloud_from_depth
 from ssp.perception.pipeline import Perception, PerceptionResult
+from ssp.perception.table import TableTracker
 from ssp.runner import _Input, _Source
 
 __all__ = ["bag_input_files", "is_bag", "open_bag_input", "write_run_results_bag"]
@@ -48,6 +51,21 @@ def open_bag_input(
     bag = open_bag(path, options, mode=mode, classes=list(library))
     perception = Perception(library, cfg, classes)
     topics = bag.topics
+    # no camera pose from tf: the table's frame, kept while the camera stays put
+    tracker = TableTracker(cfg.perception.table_distance)
+
+    def camera_points(f) -> np.ndarray:
+        if f.kind == "depth":
+            return cloud_from_depth(f.depth, f.camera).points
+        return np.asarray(f.points, dtype=float)
+
+    def world(f, warnings: list[str]) -> np.ndarray | None:
+        if f.T_world_cam is not None:
+            return f.T_world_cam
+        T_wc, moved = tracker.update(camera_points(f))
+        if moved:
+            warnings.append("the table plane moved: the world frame was fitted again")
+        return T_wc
 
     def make(fs) -> Callable[[], tuple[PerceptionResult, list[str]]]:
         def perceive() -> tuple[PerceptionResult, list[str]]:
@@ -71,7 +89,7 @@ def open_bag_input(
                     f.depth,
                     f.camera,
                     stamp=f.stamp,
-                    T_world_cam=f.T_world_cam,
+                    T_world_cam=world(f, warnings),
                     mask=f.labels,
                     hypotheses=hyps,
                     hypotheses_frame=f.hypotheses_frame,
@@ -81,7 +99,7 @@ def open_bag_input(
                     f.points,
                     frame="camera",
                     stamp=f.stamp,
-                    T_world_cam=f.T_world_cam,
+                    T_world_cam=world(f, warnings),
                     labels=f.labels,
                     label_kind="instance",
                     hypotheses=hyps,
@@ -94,6 +112,14 @@ def open_bag_input(
     files = (str(path),)  # the bag (file or ROS 2 folder) is named in a frame's errors
 
     def sources(start: int) -> Iterator[_Source]:
+        if start > 0 and tracker.T_world_cam is None:  # a resumed run: the frame kept so far
+            for fs in itertools.islice(bag.frames(0), start):
+                try:
+                    f = fs.load()
+                    if f.T_world_cam is None:
+                        tracker.update(camera_points(f))
+                except SSPError:
+                    pass  # that frame failed in the run too, leaving the frame as it was
         for fs in bag.frames(start):
             yield _Source(f"{fs.index:06d}", fs.index, files, make(fs))
 
