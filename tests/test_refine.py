@@ -143,3 +143,36 @@ def test_cli_refine_and_evaluate(dataset, tmp_path):
     assert r.exit_code == 0, r.output
     res = json.loads((tmp_path / "ar.json").read_text())
     assert list(res) == [est.name, "est-ssp_structure-test.csv"]
+
+
+def test_bop_options_are_refused_on_other_inputs(lib, tmp_path):
+    from ssp.errors import ArgumentError
+    from ssp.runner import run
+
+    (tmp_path / "in").mkdir()
+    with pytest.raises(ArgumentError, match="options of a BOP scene input"):
+        run(tmp_path / "in", lib, tmp_path / "out", masks="gt")
+
+
+def test_run_on_a_published_scene_with_gt_masks(lib, dataset, tmp_path):
+    from ssp.runner import run
+
+    root, est = dataset
+    pub = _published(root, tmp_path / "pub")
+    run(pub / "test" / "000000", lib_with_bop_names(lib, pub), tmp_path / "out", masks="gt",
+        period=0.5, hypotheses="estimated")  # fmt: skip
+    doc = json.loads((tmp_path / "out" / "frames" / "000001.json").read_text())
+    assert doc["stamp"] == 0.5 and any("ground-truth masks" in w for w in doc["warnings"])
+    assert doc["objects"] and all(o["class"].startswith("obj_") for o in doc["objects"])
+
+
+def test_cli_run_masks_option(dataset, tmp_path):
+    root, _ = dataset
+    r = runner.invoke(app, ["run", str(root / "test" / "000000"), "--out", str(tmp_path / "out"),
+                            "--masks", "gt"])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    doc = json.loads((tmp_path / "out" / "frames" / "000000.json").read_text())
+    assert any("ground-truth masks" in w for w in doc["warnings"])
+    r = runner.invoke(app, ["run", str(root / "test" / "000000"), "--out", str(tmp_path / "o2"),
+                            "--masks", "maybe"])  # fmt: skip
+    assert r.exit_code != 0 and "masks must be one of" in r.output

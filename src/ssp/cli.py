@@ -1038,6 +1038,21 @@ def run_cmd(
     class_map: str | None = _bag_option(
         "--class-map", "detection class id -> class: ID=CLASS,... or a JSON/YAML file"
     ),
+    masks: str | None = typer.Option(
+        None,
+        "--masks",
+        help=(
+            "BOP scene input: auto (default: an ssp scene's simulated segmentation, none for a "
+            "published one), gt (the ground-truth mask_visib: an upper bound), none."
+        ),
+        show_default=False,
+    ),
+    period: float | None = typer.Option(
+        None,
+        "--period",
+        help="BOP scene input: seconds between images of a scene without stamps (1/30).",
+        show_default=False,
+    ),
     results_bag: Path | None = typer.Option(
         None,
         "--results-bag",
@@ -1084,6 +1099,8 @@ def run_cmd(
         method = method or opts["method"]
         names = names if names is not None else opts["classes"]
         bag_given = bag_given or opts.get("bag") or {}
+        masks = masks or opts.get("masks", "auto")
+        period = period if period is not None else opts.get("period")
         cfg = _config(config) if config is not None else SSPConfig.from_dict(rec["config"])
     else:
         if input_path is None:
@@ -1091,6 +1108,7 @@ def run_cmd(
         out = out if out is not None else Path("ssp-out")
         hypotheses = hypotheses or "auto"
         method = method or "ssp"
+        masks = masks or "auto"
         cfg = _config(config)
     if hypotheses not in HYPOTHESES_MODES:
         raise typer.BadParameter(f"--hypotheses must be one of {', '.join(HYPOTHESES_MODES)}")
@@ -1135,6 +1153,8 @@ def run_cmd(
                 overwrite=overwrite,
                 models=None if models is None else str(models.resolve()),
                 bag=bag_opts,
+                masks=masks,
+                period=period,
             )
         if results_bag is not None:
             from ssp.inputs_bag import write_run_results_bag

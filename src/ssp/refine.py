@@ -31,7 +31,7 @@ from ssp.config import SSPConfig
 from ssp.errors import ArgumentError, InputError, SSPError
 from ssp.geometry import invert
 from ssp.io._files import atomic_write_text, write_json
-from ssp.io.bop import bop_scenes, dataset_root, open_bop
+from ssp.io.bop import bop_scenes, dataset_root, mask_source, open_bop
 from ssp.io.results import BOP_CSV_HEADER, BopCsvWriter, bop_csv_name, read_bop_csv
 
 __all__ = ["RefineSummary", "estimate", "evaluate", "refine", "refined_method"]
@@ -218,6 +218,7 @@ def estimate(
     from ssp.runner import _bop_ids
 
     cfg = config if config is not None else SSPConfig()
+    mask_source(masks, True)  # a bad mode fails before any work
     scenes = bop_scenes(dataset, split)
     if scene_ids is not None:
         scenes = [s for s in scenes if s.name.isdigit() and int(s.name) in set(scene_ids)]
@@ -230,7 +231,7 @@ def estimate(
             ids = _bop_ids(scene_path, library)
             perception = Perception(library, cfg, classes or list(scene.models) or None)
             tracker = None if scene.has_world else TableTracker(cfg.perception.table_distance)
-            use_masks = masks == "gt" or (masks == "auto" and scene.simulated)
+            use_masks = mask_source(masks, scene.simulated)
             for k, im in enumerate(scene.im_ids):
                 t0 = time.perf_counter()
                 try:
@@ -309,7 +310,7 @@ def evaluate(
         if not (scenes[sid] / "scene_gt.json").exists():
             raise InputError(f"{scenes[sid]}: no scene_gt.json: nothing to evaluate against")
         for k, im in enumerate(scene.im_ids):
-            f = scene.load(k, masks=False)
+            f = scene.load(k, masks=None)
             for (_, by_image), ev in zip(tables, evaluators, strict=True):
                 ests = []
                 for row in by_image.get((sid, im), []):

@@ -259,12 +259,6 @@ def _open_folder_input(path: Path, library: Mapping, perception: Perception, mod
     return _Input("folder", len(folder.frames), sources)
 
 
-#: ``masks`` of a BOP input: ``auto`` the segmentation an ssp scene simulates (``instance/``)
-#: and none for a published scene; ``gt`` the ground-truth ``mask_visib`` (an upper bound: never
-#: the default); ``none`` no masks (the cloud above the table is clustered).
-MASK_MODES = ("auto", "gt", "none")
-
-
 def _open_bop_input(
     path: Path,
     library: Mapping,
@@ -284,12 +278,11 @@ def _open_bop_input(
     scene's ``cam_R_w2c`` when every image has one, else the table plane fitted to the depth
     (:class:`ssp.perception.table.TableTracker`: kept while the camera stays put).
     """
-    from ssp.io.bop import DEFAULT_PERIOD, open_bop
+    from ssp.io.bop import DEFAULT_PERIOD, mask_source, open_bop
     from ssp.perception.depth import cloud_from_depth
     from ssp.perception.table import TableTracker
 
-    if masks not in MASK_MODES:
-        raise ArgumentError(f"masks must be one of {', '.join(MASK_MODES)}, got {masks!r}")
+    use_masks = mask_source(masks, simulated=True)  # checks ``masks`` before reading
     scene = open_bop(path, library, period=DEFAULT_PERIOD if period is None else period)
     perception = Perception(library, cfg, classes or list(scene.models) or None)
     hyp_file = path / "hypotheses.json"
@@ -297,7 +290,7 @@ def _open_bop_input(
     if mode == "given" and not given:
         raise InputError(f"{path}: no hypotheses.json and --hypotheses given")
     tracker = None if scene.has_world else TableTracker(cfg.perception.table_distance)
-    use_masks = masks == "gt" or (masks == "auto" and scene.simulated)
+    use_masks = mask_source(masks, scene.simulated)
 
     def make(k: int) -> Callable[[], tuple[PerceptionResult, list[str]]]:
         def perceive() -> tuple[PerceptionResult, list[str]]:
@@ -355,7 +348,7 @@ def _open_bop_input(
             # a resumed run: the world frame the frames before ``start`` kept
             for k in range(start):
                 try:
-                    f = scene.load(k, masks=False)
+                    f = scene.load(k, masks=None)
                     tracker.update(cloud_from_depth(f.depth, f.camera).points)
                 except SSPError:
                     pass  # that frame failed in the run too, leaving the frame as it was
@@ -664,7 +657,7 @@ def run(
         models: where ``library`` came from (a model folder, None: built-in), recorded.
         estimates: a BOP scene's hypotheses from an estimator's output file (camera frame,
             :func:`ssp.io.estimators.read_estimates`), instead of its ``hypotheses.json``.
-        masks: a BOP scene's segmentation, one of :data:`MASK_MODES`.
+        masks: a BOP scene's segmentation, one of :data:`ssp.io.bop.MASK_MODES`.
         period: seconds between images of a published BOP scene (no stamps); default
             :data:`ssp.io.bop.DEFAULT_PERIOD`.
         bag: for a ROS bag / MCAP input, :class:`ssp.io.rosbag.BagOptions` as a dict.
@@ -687,6 +680,11 @@ def run(
     if kind is None:
         check_folder(src)
         kind = "bop" if is_bop_scene(src) else "folder"
+    if kind != "bop" and (masks != "auto" or period is not None or estimates is not None):
+        raise ArgumentError(
+            f"{src}: masks, period and estimates are options of a BOP scene input, not of a "
+            f"{'ROS bag' if kind == 'bag' else 'folder of clouds'}"
+        )
     name = src.resolve().stem if kind == "bag" and src.is_file() else src.resolve().name
     csv_name = bop_csv_name(name, method)  # checks the method name
     out = Path(out_dir)

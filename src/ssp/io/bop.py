@@ -47,18 +47,20 @@ import numpy as np
 from PIL import Image
 
 from ssp.camera import Camera
-from ssp.errors import InputError
+from ssp.errors import ArgumentError, InputError
 from ssp.io._files import file_problem
 from ssp.scene import Hypothesis
 
 __all__ = [
     "DEFAULT_PERIOD",
     "DEPTH_SCALE",
+    "MASK_MODES",
     "BopFrame",
     "BopScene",
     "bop_scenes",
     "dataset_root",
     "is_bop_scene",
+    "mask_source",
     "open_bop",
     "read_png",
 ]
@@ -68,6 +70,20 @@ DEPTH_SCALE = 0.1
 #: Seconds between consecutive ``im_id`` of a published scene (which has no stamps).
 DEFAULT_PERIOD = 1.0 / 30.0
 SPLITS = ("test", "val", "train", "train_pbr", "train_real", "train_synt", "test_primesense")
+
+
+#: What segmentation a run uses on a BOP scene: ``auto`` the one an ssp scene simulates
+#: (``instance/``) and none for a published scene; ``gt`` the ground-truth ``mask_visib`` (an
+#: upper bound: never the default); ``none`` no masks (the cloud above the table is clustered).
+MASK_MODES = ("auto", "gt", "none")
+
+
+def mask_source(masks: str, simulated: bool) -> str | None:
+    """The ``masks`` argument of :meth:`BopScene.load` for a run's ``masks`` mode (one of
+    :data:`MASK_MODES`; ArgumentError otherwise) on a scene ``simulated`` by ssp or not."""
+    if masks not in MASK_MODES:
+        raise ArgumentError(f"masks must be one of {', '.join(MASK_MODES)}, got {masks!r}")
+    return {"gt": "gt", "none": None}.get(masks, "scene" if simulated else None)
 
 
 def load_json(path: Path) -> Any:
@@ -292,10 +308,12 @@ class BopScene:
     def _depth_path(self, k: int) -> Path:
         return self.path / "depth" / f"{self.im_ids[k]:06d}.png"
 
-    def load(self, k: int, *, masks: bool = True) -> BopFrame:
+    def load(self, k: int, *, masks: str | None = "scene") -> BopFrame:
         """Read the ``k``-th frame (0-based position, not ``im_id``): depth, segmentation,
-        ground truth (camera frame) and the scene's hypotheses. ``masks=False`` skips the
-        segmentation images.
+        ground truth (camera frame) and the scene's hypotheses.
+
+        ``masks``: ``"scene"`` the segmentation an ssp scene simulates (``instance/``), else
+        the ground-truth ``mask_visib``; ``"gt"`` always ``mask_visib``; None no segmentation.
 
         Raises:
             InputError: a missing or unreadable image, or a malformed entry of this frame;
@@ -340,7 +358,9 @@ class BopScene:
                 f"{self._depth_path(k)}: {depth.shape[1]} x {depth.shape[0]} "
                 f"pixels, the camera has {camera.width} x {camera.height}"
             )
-        instance, from_gt = self._instance(k, len(ids), depth) if masks else (None, False)
+        instance, from_gt = (None, False)
+        if masks is not None:
+            instance, from_gt = self._instance(k, len(ids), depth, gt_only=masks == "gt")
         return BopFrame(
             im_id=int(im),
             stamp=self.stamps[k],
@@ -355,10 +375,12 @@ class BopScene:
             instance_is_gt=from_gt,
         )
 
-    def _instance(self, k: int, n_gt: int, depth: np.ndarray) -> tuple[np.ndarray | None, bool]:
+    def _instance(
+        self, k: int, n_gt: int, depth: np.ndarray, gt_only: bool = False
+    ) -> tuple[np.ndarray | None, bool]:
         im = self.im_ids[k]
         inst_path = self.path / "instance" / f"{im:06d}.png"
-        if inst_path.exists():
+        if inst_path.exists() and not gt_only:
             instance = (read_png(inst_path).astype(np.int32) - 2).astype(np.int16)
             from_gt = False
         elif (self.path / "mask_visib").is_dir() and n_gt:
