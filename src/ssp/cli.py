@@ -1443,9 +1443,7 @@ def evaluate_cmd(
     """BOP19 average recall (AR = mean of AR_VSD, AR_MSSD, AR_MSPD) of results CSVs against a
     dataset's ground truth, side by side."""
     from ssp.io._files import write_json
-    from ssp.refine import check_results_names, evaluate
-
-    check_results_names(results)
+    from ssp.refine import evaluate
     lib, _ = _dataset_library(dataset, models, config, cache)
     with _bar() as progress:
         task = progress.add_task("evaluating", total=None)

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from ssp.config import SSPConfig
-from ssp.errors import ArgumentError, InputError, SSPError
+from ssp.errors import InputError, SSPError
 from ssp.geometry import invert
 from ssp.io._files import atomic_write_text, write_json
 from ssp.io.bop import bop_scenes, dataset_root, mask_source, open_bop
@@ -283,8 +283,8 @@ def evaluate(
 ) -> dict[str, Any]:
     """BOP19 AR (VSD, MSSD, MSPD; :class:`ssp.eval.bop_metrics.BopEvaluator`) of each results
     CSV against the ground truth of the dataset's scenes, over the images of the scenes the
-    CSVs name (an image a CSV has no row for counts as missed). Returns ``{name: result}``
-    with the file names as keys, in the order given.
+    CSVs name (an image a CSV has no row for counts as missed). Returns ``{label: result}``
+    in the order given (labels: :func:`result_labels`).
 
     Raises:
         InputError: a CSV that cannot be read, or a dataset scene without ground truth.
@@ -324,12 +324,12 @@ def evaluate(
                              depth=f.depth if vsd else None)  # fmt: skip
             if progress is not None:
                 progress(k + 1, len(scene), f"scene {sid}")
-    return {p.name: ev.result() for (p, _), ev in zip(tables, evaluators, strict=True)}
+    labels = result_labels([p for p, _ in tables])
+    return {lab: ev.result() for lab, ev in zip(labels, evaluators, strict=True)}
 
 
-def check_results_names(paths: Sequence[Path]) -> None:
-    """ArgumentError when two result files have one name (their results would be merged)."""
+def result_labels(paths: Sequence[Path]) -> list[str]:
+    """How results files are named in a comparison: their file names, or the paths as given
+    when two files share a name (two refines write the same BOP file name)."""
     names = [p.name for p in paths]
-    dup = sorted({n for n in names if names.count(n) > 1})
-    if dup:
-        raise ArgumentError(f"result files with the same name: {', '.join(dup)}")
+    return names if len(set(names)) == len(names) else [str(p) for p in paths]
