@@ -714,8 +714,8 @@ INPUT_ERRORS = [
      (s / "hypotheses.json").unlink()), InputError, ("hypotheses.json", "--hypotheses given")),
     ("bop-scene-gt-invalid", lambda f, b, t: _bop_copy(b, t, lambda s: (s / "scene_gt.json")
      .write_text("{")), InputError, ("scene_gt.json", "invalid JSON")),
-    ("bop-no-sequence-json", lambda f, b, t: _bop_copy(b, t, lambda s: (s / "sequence.json")
-     .unlink()), InputError, ("sequence.json",)),
+    ("bop-scene-camera-invalid", lambda f, b, t: _bop_copy(b, t, lambda s: (s /
+     "scene_camera.json").write_text("{")), InputError, ("scene_camera.json", "invalid JSON")),
     ("bop-class-not-in-library", lambda f, b, t: _bop_copy(b, t, lambda s: (s / "models.json")
      .write_text(json.dumps({"obj_ids": {"1": "anvil", "2": "anvil2"}}))), InputError,
      ("scene_gt.json", "not in the library", "anvil")),
@@ -1073,14 +1073,14 @@ def test_existing_out_keeps_no_stale_frames(lib, seq, folder, tmp_path):
 # ------------------------------------------------------------------------- streaming, baselines
 def test_inputs_are_read_frame_by_frame(lib, folder, bop, tmp_path, monkeypatch):
     """Neither reader reads a frame before the previous one is parsed and written."""
+    from ssp.io.bop import BopScene
     from ssp.io.folder import FolderInput
-    from ssp.sim.bop import BopScene
 
     loaded = []
     for cls in (FolderInput, BopScene):
         real = cls.load
-        monkeypatch.setattr(cls, "load", lambda self, k, real=real: loaded.append(k) or real(
-            self, k))  # fmt: skip
+        monkeypatch.setattr(cls, "load", lambda self, k, *a, real=real, **kw: loaded.append(k)
+                            or real(self, k, *a, **kw))  # fmt: skip
     seen: list[int] = []
     for src, name in ((folder, "f"), (bop[0], "b")):
         loaded.clear()

@@ -7,8 +7,12 @@ import shutil
 
 import numpy as np
 import pytest
+import trimesh
 
+from ssp.errors import InputError
+from ssp.io.bop import bop_scenes, open_bop
 from ssp.library import ObjectLibrary
+from ssp.library.properties import read_bop_models
 from ssp.sim.bop import DEPTH_SCALE, read_bop, simulate_to_disk, write_bop
 from ssp.sim.generate import generate_sequence
 
@@ -118,8 +122,54 @@ def test_simulate_to_disk(lib, tmp_path):
         objects_per_stage=2,
         progress=lambda done, total, path: calls.append((done, total, path)),
     )
-    assert paths == [tmp_path / "isolated" / "000000", tmp_path / "isolated" / "000001"]
+    root = tmp_path / "isolated"
+    assert paths == [root / "test" / "000000", root / "test" / "000001"]
     assert [c[:2] for c in calls] == [(1, 2), (2, 2)]
     seqs = [read_bop(p, lib) for p in paths]
     assert [s.seed for s in seqs] == [5, 6]
     assert all(len(s) == 1 and len(s.frames[0].gt) == 2 for s in seqs)
+    # the dataset as the BOP toolkit publishes it: camera, models in mm with their symmetries
+    cam = json.loads((root / "camera.json").read_text())
+    assert {"width", "height", "fx", "fy", "cx", "cy", "depth_scale"} <= set(cam)
+    assert bop_scenes(root) == paths
+    obj_ids = json.loads((root / "models.json").read_text())["obj_ids"]
+    entries = {e.name: e for e in read_bop_models(root / "models")}
+    assert sorted(entries) == [f"obj_{int(i):06d}" for i in sorted(obj_ids, key=int)]
+    info = json.loads((root / "models" / "models_info.json").read_text())
+    for oid, cls in obj_ids.items():
+        e = entries[f"obj_{int(oid):06d}"]
+        assert e.problem is None and e.scale == 1e-3
+        mesh = trimesh.load(e.mesh_path, force="mesh")
+        np.testing.assert_allclose(mesh.bounds * 1e-3, lib[cls].mesh.bounds, atol=1e-6)
+        assert info[oid]["diameter"] == pytest.approx(lib[cls].diameter * 1000.0)
+        assert len(e.symmetry.discrete) == len(lib[cls].symmetry.discrete)
+        for a, b in zip(e.symmetry.discrete, lib[cls].symmetry.discrete, strict=True):
+            np.testing.assert_allclose(a, b, atol=1e-9)
+        assert len(e.symmetry.continuous) == len(lib[cls].symmetry.continuous)
+
+
+def test_published_scene_without_ssp_files(lib, seq, tmp_path):
+    """A scene with only the toolkit's files: stamps from im_id, classes obj_XXXXXX, no world
+    frame unless cam_R_w2c is given, segmentation from mask_visib (ground truth)."""
+    (path,) = simulate_to_disk("isolated", 1, 5, None, tmp_path, library=lib, stages=1,
+                               frames_per_stage=2, stride=8, objects_per_stage=2)  # fmt: skip
+    root = path.parent.parent
+    for extra in ("sequence.json", "hypotheses.json", "hypotheses_gt.json", "models.json",
+                  "camera.json"):  # fmt: skip
+        (path / extra).unlink()
+    shutil.rmtree(path / "instance")
+    (root / "models.json").unlink()
+    cams = json.loads((path / "scene_camera.json").read_text())
+    for v in cams.values():
+        del v["cam_R_w2c"], v["cam_t_w2c"]
+    (path / "scene_camera.json").write_text(json.dumps(cams))
+    scene = open_bop(path, period=0.5)
+    assert not scene.simulated and not scene.has_world and not scene.has_hypotheses
+    assert scene.stamps == [0.0, 0.5]
+    assert all(c.startswith("obj_") for c in scene.models)
+    f = scene.load(1)
+    assert f.T_world_cam is None and f.instance_is_gt and f.hypotheses == []
+    assert set(np.unique(f.instance)) <= {-2, -1, 0, 1}
+    assert all(cls.startswith("obj_") for cls, _ in f.gt.values())
+    with pytest.raises(InputError, match="not in the library"):
+        open_bop(path, lib)

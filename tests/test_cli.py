@@ -94,7 +94,7 @@ def test_simulate_and_table1_commands(tmp_path):
     small = ["--stages", "1", "--frames-per-stage", "2", "--stride", "4", "--seed", "3"]
     r = runner.invoke(app, ["simulate", "--out", str(tmp_path / "sim"), *small])
     assert r.exit_code == 0, r.output
-    assert (tmp_path / "sim" / "structure" / "000000" / "scene_gt.json").exists()
+    assert (tmp_path / "sim" / "structure" / "test" / "000000" / "scene_gt.json").exists()
     r = runner.invoke(
         app,
         [

@@ -237,3 +237,32 @@ def test_an_object_the_robot_moved_keeps_its_id_where_it_was_put():
     est = parser.update(f)
     assert est.ids == () and [r.id for r in est.removed] == ["cube_0"]
     assert "left the scene" in est.removed[0].reason
+
+
+def test_a_cluster_of_touching_objects_is_not_judged_as_one_instance():
+    """Without instance masks, touching objects are one cluster: each object accounts for a
+    part of it only. Judged as instance segments (``explained`` < 85 %), both were rejected;
+    as a cluster, both are kept and the cluster's verdict names them both."""
+    rng = np.random.default_rng(11)
+    gt = {"a": ("cube", on_table(CUBE)), "b": ("cube", on_table(CUBE, 2 * E + 0.0005, 0.0))}
+    f = frame(gt, rng)
+    cluster = np.where(f.labels >= 0, 0, f.labels)  # the two cubes' points are one label
+    as_instance = SceneParser(LIB).update(replace(f, labels=cluster))
+    assert len(as_instance.objects) < 2  # the failure: judged against the whole cluster
+    est = SceneParser(LIB).update(replace(f, labels=cluster, label_kind="cluster"))
+    assert len(est.objects) == 2 and not est.rejected
+    assert est.segments == {0: "objects " + ", ".join(sorted(est.ids))}
+    for o in est.objects:
+        T = min(
+            (T for _, T in gt.values()),
+            key=lambda T: np.linalg.norm(T[:3, 3] - o.T_world_obj[:3, 3]),
+        )
+        assert np.linalg.norm(o.T_world_obj[:3, 3] - T[:3, 3]) < 0.003
+
+
+def test_label_kind_is_checked():
+    from ssp.scene import Frame, FrameError
+
+    f = Frame(0.0, np.zeros((5, 3)) + [0, 0, 0.01], label_kind="instances")
+    with pytest.raises(FrameError, match="label_kind"):
+        f.validate(LIB)

@@ -959,14 +959,24 @@ def bench_tower(
         console.print(f"wrote [bold]{f}[/]")
 
 
+def _bag_option(name: str, what: str):
+    return typer.Option(
+        None,
+        name,
+        help=f"ROS bag input: the {what} (default: detected).",
+        show_default=False,
+        rich_help_panel="ROS bag input",
+    )
+
+
 @app.command("run")
 @_friendly
 def run_cmd(
     input_path: Path | None = typer.Argument(
         None,
         help=(
-            "A folder of PLY/PCD frames, or a BOP scene folder written by ssp simulate "
-            "(with --resume: the recorded one when omitted)."
+            "A folder of PLY/PCD frames, a BOP scene folder written by ssp simulate, or a ROS "
+            "bag (.bag, .mcap, ROS 2 folder) (with --resume: the recorded one when omitted)."
         ),
         show_default=False,
         metavar="INPUT",
@@ -1015,6 +1025,42 @@ def run_cmd(
     ),  # fmt: skip
     config: Path | None = ConfigOption,
     cache: Path | None = CacheOption,
+    topic_cloud: str | None = _bag_option("--topic-cloud", "PointCloud2 topic of the frames"),
+    topic_depth: str | None = _bag_option("--topic-depth", "depth Image topic of the frames"),
+    topic_camera_info: str | None = _bag_option("--topic-camera-info", "CameraInfo topic"),
+    topic_mask: str | None = _bag_option("--topic-mask", "instance mask Image topic"),
+    topic_hypotheses: str | None = _bag_option(
+        "--topic-hypotheses", "Detection3DArray (or JSON String) topic of the hypotheses"
+    ),
+    world_frame: str | None = _bag_option(
+        "--world-frame", "tf frame of the world (z up, table top at z = 0) for the camera pose"
+    ),
+    class_map: str | None = _bag_option(
+        "--class-map", "detection class id -> class: ID=CLASS,... or a JSON/YAML file"
+    ),
+    masks: str | None = typer.Option(
+        None,
+        "--masks",
+        help=(
+            "BOP scene input: auto (default: an ssp scene's simulated segmentation, none for a "
+            "published one), gt (the ground-truth mask_visib: an upper bound), none."
+        ),
+        show_default=False,
+    ),
+    period: float | None = typer.Option(
+        None,
+        "--period",
+        help="BOP scene input: seconds between images of a scene without stamps (1/30).",
+        show_default=False,
+    ),
+    results_bag: Path | None = typer.Option(
+        None,
+        "--results-bag",
+        help="ROS bag input: also write the results to this new bag (.bag: ROS 1, .mcap: "
+        "MCAP, else a ROS 2 folder).",
+        show_default=False,
+        rich_help_panel="ROS bag input",
+    ),
     record: Path | None = typer.Option(
         None,
         "--record",
@@ -1034,6 +1080,19 @@ def run_cmd(
         check_recording(record)  # before the models load
 
     names = [c.strip() for c in classes.split(",") if c.strip()] if classes else None
+    bag_given = {
+        "topic_cloud": topic_cloud,
+        "topic_depth": topic_depth,
+        "topic_camera_info": topic_camera_info,
+        "topic_mask": topic_mask,
+        "topic_hypotheses": topic_hypotheses,
+        "world_frame": world_frame,
+    }
+    bag_given = {k: v for k, v in bag_given.items() if v is not None}
+    if class_map is not None:
+        from ssp.io.rosbag import parse_class_map
+
+        bag_given["class_map"] = parse_class_map(class_map)
     if resume is not None:
         from ssp.config import SSPConfig
         from ssp.runner import read_run
@@ -1051,6 +1110,9 @@ def run_cmd(
         hypotheses = hypotheses or opts["hypotheses"]
         method = method or opts["method"]
         names = names if names is not None else opts["classes"]
+        bag_given = bag_given or opts.get("bag") or {}
+        masks = masks or opts.get("masks", "auto")
+        period = period if period is not None else opts.get("period")
         cfg = _config(config) if config is not None else SSPConfig.from_dict(rec["config"])
     else:
         if input_path is None:
@@ -1058,9 +1120,21 @@ def run_cmd(
         out = out if out is not None else Path("ssp-out")
         hypotheses = hypotheses or "auto"
         method = method or "ssp"
+        masks = masks or "auto"
         cfg = _config(config)
     if hypotheses not in HYPOTHESES_MODES:
         raise typer.BadParameter(f"--hypotheses must be one of {', '.join(HYPOTHESES_MODES)}")
+    from ssp.io.rosbag import BagOptions, is_bag
+
+    input_is_bag = is_bag(input_path)
+    if (bag_given or results_bag is not None) and not input_is_bag:
+        raise typer.BadParameter(
+            "--topic-*, --world-frame, --class-map and --results-bag are for a ROS bag input "
+            "(.bag, .mcap, or a folder with metadata.yaml)"
+        )
+    bag_opts = BagOptions.from_dict(bag_given).to_dict() if input_is_bag else None
+    if results_bag is not None and results_bag.exists():
+        raise typer.BadParameter(f"--results-bag {results_bag}: exists; give a new path")
     from ssp.io.results import bop_csv_name
     from ssp.runner import check_out_dir
 
@@ -1090,8 +1164,16 @@ def run_cmd(
                 resume=resume is not None,
                 overwrite=overwrite,
                 models=None if models is None else str(models.resolve()),
+                bag=bag_opts,
+                masks=masks,
+                period=period,
                 record=record,
             )
+        if results_bag is not None:
+            from ssp.inputs_bag import write_run_results_bag
+
+            write_run_results_bag(out, input_path, results_bag, lib, bag_opts)
+            summary.files.append(str(results_bag))
     except KeyboardInterrupt:
         err_console.print(
             f"[bold red]interrupted[/] after {frames_done[0]} frames; the results so far are in "
@@ -1247,3 +1329,188 @@ def _foundation_demo(out: Path, config: Path | None) -> None:
 
 if __name__ == "__main__":  # pragma: no cover
     app()
+
+
+# ------------------------------------------------------------------------------ BOP datasets
+SplitOption = typer.Option(None, "--split", help="The dataset's split folder (default: test).")
+ScenesOption = typer.Option(
+    None, "--scenes", help="Comma-separated scene ids (default: every scene of the split)."
+)
+MasksOption = typer.Option(
+    "auto",
+    "--masks",
+    help=(
+        "Segmentation: auto (an ssp scene's simulated one, none for a published scene), gt "
+        "(the ground-truth mask_visib: an upper bound), none (the cloud above the table is "
+        "clustered)."
+    ),
+)
+
+
+def _scene_ids(text: str | None) -> list[int] | None:
+    if not text:
+        return None
+    try:
+        return [int(s) for s in text.split(",") if s.strip()]
+    except ValueError:
+        raise typer.BadParameter(
+            f"--scenes must be comma-separated integers, got {text!r}"
+        ) from None
+
+
+def _dataset_library(dataset: Path, models: Path | None, config: Path | None, cache: Path | None):
+    """``--models``, else the built-in models when the dataset names its objects after them
+    (``models.json``, as ``ssp simulate`` writes), else the dataset's ``models/`` folder."""
+    from ssp.io.bop import bop_scenes, dataset_root
+    from ssp.library.builtin import builtin_specs
+
+    if models is not None:
+        return _library(models, config, cache), models
+    scene = bop_scenes(dataset)[0]
+    root = dataset_root(scene)
+    for folder in (scene, root):
+        mj = None if folder is None else folder / "models.json"
+        if mj is not None and mj.is_file():
+            names = set(json.loads(mj.read_text())["obj_ids"].values())
+            if names <= {spec.name for spec in builtin_specs()}:
+                return _library(None, config, cache), None
+    if root is not None and (root / "models").is_dir():
+        return _library(root / "models", config, cache), root / "models"
+    raise typer.BadParameter(
+        f"{dataset}: no models/ folder in the dataset: give the object models with --models"
+    )
+
+
+@app.command("refine")
+@_friendly
+def refine_cmd(
+    dataset: Path = typer.Argument(..., help="A BOP dataset, split or scene folder."),
+    hypotheses: Path = typer.Option(
+        ...,
+        "--hypotheses",
+        help=(
+            "The pose estimator's output: a BOP19 results CSV, MegaPose/HappyPose JSON, "
+            "FoundationPose poses or a CosyPose CSV (docs/formats.md)."
+        ),
+    ),
+    out: Path = typer.Option(Path("ssp-refine"), "--out", "-o", help="Output folder."),
+    fmt: str = typer.Option("auto", "--format", help="The hypotheses' format (auto: detected)."),
+    split: str | None = SplitOption,
+    scenes: str | None = ScenesOption,
+    method: str | None = typer.Option(
+        None, help="BOP method name of the output (default: the input's, with '-ssp')."
+    ),
+    masks: str = MasksOption,
+    period: float | None = typer.Option(
+        None, help="Seconds between images of a scene without stamps (default 1/30)."
+    ),
+    resume: bool = typer.Option(False, "--resume", help="Continue a stopped refine in --out."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace an earlier refine."),
+    models: Path | None = ModelsOption,
+    config: Path | None = ConfigOption,
+    cache: Path | None = CacheOption,
+) -> None:
+    """ssp after your pose estimator: refine its hypotheses on a BOP dataset into a BOP19 CSV
+    (OUT/METHOD-ssp_DATASET-SPLIT.csv) and per-frame JSON (OUT/scenes/SCENE/)."""
+    from ssp.refine import refine
+
+    lib, models_dir = _dataset_library(dataset, models, config, cache)
+    with _bar() as progress:
+        task = progress.add_task("refining", total=None)
+        summary = refine(
+            dataset,
+            hypotheses,
+            lib,
+            out,
+            _config(config),
+            fmt=fmt,
+            split=split,
+            scene_ids=_scene_ids(scenes),
+            method=method,
+            masks=masks,
+            period=period,
+            resume=resume,
+            overwrite=overwrite,
+            models=None if models_dir is None else str(Path(models_dir).resolve()),
+            progress=lambda d, t, m: progress.update(
+                task, completed=d, total=t, description=m[:60]
+            ),  # fmt: skip
+        )
+    for s in summary.scenes:
+        failed = s.get("failed", 0)
+        extra = f", [red]{failed} failed[/]" if failed else ""
+        console.print(f"scene {s['scene']}: {s['status']} ({s.get('done', '-')} of "
+                      f"{s.get('frames', '-')} frames{extra}) -> {s['out']}")  # fmt: skip
+    console.print(f"wrote [bold]{summary.csv}[/]")
+    if not summary.done:
+        raise typer.Exit(1)
+
+
+@app.command("estimate")
+@_friendly
+def estimate_cmd(
+    dataset: Path = typer.Argument(..., help="A BOP dataset, split or scene folder."),
+    out: Path = typer.Option(
+        ..., "--out", "-o", help="The BOP19 CSV to write (METHOD_DATASET-SPLIT.csv)."
+    ),
+    split: str | None = SplitOption,
+    scenes: str | None = ScenesOption,
+    classes: str | None = typer.Option(None, help="Comma-separated candidate classes."),
+    masks: str = MasksOption,
+    models: Path | None = ModelsOption,
+    config: Path | None = ConfigOption,
+    cache: Path | None = CacheOption,
+) -> None:
+    """The built-in pose estimator over a BOP dataset: every hypothesis as a BOP19 CSV row
+    (several per object), the input of `ssp refine`."""
+    from ssp.refine import estimate
+
+    lib, _ = _dataset_library(dataset, models, config, cache)
+    names = [c.strip() for c in classes.split(",") if c.strip()] if classes else None
+    with _bar() as progress:
+        task = progress.add_task("estimating", total=None)
+        rep = estimate(dataset, lib, out, _config(config), split=split,
+                       scene_ids=_scene_ids(scenes), classes=names, masks=masks,
+                       progress=lambda d, t, m: progress.update(task, completed=d, total=t,
+                                                                description=m[:60]))  # fmt: skip
+    for f in rep["failed"]:
+        console.print(
+            f"[red]skipped[/] scene {f['scene']} image {f['im_id']}: {escape(f['error'])}"
+        )
+    console.print(f"{rep['rows']} hypotheses of {rep['images']} images: wrote [bold]{out}[/]")
+
+
+@app.command("evaluate")
+@_friendly
+def evaluate_cmd(
+    dataset: Path = typer.Argument(..., help="A BOP dataset, split or scene folder."),
+    results: list[Path] = typer.Argument(..., help="BOP19 results CSVs to compare."),
+    out: Path | None = typer.Option(None, "--out", "-o", help="Write the results as JSON."),
+    split: str | None = SplitOption,
+    vsd: bool = typer.Option(True, "--vsd/--no-vsd", help="Compute VSD (renders; slower)."),
+    models: Path | None = ModelsOption,
+    config: Path | None = ConfigOption,
+    cache: Path | None = CacheOption,
+) -> None:
+    """BOP19 average recall (AR = mean of AR_VSD, AR_MSSD, AR_MSPD) of results CSVs against a
+    dataset's ground truth, side by side."""
+    from ssp.io._files import write_json
+    from ssp.refine import evaluate
+    lib, _ = _dataset_library(dataset, models, config, cache)
+    with _bar() as progress:
+        task = progress.add_task("evaluating", total=None)
+        res = evaluate(dataset, lib, results, split=split, vsd=vsd,
+                       progress=lambda d, t, m: progress.update(task, completed=d, total=t,
+                                                                description=m[:60]))  # fmt: skip
+    table = Table(title=f"BOP19 recall on {dataset}")
+    keys = ["AR", "AR_VSD", "AR_MSSD", "AR_MSPD"] if vsd else ["AR", "AR_MSSD", "AR_MSPD"]
+    table.add_column("results")
+    for k in [*keys, "targets"]:
+        table.add_column(k, justify="right")
+    for name, r in res.items():
+        cells = [("-" if r.get(k) is None else f"{r[k]:.3f}") for k in keys]
+        table.add_row(name, *cells, str(r.get("targets", "")))
+    console.print(table)
+    if out is not None:
+        write_json(out, res)
+        console.print(f"wrote [bold]{out}[/]")

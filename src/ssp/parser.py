@@ -493,12 +493,14 @@ class SceneParser:
             segment_labels = {oid: hyps[0].segment for oid, hyps in groups.items()}
             segment_labels = {oid: s for oid, s in segment_labels.items() if s is not None}
             segment_labels.update(claimed)
+            members: dict[str, int] = {}
             segments, owner = object_segments(
                 frame,
                 {oid: (models[oid], cand_poses[oid]) for oid in cand_poses},
                 radius=cfg.forces.max_distance,
                 table=self.table,
                 labels=segment_labels,
+                members=members,
             )
             view = None
             if frame.T_world_cam is not None:
@@ -680,6 +682,7 @@ class SceneParser:
                 evidence=final,
                 rejected=rejected,
                 owner=owner,
+                members=members,
                 association=assoc,
                 segments=segments,
                 view=view,
@@ -916,7 +919,7 @@ class SceneParser:
             sup = TABLE if a == GROUND else old_of.get(ids[a], ids[a])
             support.append(SupportEdge(sup, old_of.get(ids[b], ids[b]), float(f)))
         segments = _segment_verdicts(
-            frame, out.owner, {o.id for o in objects}, old_of, rejected, out.association
+            frame, out.members, {o.id for o in objects}, old_of, rejected, out.association
         )
         estimate = SceneEstimate(
             stamp=frame.stamp,
@@ -952,15 +955,19 @@ def _segment_verdicts(
     rejected: Mapping[str, Rejected],
     assoc: _Association,
 ) -> dict[int, str]:
-    """Instance label -> what became of it: the object it is, or why none (every label of
-    the cloud that is not the table or background)."""
+    """Label -> what became of it: the object it is (``owner``: the label each object lies
+    in), or why none (every label of the cloud that is not the table or background)."""
     if frame.labels is None:
         return {}
-    out: dict[int, str] = {}
+    held: dict[int, set[str]] = {}
     for oid, label in owner.items():
         out_id = old_of.get(oid, oid)
         if out_id in kept:
-            out[int(label)] = f"object {out_id}"
+            held.setdefault(int(label), set()).add(out_id)
+    out: dict[int, str] = {
+        label: ("object " if len(ids) == 1 else "objects ") + ", ".join(sorted(ids))
+        for label, ids in held.items()
+    }
     said: dict[int, list[str]] = {}
     for r in sorted(rejected.values(), key=lambda r: r.id):
         # the segment its hypotheses came from, else the one it took (a cluster, a class mask)
@@ -1003,6 +1010,8 @@ class _Outcome:
     evidence: Mapping[str, Evidence]
     rejected: Mapping[str, Rejected]
     owner: Mapping[str, int]
+    #: the label each object lies in (instance segments and clusters alike)
+    members: Mapping[str, int]
     association: _Association
     segments: Mapping[str, np.ndarray]
     view: CameraView | None

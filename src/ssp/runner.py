@@ -1,9 +1,10 @@
 """``ssp run``: the whole pipeline over recorded frames, with files in and files out.
 
-Inputs (``docs/formats.md``): a folder of PLY/PCD clouds (:func:`ssp.io.folder.open_folder`)
-or a BOP scene folder written by ``ssp simulate`` (:func:`ssp.sim.bop.open_bop`). Both are
-read frame by frame: a frame's files are read when its turn comes, so one unreadable frame
-fails alone and a long input is never in memory at once. Each frame goes through the
+Inputs (``docs/formats.md``): a folder of PLY/PCD clouds (:func:`ssp.io.folder.open_folder`),
+a BOP scene folder written by ``ssp simulate`` (:func:`ssp.sim.bop.open_bop`), or a ROS bag /
+MCAP file (:func:`ssp.inputs_bag.open_bag_input`). All are read frame by frame: a frame's files
+are read when its turn comes, so one unreadable frame fails alone and a long input is never in
+memory at once. Each frame goes through the
 perception front end (:class:`ssp.perception.Perception`; given hypotheses replace its
 estimator) and the scene parser. Outputs in ``out``:
 
@@ -14,7 +15,9 @@ estimator) and the scene parser. Outputs in ``out``:
 * ``obj_ids.json``: class name -> BOP ``obj_id``;
 * ``summary.json``: frames done and failed (with the reason), warnings, objects, times;
 * ``run.json``: what the run reads (input files, models, config, options), to check a resume;
-* ``state.json``: the parser's state after the last finished frame, and where to go on.
+* ``state.json``: the parser's state after the last finished frame, and where to go on;
+* ``tum/<object id>.txt``: each object's trajectory in the TUM format (:mod:`ssp.io.tum`),
+  written when the run ends (finished or stopped).
 
 **Containment.** Any exception in one frame (reading, perception, parser, formatting its
 results) is logged (with its traceback when it is not an :class:`SSPError`: a bug) and the
@@ -54,6 +57,7 @@ from ssp.geometry import invert
 from ssp.io._files import atomic_write_text, file_problem, fsync_dir, to_jsonable
 from ssp.io.folder import SCENE_JSON, check_folder, is_bop_scene, open_folder
 from ssp.io.results import BopCsvWriter, ObjectIds, bop_csv_name, frame_record, write_json
+from ssp.io.tum import TUM_DIR, write_tum
 from ssp.parser import SceneParser
 from ssp.perception.pipeline import Perception, PerceptionResult
 
@@ -255,47 +259,103 @@ def _open_folder_input(path: Path, library: Mapping, perception: Perception, mod
     return _Input("folder", len(folder.frames), sources)
 
 
-def _open_bop_input(path: Path, library: Mapping, cfg: SSPConfig, classes, mode: str) -> _Input:
-    from ssp.sim.bop import open_bop
+def _open_bop_input(
+    path: Path,
+    library: Mapping,
+    cfg: SSPConfig,
+    classes,
+    mode: str,
+    *,
+    estimates=None,
+    masks: str = "auto",
+    period: float | None = None,
+) -> _Input:
+    """A BOP scene (``ssp simulate``'s or a published one, :mod:`ssp.io.bop`) as run input.
 
-    scene = open_bop(path, library)
-    perception = Perception(library, cfg, classes or scene.models or None)
+    Hypotheses come from ``estimates`` (an estimator's output, camera frame, e.g.
+    :func:`ssp.io.estimators.read_estimates`; looked up by ``(scene_id, im_id)``), else the
+    scene's ``hypotheses.json``, else the built-in estimator (``mode``). The world frame is the
+    scene's ``cam_R_w2c`` when every image has one, else the table plane fitted to the depth
+    (:class:`ssp.perception.table.TableTracker`: kept while the camera stays put).
+    """
+    from ssp.io.bop import DEFAULT_PERIOD, mask_source, open_bop
+    from ssp.perception.depth import cloud_from_depth
+    from ssp.perception.table import TableTracker
+
+    use_masks = mask_source(masks, simulated=True)  # checks ``masks`` before reading
+    scene = open_bop(path, library, period=DEFAULT_PERIOD if period is None else period)
+    perception = Perception(library, cfg, classes or list(scene.models) or None)
     hyp_file = path / "hypotheses.json"
-    if mode == "given" and not scene.has_hypotheses:
+    given = estimates is not None or scene.has_hypotheses
+    if mode == "given" and not given:
         raise InputError(f"{path}: no hypotheses.json and --hypotheses given")
+    tracker = None if scene.has_world else TableTracker(cfg.perception.table_distance)
+    use_masks = mask_source(masks, scene.simulated)
 
     def make(k: int) -> Callable[[], tuple[PerceptionResult, list[str]]]:
         def perceive() -> tuple[PerceptionResult, list[str]]:
             im = scene.im_ids[k]
-            warnings = []
-            use_given = scene.has_hypotheses and mode != "estimated"
-            if use_given and not scene.has_entry(k):
-                if mode == "given":
+            warnings: list[str] = []
+            hyps, hyp_frame = None, "world"
+            if mode != "estimated" and estimates is not None:
+                hyps, hyp_frame = estimates.for_image(scene.scene_id, im), "camera"
+            elif mode != "estimated" and scene.has_hypotheses:
+                if scene.has_entry(k):
+                    hyps = None  # read with the frame below
+                elif mode == "given":
                     raise InputError(f"{hyp_file}: no entry for im_id {im} and --hypotheses given")
-                warnings.append(
-                    f"{hyp_file}: no entry for im_id {im}: its hypotheses were estimated"
-                )
-                log.warning("%s", warnings[-1])
-                use_given = False
-            sf = scene.load(k)
-            mask = np.asarray(sf.instance).astype(np.int64)
-            mask[mask < -1] = -1
+                else:
+                    warnings.append(
+                        f"{hyp_file}: no entry for im_id {im}: its hypotheses were estimated"
+                    )
+                    log.warning("%s", warnings[-1])
+            sf = scene.load(k, masks=use_masks)
+            if hyps is None and mode != "estimated" and estimates is None and scene.has_entry(k):
+                hyps = list(sf.hypotheses)
+            for i, h in enumerate(hyps or []):
+                if h.class_name not in library:
+                    raise InputError(f"hypothesis {i}: {_unknown_class(h.class_name, library)}")
+            if masks == "gt" and sf.instance is not None and sf.instance_is_gt:
+                warnings.append("segments from the ground-truth masks (--masks gt)")
+            mask = None
+            if use_masks and sf.instance is not None:
+                mask = np.asarray(sf.instance).astype(np.int64)
+                mask[mask < -1] = -1
+            T_wc = sf.T_world_cam
+            if T_wc is None:
+                cloud = cloud_from_depth(sf.depth, sf.camera)
+                T_wc, moved = tracker.update(cloud.points)
+                if moved:
+                    warnings.append(
+                        "the table plane moved: the world frame was fitted again (a moving "
+                        "camera needs cam_R_w2c/cam_t_w2c in scene_camera.json)"
+                    )
             result = perception.from_depth(
                 sf.depth,
-                scene.camera,
+                sf.camera,
                 stamp=sf.stamp,
-                T_world_cam=scene.T_world_cam,
+                T_world_cam=T_wc,
                 mask=mask,
-                hypotheses=list(sf.hypotheses) if use_given else None,
+                hypotheses=hyps,
+                hypotheses_frame=hyp_frame,
             )
             return result, warnings
 
         return perceive
 
     def sources(start: int) -> Iterator[_Source]:
+        if tracker is not None and start > 0 and tracker.T_world_cam is None:
+            # a resumed run: the world frame the frames before ``start`` kept
+            for k in range(start):
+                try:
+                    f = scene.load(k, masks=None)
+                    tracker.update(cloud_from_depth(f.depth, f.camera).points)
+                except SSPError:
+                    pass  # that frame failed in the run too, leaving the frame as it was
         for k in range(start, len(scene)):
             im = scene.im_ids[k]
-            files = (str(path / "depth" / f"{im:06d}.png"), str(hyp_file))
+            hyp = str(estimates.source) if estimates is not None else str(hyp_file)
+            files = (str(path / "depth" / f"{im:06d}.png"), hyp)
             yield _Source(f"{im:06d}", im, files, make(k))
 
     return _Input("bop", len(scene), sources)
@@ -305,6 +365,10 @@ def _input_files(path: Path, kind: str) -> dict[str, Any]:
     """``{relative name: [size, mtime_ns]}`` (or the problem of an entry that is not a regular
     file) of the files the run reads: the input folder's own files, and for a BOP scene those
     of ``depth/``, ``instance/`` and ``mask_visib/``. Never opens a file."""
+    if kind == "bag":
+        from ssp.inputs_bag import bag_input_files
+
+        return bag_input_files(path)
     out: dict[str, Any] = {}
     folders = [path] + (
         [path / d for d in ("depth", "instance", "mask_visib")] if kind == "bop" else []
@@ -325,6 +389,31 @@ def _input_files(path: Path, kind: str) -> dict[str, Any]:
             else:
                 out[rel] = problem
     return out
+
+
+def _file_stamp(p: Path) -> Any:
+    """``[size, mtime_ns]`` of a file, or its problem."""
+    problem = file_problem(p)
+    if problem is not None:
+        return problem
+    st = p.stat()
+    return [st.st_size, st.st_mtime_ns]
+
+
+def _bop_ids(scene: Path, library: Mapping) -> ObjectIds:
+    """The BOP ``obj_id`` of each class: the scene's or its dataset's (``models.json``, or
+    ``obj_XXXXXX`` model names); classes of the library without one get new ids."""
+    from ssp.io.bop import open_bop
+
+    classes = open_bop(scene).classes
+    if not classes:
+        return ObjectIds.for_input(scene, list(library))
+    ids = {cls: oid for oid, cls in classes.items()}
+    nxt = max(classes) + 1
+    for c in sorted(set(library) - set(ids)):
+        ids[c] = nxt
+        nxt += 1
+    return ObjectIds(ids)
 
 
 def _library_digests(library: Mapping) -> dict[str, str]:
@@ -429,6 +518,9 @@ def _own_files(out: Path, manifest: Mapping[str, Any] | None) -> list[Path]:
     frames = out / FRAMES_DIR
     if frames.is_dir():
         files += sorted(frames.glob("*.json")) + sorted(frames.glob(".*.tmp"))
+    tum = out / TUM_DIR
+    if tum.is_dir():
+        files += sorted(tum.glob("*.txt")) + sorted(tum.glob(".*.tmp"))
     return files
 
 
@@ -468,9 +560,9 @@ def _prepare_fresh(out: Path, overwrite: bool, clear: bool = True) -> None:
         return
     for p in _own_files(out, old):
         p.unlink()
-    frames = out / FRAMES_DIR
-    if frames.is_dir() and not any(frames.iterdir()):
-        frames.rmdir()
+    for sub in (out / FRAMES_DIR, out / TUM_DIR):
+        if sub.is_dir() and not any(sub.iterdir()):
+            sub.rmdir()
     log.info("%s: cleared the earlier run's files", out)
 
 
@@ -539,12 +631,17 @@ def run(
     resume: bool = False,
     overwrite: bool = False,
     models: str | None = None,
+    estimates=None,
+    masks: str = "auto",
+    period: float | None = None,
+    bag: Mapping[str, Any] | None = None,
     record: str | Path | None = None,
 ) -> RunSummary:
     """Run perception and the scene parser over every frame of ``input_path``.
 
     Args:
-        input_path: a folder of clouds or a BOP scene folder (module docstring).
+        input_path: a folder of clouds, a BOP scene folder (module docstring), or a ROS bag
+            (``.bag``, ``.mcap``, a ROS 2 bag folder: :mod:`ssp.io.rosbag`).
         library: the object library (every class the input may contain).
         out_dir: output folder: absent or empty, or (``resume``) a stopped run of the same
             input, or (``overwrite``) an earlier run whose files are cleared first.
@@ -559,6 +656,12 @@ def run(
             is kept; the rest are processed as an uninterrupted run would).
         overwrite: clear an earlier run's files in ``out_dir`` (nothing else is touched).
         models: where ``library`` came from (a model folder, None: built-in), recorded.
+        estimates: a BOP scene's hypotheses from an estimator's output file (camera frame,
+            :func:`ssp.io.estimators.read_estimates`), instead of its ``hypotheses.json``.
+        masks: a BOP scene's segmentation, one of :data:`ssp.io.bop.MASK_MODES`.
+        period: seconds between images of a published BOP scene (no stamps); default
+            :data:`ssp.io.bop.DEFAULT_PERIOD`.
+        bag: for a ROS bag / MCAP input, :class:`ssp.io.rosbag.BagOptions` as a dict.
         record: write a 3D recording of the run to this rerun ``.rrd`` file
             (:class:`ssp.viz.record.Recorder`; needs the ``record`` extra): each finished
             frame's cloud, objects, hypotheses, support and terms, failed frames as error
@@ -582,10 +685,20 @@ def run(
             f"hypotheses must be one of {', '.join(HYPOTHESES_MODES)}, got {hypotheses!r}"
         )
     src = Path(input_path)
-    check_folder(src)
-    csv_name = bop_csv_name(src.resolve().name, method)  # checks the method name
+    from ssp.io.rosbag import BagOptions, is_bag  # imports no rosbags
+
+    kind = "bag" if is_bag(src) else None
+    if kind is None:
+        check_folder(src)
+        kind = "bop" if is_bop_scene(src) else "folder"
+    if kind != "bop" and (masks != "auto" or period is not None or estimates is not None):
+        raise ArgumentError(
+            f"{src}: masks, period and estimates are options of a BOP scene input, not of a "
+            f"{'ROS bag' if kind == 'bag' else 'folder of clouds'}"
+        )
+    name = src.resolve().stem if kind == "bag" and src.is_file() else src.resolve().name
+    csv_name = bop_csv_name(name, method)  # checks the method name
     out = Path(out_dir)
-    kind = "bop" if is_bop_scene(src) else "folder"
     manifest = {
         "format": RUN_FORMAT,
         "version": FORMAT_VERSION,
@@ -598,17 +711,30 @@ def run(
             "classes": None if classes is None else list(classes),
             "method": method,
             "scene_id": int(scene_id),
+            "estimates": None if estimates is None else str(Path(estimates.source).resolve()),
+            "masks": masks,
+            "period": period,
+            **({"bag": BagOptions.from_dict(bag).to_dict()} if kind == "bag" else {}),
         },
         "csv": csv_name,
         "config": cfg.to_dict(),
         "library": _library_digests(library),
         "input_files": _input_files(src, kind),
     }
-    if kind == "bop":
-        inp = _open_bop_input(src, library, cfg, classes, hypotheses)
+    if estimates is not None:
+        manifest["input_files"]["estimates"] = _file_stamp(Path(estimates.source))
+    if kind == "bag":
+        from ssp.inputs_bag import open_bag_input
+
+        inp = open_bag_input(src, library, cfg, classes, hypotheses, bag)
+        ids = ObjectIds.for_input(src, list(library))
+    elif kind == "bop":
+        inp = _open_bop_input(src, library, cfg, classes, hypotheses, estimates=estimates,
+                              masks=masks, period=period)  # fmt: skip
+        ids = _bop_ids(src, library)
     else:
         inp = _open_folder_input(src, library, Perception(library, cfg, classes), hypotheses)
-    ids = ObjectIds.for_input(src, list(library))
+        ids = ObjectIds.for_input(src, list(library))
     csv_path = out / csv_name
     if resume:
         state, finished = _prepare_resume(out, manifest, csv_path, inp)
@@ -617,7 +743,8 @@ def run(
         state, finished = {}, []
     (out / FRAMES_DIR).mkdir(parents=True, exist_ok=True)
     summary = RunSummary(str(src), inp.kind, frames=inp.total)
-    summary.files = [str(csv_path), str(out / OBJ_IDS_JSON), str(out / FRAMES_DIR)]
+    summary.files = [str(csv_path), str(out / OBJ_IDS_JSON), str(out / FRAMES_DIR),
+                     str(out / TUM_DIR)]  # fmt: skip
     for frame_json in finished:
         summary.add(frame_json)
     start = int(state.get("next", 0))
@@ -673,11 +800,13 @@ def run(
             # the summary holds the committed frames only; --resume continues from there
             summary.status = "stopped" if isinstance(exc, Exception) else "interrupted"
             try:
+                write_tum(out)  # the committed frames' trajectories
                 write_json(out / SUMMARY_JSON, summary.to_dict())
             except Exception:  # the original error matters more
                 log.exception("could not write %s", out / SUMMARY_JSON)
             raise
     summary.status = "finished"
+    write_tum(out)
     write_json(out / SUMMARY_JSON, summary.to_dict())
     return summary
 

@@ -63,6 +63,10 @@ class Hypothesis:
     segment: int | None = None
 
 
+#: What a label of :attr:`Frame.labels` may be.
+LABEL_KINDS = ("instance", "cluster")
+
+
 @dataclass
 class Frame:
     """One observation: the cloud and the hypotheses at time ``stamp`` (s).
@@ -73,6 +77,10 @@ class Frame:
         hypotheses: pose hypotheses (several may describe one object).
         labels: optional ``(N,)`` integer segment label per point; negative labels mark points
             of no object (table, background).
+        label_kind: what a label is: ``"instance"`` one object's segment (an instance mask),
+            or ``"cluster"`` a piece of the cloud that may hold several objects (touching
+            objects clustered together): an object is then not judged by how much of its
+            label it accounts for, and its data are the points near it, not the whole label.
         segments: optional points ``(K, 3)`` per instance id (the object's own segment).
         T_world_cam: optional camera pose (OpenCV camera frame), for visibility reasoning.
         moved: optional ``{id: T_world_obj or None}``: known objects that something which
@@ -90,6 +98,7 @@ class Frame:
     segments: dict[str, np.ndarray] | None = None
     T_world_cam: np.ndarray | None = None
     moved: dict[str, np.ndarray | None] | None = None
+    label_kind: str = "instance"
 
     def validate(self, library: Mapping[str, Any]) -> Frame:
         """Return a cleaned copy of this frame, or raise :class:`FrameError`.
@@ -123,6 +132,10 @@ class Frame:
                 "millimetres (ssp works in metres): divide them by 1000"
             )
 
+        if self.label_kind not in LABEL_KINDS:
+            raise FrameError(
+                f"label_kind must be one of {', '.join(LABEL_KINDS)}, got {self.label_kind!r}"
+            )
         labels = None
         if self.labels is not None:
             labels = np.asarray(self.labels)
@@ -166,6 +179,7 @@ class Frame:
             segments=segments,
             T_world_cam=T_world_cam,
             moved=_validate_moved(self.moved),
+            label_kind=self.label_kind,
         )
 
 

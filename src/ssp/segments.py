@@ -50,9 +50,14 @@ def object_segments(
     table: bool = True,
     table_clearance: float = 0.002,
     labels: Mapping[str, int] | None = None,
+    members: dict[str, int] | None = None,
 ) -> tuple[dict[str, np.ndarray], dict[str, int]]:
     """Segment points ``(K, 3)`` per object id (possibly empty), and the label each object's
-    segment was taken from (only for objects segmented by ``frame.labels``).
+    segment was taken from (only for objects segmented by instance ``frame.labels``).
+
+    With ``frame.label_kind == "cluster"`` a label may hold several objects: each object's
+    points are those near it (the crop), and no object owns a label. ``members`` (filled when
+    given): ``id -> label`` the object lies in, for instance and cluster labels alike.
 
     Args:
         frame: the validated frame.
@@ -80,7 +85,9 @@ def object_segments(
                 label = None
             if label is None:
                 label = _vote_label(frame, tree, model, poses[0], radius)
-            if label is not None:
+            if label is not None and members is not None:
+                members[oid] = label
+            if label is not None and frame.label_kind == "instance":
                 out[oid] = frame.points[np.asarray(frame.labels) == label]
                 owner[oid] = label
                 continue

@@ -1,10 +1,12 @@
 """File input and output of ``ssp run``: point clouds (PLY, PCD), pose hypotheses JSON, input
-folders, and result files (per-frame JSON, BOP19 CSV, object ids). Formats: docs/formats.md."""
+folders, result files (per-frame JSON, BOP19 CSV, object ids, TUM trajectories), and pose
+estimators' outputs (:mod:`ssp.io.estimators`). Formats: docs/formats.md."""
 
 from __future__ import annotations
 
 from ssp.io._files import to_jsonable, write_json
 from ssp.io.clouds import CLOUD_SUFFIXES, LABEL_FIELDS, Cloud, read_cloud, write_cloud
+from ssp.io.estimators import EstimatorHypotheses, read_estimates
 from ssp.io.folder import (
     FolderInput,
     FrameFile,
@@ -23,18 +25,21 @@ from ssp.io.hypotheses import (
     write_hypotheses,
 )
 from ssp.io.results import BopCsvWriter, ObjectIds, bop_csv_name, frame_record, read_bop_csv
+from ssp.io.tum import TumWriter, write_tum
 
 __all__ = [
     "CLOUD_SUFFIXES",
     "LABEL_FIELDS",
     "BopCsvWriter",
     "Cloud",
+    "EstimatorHypotheses",
     "FolderInput",
     "FrameFile",
     "HypothesisFile",
     "ObjectIds",
     "RawFrame",
     "SceneSpec",
+    "TumWriter",
     "bop_csv_name",
     "frame_record",
     "is_bop_scene",
@@ -43,6 +48,7 @@ __all__ = [
     "open_folder",
     "read_bop_csv",
     "read_cloud",
+    "read_estimates",
     "read_hypotheses",
     "read_scene_json",
     "to_jsonable",
@@ -50,4 +56,5 @@ __all__ = [
     "write_cloud",
     "write_hypotheses",
     "write_json",
+    "write_tum",
 ]

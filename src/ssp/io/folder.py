@@ -62,6 +62,7 @@ import numpy as np
 from ssp.errors import CloudFormatError, InputError, InvalidPoseError
 from ssp.geometry import validate_pose
 from ssp.io._files import file_problem
+from ssp.io.bop import is_bop_scene
 from ssp.io.clouds import CLOUD_SUFFIXES, read_cloud
 from ssp.io.hypotheses import read_hypotheses
 from ssp.scene import MM_CLOUD_MEDIAN, Hypothesis
@@ -336,14 +337,6 @@ def natural_key(name: str) -> tuple:
     parts = re.split(r"([0-9]+)", name)
     key = tuple((0, int(p)) if p[:1].isdigit() else (1, p.lower()) for p in parts if p)
     return (key, name)
-
-
-def is_bop_scene(path: str | os.PathLike) -> bool:
-    """Whether ``path`` looks like a BOP scene folder (``scene_gt.json`` and
-    ``scene_camera.json``), such as ``ssp simulate`` writes (read it with
-    :func:`ssp.sim.bop.read_bop`)."""
-    p = Path(path)
-    return (p / "scene_gt.json").is_file() and (p / "scene_camera.json").is_file()
 
 
 @dataclass

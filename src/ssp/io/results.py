@@ -5,7 +5,8 @@
   (bop_toolkit ``docs/bop_challenge_2019.md``): header ``scene_id,im_id,obj_id,score,R,t,time``,
   ``R`` the 9 row-major entries of the model-to-camera rotation and ``t`` the model-to-camera
   translation in **mm**, space-separated; ``time`` the seconds spent on the whole image (the
-  same on every row of the image), -1 if unknown.
+  same on every row of the image), -1 if unknown. :func:`read_bop_csv` reads it back (the
+  first bad line fails it), :func:`scan_bop_csv` line by line (bad lines apart).
 * :class:`ObjectIds`: class name -> BOP ``obj_id``, written as ``OUT/obj_ids.json``.
 """
 
@@ -17,6 +18,7 @@ import math
 import os
 import re
 from collections.abc import Iterable, Iterator, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -24,7 +26,7 @@ import numpy as np
 
 from ssp.errors import ArgumentError, InputError, InvalidPoseError, UnknownObjectError
 from ssp.geometry import validate_pose
-from ssp.io._files import to_jsonable, write_json
+from ssp.io._files import file_problem, to_jsonable, write_json
 from ssp.io.hypotheses import matrix_to_quat_xyzw
 
 if TYPE_CHECKING:
@@ -32,11 +34,13 @@ if TYPE_CHECKING:
 
 __all__ = [
     "BOP_CSV_HEADER",
+    "BopCsvLine",
     "BopCsvWriter",
     "ObjectIds",
     "bop_csv_name",
     "frame_record",
     "read_bop_csv",
+    "scan_bop_csv",
     "to_jsonable",
     "write_json",
 ]
@@ -229,33 +233,83 @@ def _nonneg_int(value: Any, what: str) -> int:
 
 def read_bop_csv(path: str | os.PathLike) -> list[dict[str, Any]]:
     """Rows of a BOP19 results CSV: ``scene_id, im_id, obj_id`` (int), ``score, time`` (float),
-    ``R`` (3x3 ndarray), ``t`` ((3,) ndarray, **mm** as in the file)."""
+    ``R`` (3x3 ndarray), ``t`` ((3,) ndarray, **mm** as in the file).
+
+    Raises:
+        InputError: a missing or unreadable file, a bad header, or any malformed row (the
+            message names the file and line). :func:`scan_bop_csv` reads past bad rows.
+    """
+    rows = []
+    for line in scan_bop_csv(path):
+        if line.error is not None:
+            raise InputError(f"{line.where}: {line.error}")
+        rows.append(line.row)
+    return rows
+
+
+@dataclass(frozen=True)
+class BopCsvLine:
+    """One data line of a BOP19 results CSV, as :func:`scan_bop_csv` parsed it.
+
+    ``where`` is ``"<file>:<line number>"``; ``ids`` the ``(scene_id, im_id)`` when the first
+    two columns are integers (else None); ``row`` the parsed row (as :func:`read_bop_csv`
+    returns them) or None, and then ``error`` says what is wrong.
+    """
+
+    where: str
+    ids: tuple[int, int] | None
+    row: dict[str, Any] | None
+    error: str | None = None
+
+
+def scan_bop_csv(path: str | os.PathLike) -> Iterator[BopCsvLine]:
+    """The data lines of a BOP19 results CSV, each parsed on its own (a malformed line yields a
+    :class:`BopCsvLine` with its ``error``; the rest are still read). Blank lines are skipped.
+
+    Values are only parsed, not judged (a NaN or a matrix that is no rotation passes).
+
+    Raises:
+        InputError: the file is missing, unreadable, not ASCII, or its first line is not the
+            BOP19 header.
+    """
     p = Path(path)
-    lines = p.read_text(encoding="ascii").splitlines()
+    problem = file_problem(p)
+    if problem is not None:
+        raise InputError(f"{p}: {'no such file' if problem == 'does not exist' else problem}")
+    try:
+        lines = p.read_text(encoding="ascii").splitlines()
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{p}: not a BOP19 results CSV (not ASCII text: {exc})") from exc
+    except OSError as exc:
+        raise InputError(f"{p}: cannot read: {exc}") from exc
     if not lines or lines[0].strip() != BOP_CSV_HEADER:
         raise InputError(f"{p}: not a BOP19 results CSV (header must be {BOP_CSV_HEADER!r})")
-    rows = []
     for n, line in enumerate(lines[1:], start=2):
-        if not line.strip():
-            continue
-        parts = line.split(",")
-        if len(parts) != 7:
-            raise InputError(f"{p}:{n}: expected 7 columns, got {len(parts)}")
-        try:
-            rows.append(
-                {
-                    "scene_id": int(parts[0]),
-                    "im_id": int(parts[1]),
-                    "obj_id": int(parts[2]),
-                    "score": float(parts[3]),
-                    "R": np.array(parts[4].split(), dtype=float).reshape(3, 3),
-                    "t": np.array(parts[5].split(), dtype=float).reshape(3),
-                    "time": float(parts[6]),
-                }
-            )
-        except ValueError as exc:
-            raise InputError(f"{p}:{n}: malformed row ({exc})") from exc
-    return rows
+        if line.strip():
+            yield _parse_bop_line(line, f"{p}:{n}")
+
+
+def _parse_bop_line(line: str, where: str) -> BopCsvLine:
+    parts = line.split(",")
+    try:
+        ids: tuple[int, int] | None = (int(parts[0]), int(parts[1]))
+    except (ValueError, IndexError):
+        ids = None
+    if len(parts) != 7:
+        return BopCsvLine(where, ids, None, f"expected 7 columns, got {len(parts)}")
+    try:
+        row = {
+            "scene_id": int(parts[0]),
+            "im_id": int(parts[1]),
+            "obj_id": int(parts[2]),
+            "score": float(parts[3]),
+            "R": np.array(parts[4].split(), dtype=float).reshape(3, 3),
+            "t": np.array(parts[5].split(), dtype=float).reshape(3),
+            "time": float(parts[6]),
+        }
+    except ValueError as exc:
+        return BopCsvLine(where, ids, None, f"malformed row ({exc})")
+    return BopCsvLine(where, ids, row)
 
 
 # ------------------------------------------------------------------------------ object ids

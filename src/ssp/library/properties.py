@@ -32,6 +32,7 @@ the defaults. Mesh files a present ``models.yaml`` does not list are loaded with
 from __future__ import annotations
 
 import difflib
+import json
 import logging
 import math
 import re
@@ -370,6 +371,8 @@ def read_folder(folder: str | Path) -> list[ModelEntry]:
     if not folder.is_dir():
         raise ModelFileError(f"models folder not found: {folder}")
     props_path = folder / PROPERTIES_FILE
+    if not props_path.is_file() and (folder / BOP_MODELS_INFO).is_file():
+        return read_bop_models(folder)
     props = read_properties(props_path) if props_path.is_file() else PropertiesFile()
     defaults = props.defaults
     entries: list[ModelEntry] = []
@@ -400,6 +403,57 @@ def read_folder(folder: str | Path) -> list[ModelEntry]:
                 mass=defaults.mass,
                 density=defaults.density,
                 friction=defaults.friction,
+            )
+        )
+    return entries
+
+
+#: The BOP toolkit's model description file (``models/models_info.json``).
+BOP_MODELS_INFO = "models_info.json"
+
+
+def read_bop_models(folder: str | Path) -> list[ModelEntry]:
+    """The models of a BOP ``models/`` folder as the toolkit publishes it: ``obj_XXXXXX.ply``
+    meshes in **mm** and ``models_info.json`` (``{obj_id: {diameter, ..., symmetries_discrete
+    (4x4 row-major, mm), symmetries_continuous ({axis, offset mm})}}``).
+
+    Each ``obj_id`` of ``models_info.json`` is one model named ``obj_XXXXXX`` (the mesh's file
+    name), scaled to metres, with its declared symmetries; mass and friction are the defaults.
+    An obj_id without its mesh file is returned with ``problem`` set.
+
+    Raises:
+        ModelFileError: the folder or ``models_info.json`` is missing or unreadable.
+        ModelError: a malformed ``models_info.json`` entry.
+    """
+    folder = Path(folder)
+    info_path = folder / BOP_MODELS_INFO
+    try:
+        info = json.loads(info_path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise ModelFileError(f"{info_path}: cannot read: {exc}") from exc
+    if not isinstance(info, dict):
+        raise ModelError(f"{info_path}: expected an object {{obj_id: {{...}}}}")
+    entries: list[ModelEntry] = []
+    for key in sorted(
+        info, key=lambda k: (not str(k).isdigit(), int(k) if str(k).isdigit() else k)
+    ):
+        if not str(key).isdigit() or int(key) < 1:
+            raise ModelError(f"{info_path}: obj_id {key!r} is not an integer >= 1")
+        name = f"obj_{int(key):06d}"
+        mesh = folder / f"{name}.ply"
+        try:
+            sym = Symmetry.from_bop(info[key] or {}, scale=UNIT_SCALES["mm"])
+        except ModelError as exc:
+            raise ModelError(f"{info_path}: obj_id {key}: {exc}") from exc
+        problem = None if mesh.is_file() else ModelFileError(f"{mesh}: no such mesh file")
+        entries.append(
+            ModelEntry(
+                name=name,
+                mesh_path=mesh.resolve(),
+                scale=UNIT_SCALES["mm"],
+                symmetry=sym,
+                description=f"BOP obj_id {int(key)} ({info_path})",
+                problem=problem,
             )
         )
     return entries

@@ -276,6 +276,7 @@ class Perception:
             hypotheses=list(hypotheses),
             labels=segmentation.labels,
             T_world_cam=None if T_world_cam is None else np.asarray(T_world_cam, dtype=float),
+            label_kind="instance" if instance else "cluster",
         )
         log.debug(
             "perceived %d points, %d segments, %d hypotheses in %.2f s",

@@ -58,7 +58,14 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")  # before pykdtree loads its OpenM
 
 from pykdtree.kdtree import KDTree  # noqa: E402
 
-__all__ = ["MAX_SUPPORT_STEP", "Plane", "T_world_cam_from_plane", "fit_plane", "table_frame"]
+__all__ = [
+    "MAX_SUPPORT_STEP",
+    "Plane",
+    "TableTracker",
+    "T_world_cam_from_plane",
+    "fit_plane",
+    "table_frame",
+]
 
 log = logging.getLogger(__name__)
 
@@ -476,3 +483,47 @@ def _choose_support(planes: list[_Candidate], up: np.ndarray | None, distance: f
         best.count,
     )
     return best
+
+
+# ------------------------------------------------------------------------------------------
+# a world frame that stays put while the camera does
+
+
+class TableTracker:
+    """The world frame of a camera with no pose given, from the table plane, kept fixed while
+    the table stays where it was.
+
+    Each frame's table is fitted (:func:`table_frame`); while the fitted plane agrees with the
+    kept one (normals within ``max_angle_deg``, and the kept world origin within
+    ``max_offset`` m of the new plane), the kept ``T_world_cam`` is used again, so a static
+    camera gives one world frame for the whole sequence (a frame-by-frame fit moves the world
+    origin by the fit's noise, and every object with it). When the plane moved (the camera
+    moved), the new fit is kept and :attr:`changes` counts it.
+    """
+
+    def __init__(self, distance: float, max_angle_deg: float = 1.0, max_offset: float = 0.005):
+        self.distance = float(distance)
+        self.max_angle_deg = float(max_angle_deg)
+        self.max_offset = float(max_offset)
+        self.T_world_cam: np.ndarray | None = None
+        self.changes = 0
+
+    def update(self, points_cam: np.ndarray) -> tuple[np.ndarray, bool]:
+        """``(T_world_cam (4, 4), moved)`` for a camera-frame cloud ``(N, 3)`` (m); ``moved``:
+        the world frame was refitted (first frame: False). PerceptionError when no table."""
+        T_new, plane = table_frame(points_cam, distance=self.distance)
+        if self.T_world_cam is None:
+            self.T_world_cam = T_new
+            return T_new, False
+        T_cw_old = np.linalg.inv(self.T_world_cam)
+        up_old = self.T_world_cam[2, :3]  # world z in camera coordinates (row 2 of R_wc)
+        up_new = T_new[2, :3]
+        angle = np.degrees(np.arccos(np.clip(float(up_old @ up_new), -1.0, 1.0)))
+        origin_cam = T_cw_old[:3, 3]  # the kept world origin, in camera coordinates
+        n = np.asarray(plane.normal, dtype=float)
+        offset = abs(float(n @ origin_cam + plane.offset)) / float(np.linalg.norm(n))
+        if angle <= self.max_angle_deg and offset <= self.max_offset:
+            return self.T_world_cam, False
+        self.T_world_cam = T_new
+        self.changes += 1
+        return T_new, True

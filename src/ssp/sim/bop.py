@@ -1,6 +1,11 @@
-"""Read and write :class:`SimSequence` in the BOP scene layout, and write many to disk.
+"""Write :class:`SimSequence` in the BOP layout, read it back, and write datasets to disk.
 
-One sequence is one BOP scene folder (bop_toolkit, ``docs/bop_datasets_format.md``):
+:func:`simulate_to_disk` writes a BOP dataset as the toolkit publishes it
+(``docs/bop_datasets_format.md``; read by :mod:`ssp.io.bop`, which reads published datasets
+too): ``DATASET/camera.json``, ``DATASET/models/`` (``obj_XXXXXX.ply`` in mm and
+``models_info.json`` with the symmetries, :func:`write_bop_models`), ``DATASET/models.json``
+(ssp: obj_id -> class) and one scene per sequence in ``DATASET/test/<scene_id:06d>/``.
+One sequence is one BOP scene folder:
 
 ``scene_gt.json``
     ``{im_id: [{obj_id, cam_R_m2c (9 floats, row-major), cam_t_m2c (mm), inst_id}]}``, the
@@ -37,70 +42,49 @@ One sequence is one BOP scene folder (bop_toolkit, ``docs/bop_datasets_format.md
 Poses and scores are written as JSON floats (shortest round-trip repr), so reading gives the
 written values back to float precision; depth comes back within ``depth_scale / 2``.
 
+Files that are not BOP's (``instance/``, ``hypotheses*.json``, ``models.json``,
+``sequence.json``, the scene's ``camera.json``) are extra files the toolkit ignores.
+
 Reading streams: :func:`open_bop` reads the JSON files and checks the classes, and
-:meth:`BopScene.load` reads one frame's images when it is needed, so a long scene is never in
-memory at once and one unreadable image (a truncated PNG, a dangling link) fails that frame
-alone with an :class:`~ssp.errors.InputError` naming the file. :func:`read_bop` reads every
-frame (for small scenes and tests).
+:meth:`BopScene.load` reads one frame's images when it is needed (:mod:`ssp.io.bop`);
+:func:`read_bop` reads every frame into a :class:`SimSequence` (for small scenes and tests).
 """
 
 from __future__ import annotations
 
-import json
 import time
-from collections.abc import Callable, Iterator, Mapping
-from dataclasses import dataclass, field
+from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 from PIL import Image
 
 from ssp.errors import InputError
 from ssp.io import write_json
-from ssp.io._files import file_problem
-from ssp.scene import Hypothesis
+from ssp.io.bop import DEPTH_SCALE, BopScene, load_json
+from ssp.io.bop import open_bop as _open
 from ssp.sim.generate import generate_sequence
 from ssp.sim.hypotheses import HypothesisNoise
-from ssp.sim.render import Camera
 from ssp.sim.sequence import SimFrame, SimSequence
 
-__all__ = ["DEPTH_SCALE", "BopScene", "open_bop", "read_bop", "simulate_to_disk", "write_bop"]
+__all__ = [
+    "DEPTH_SCALE",
+    "BopScene",
+    "open_bop",
+    "read_bop",
+    "sim_frame",
+    "simulate_to_disk",
+    "write_bop",
+    "write_bop_models",
+]
 
-#: Depth PNG unit, mm (0.1 mm: depths up to 6.5 m).
-DEPTH_SCALE = 0.1
 FORMAT_VERSION = 1
-
-
-def _load(path: Path):
-    """The JSON of ``path``; InputError naming it when it is missing, not a file, or invalid."""
-    problem = file_problem(path)
-    if problem is not None:
-        raise InputError(f"{path}: {problem}")
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: cannot read: {exc}") from exc
-    except json.JSONDecodeError as exc:
-        raise InputError(f"{path}: invalid JSON: {exc}") from exc
+#: The split folder ``simulate_to_disk`` writes its scenes in.
+SPLIT = "test"
 
 
 def _png(path: Path, array: np.ndarray) -> None:
     Image.fromarray(array).save(path, compress_level=1)
-
-
-def _read_png(path: Path) -> np.ndarray:
-    """The pixels of a PNG; InputError naming the file when it is missing, not a regular
-    file (never opened then: a FIFO would block), truncated or corrupt."""
-    problem = file_problem(path)
-    if problem is not None:
-        raise InputError(f"{path}: {problem}")
-    try:
-        with Image.open(path) as im:
-            im.load()
-            return np.asarray(im)
-    except (OSError, ValueError, SyntaxError) as exc:  # PIL: truncated, corrupt, unknown
-        raise InputError(f"{path}: cannot read the image: {exc}") from exc
 
 
 def _bbox(mask: np.ndarray) -> list[int]:
@@ -252,189 +236,37 @@ def write_bop(seq: SimSequence, out_dir, scene_id: int = 1) -> Path:
     return out
 
 
-@dataclass
-class BopScene:
-    """A BOP scene folder opened by :func:`open_bop`: its metadata, with the frames' images
-    read one at a time by :meth:`load`.
-
-    Attributes:
-        path: the folder.
-        experiment, seed, camera, T_world_cam, models, info: as in :class:`SimSequence`.
-        im_ids: BOP ``im_id`` of the frames, in order; ``stamps`` their times (s).
-        has_hypotheses: the folder has a ``hypotheses.json``.
-    """
-
-    path: Path
-    experiment: str
-    seed: int
-    camera: Camera
-    T_world_cam: np.ndarray
-    models: tuple[str, ...]
-    info: dict
-    im_ids: list[int]
-    stamps: list[float]
-    static_groups: list[int]
-    has_hypotheses: bool
-    _classes: dict[int, str] = field(repr=False, default_factory=dict)
-    _scene_gt: dict = field(repr=False, default_factory=dict)
-    _scene_camera: dict = field(repr=False, default_factory=dict)
-    _scene_info: dict = field(repr=False, default_factory=dict)
-    _hypotheses: dict = field(repr=False, default_factory=dict)
-
-    def __len__(self) -> int:
-        return len(self.im_ids)
-
-    def __iter__(self) -> Iterator[SimFrame]:
-        """The frames in order, each read when it is reached."""
-        return (self.load(k) for k in range(len(self)))
-
-    def has_entry(self, k: int) -> bool:
-        """Whether ``hypotheses.json`` lists the ``k``-th frame (an empty list counts)."""
-        return str(self.im_ids[k]) in self._hypotheses
-
-    def load(self, k: int) -> SimFrame:
-        """Read the ``k``-th frame (0-based position, not ``im_id``): ground truth, depth,
-        instance image, hypotheses.
-
-        Raises:
-            InputError: a missing or unreadable image, or a frame missing from the scene
-                files; the message names the file. Other frames are unaffected.
-        """
-        d, im = self.path, self.im_ids[k]
-        key = str(im)
-        try:
-            cam = self._scene_camera[key]
-            entries = self._scene_gt[key]
-        except KeyError:
-            raise InputError(f"{d}: im_id {im} is missing from scene_camera.json or "
-                             "scene_gt.json") from None  # fmt: skip
-        try:
-            gt: dict[str, tuple[str, np.ndarray]] = {}
-            for j, g in enumerate(entries):
-                T_co = np.eye(4)
-                T_co[:3, :3] = np.asarray(g["cam_R_m2c"], dtype=float).reshape(3, 3)
-                T_co[:3, 3] = np.asarray(g["cam_t_m2c"], dtype=float) / 1000.0
-                cls = self._classes[g["obj_id"]]
-                gt[g.get("inst_id", f"{cls}_{j}")] = (cls, self.T_world_cam @ T_co)
-            ids = list(gt)
-            visib = {
-                e.get("inst_id", ids[j]): float(e["visib_fract"])
-                for j, e in enumerate(self._scene_info.get(key, []))
-            }
-            depth_scale = float(cam.get("depth_scale", DEPTH_SCALE))
-            hl = [_hypothesis(h, self._classes) for h in self._hypotheses.get(key, [])]
-        except (KeyError, TypeError, ValueError, IndexError) as exc:
-            raise InputError(f"{d}: malformed entry of im_id {im}: {exc!r}") from exc
-        depth = _read_png(d / "depth" / f"{im:06d}.png").astype(np.float64) * depth_scale / 1000.0
-        inst_path = d / "instance" / f"{im:06d}.png"
-        if inst_path.exists():
-            instance = (_read_png(inst_path).astype(np.int32) - 2).astype(np.int16)
-        else:  # BOP only: table wherever there is depth, else nothing
-            instance = np.where(depth > 0, -1, -2).astype(np.int16)
-            for j in range(len(ids)):
-                m = d / "mask_visib" / f"{im:06d}_{j:06d}.png"
-                if m.exists():
-                    instance[_read_png(m) > 0] = j
-        if instance.shape != depth.shape:
-            raise InputError(
-                f"{inst_path}: shape {instance.shape} differs from the depth image's {depth.shape}"
-            )
-        return SimFrame(
-            index=int(im),
-            stamp=self.stamps[k],
-            gt=gt,
-            depth=depth.astype(np.float32),
-            instance=instance,
-            visib_fract=visib,
-            hypotheses=hl,
-            static_group=self.static_groups[k],
-        )
-
-
-def _hypothesis(h: Mapping[str, Any], classes: Mapping[int, str]) -> Hypothesis:
-    T = np.eye(4)
-    T[:3, :3] = np.asarray(h["R"], dtype=float).reshape(3, 3)
-    T[:3, 3] = np.asarray(h["t"], dtype=float) / 1000.0
-    return Hypothesis(h.get("class") or classes[h["obj_id"]], T, float(h["score"]))
-
-
 def open_bop(path, library: Mapping) -> BopScene:
-    """Open a scene folder written by :func:`write_bop`: read its JSON files (not its images)
-    and check its classes.
-
-    ``library`` must know every class of the scene (it is checked, not otherwise used).
+    """Open a scene folder written by :func:`write_bop` (:func:`ssp.io.bop.open_bop`, which
+    reads published BOP scenes too); ``library`` must know every class of the scene.
 
     Raises:
-        InputError: a missing or invalid JSON file (named), or classes not in ``library``.
+        InputError: a missing or invalid JSON file (named), classes not in ``library``, or a
+            scene without ``sequence.json`` (not written by ssp simulate).
     """
-    d = Path(path)
-    if not (d / "sequence.json").exists():
+    scene = _open(path, library)
+    if not scene.simulated:
         raise InputError(
-            f"{d}: no sequence.json: ssp reads BOP scenes written by ssp simulate (they hold "
-            "the stamps, the camera and T_world_cam)"
+            f"{path}: no sequence.json: not a scene written by ssp simulate (read published "
+            "BOP scenes with ssp.io.bop.open_bop)"
         )
-    meta = _load(d / "sequence.json")
-    scene_gt = _load(d / "scene_gt.json")
-    scene_camera = _load(d / "scene_camera.json")
-    info_path = d / "scene_gt_info.json"
-    scene_info = _load(info_path) if info_path.exists() else {}
-    hyp_path = d / "hypotheses.json"
-    has_hyps = hyp_path.exists() or hyp_path.is_symlink()
-    hyps = _load(hyp_path) if has_hyps else {}
-    gt_path = d / "hypotheses_gt.json"
-    hyps_gt = _load(gt_path) if gt_path.exists() else None
-    models = _load(d / "models.json")
-    try:
-        classes = {int(k): v for k, v in models["obj_ids"].items()}
-        used = {
-            "scene_gt.json": {classes[g["obj_id"]] for v in scene_gt.values() for g in v},
-            "hypotheses.json": {
-                h.get("class") or classes[h["obj_id"]] for v in hyps.values() for h in v
-            },
-        }
-        c = meta["camera"]
-        camera = Camera(int(c["width"]), int(c["height"]), c["fx"], c["fy"], c["cx"], c["cy"])
-        if "T_world_cam" in meta:
-            T_wc = np.asarray(meta["T_world_cam"], dtype=float)
-        else:  # static camera: the pose of the first frame
-            cam0 = next(iter(scene_camera.values()))
-            T_cw = np.eye(4)
-            T_cw[:3, :3] = np.asarray(cam0["cam_R_w2c"], dtype=float).reshape(3, 3)
-            T_cw[:3, 3] = np.asarray(cam0["cam_t_w2c"], dtype=float) / 1000.0
-            T_wc = np.linalg.inv(T_cw)
-        frames = meta["frames"]
-        im_ids = [int(fm["im_id"]) for fm in frames]
-        stamps = [float(fm["stamp"]) for fm in frames]
-        groups = [int(fm["static_group"]) for fm in frames]
-    except (KeyError, TypeError, ValueError, AttributeError, StopIteration) as exc:
-        raise InputError(f"{d}: malformed scene files: {exc!r}") from exc
-    for name, names in used.items():
-        missing = sorted(c for c in names if c not in library)
-        if missing:
-            raise InputError(
-                f"{d / name}: classes not in the library: {missing} (known: "
-                f"{', '.join(library) or 'none'}; object ids in {d / 'models.json'})"
-            )
-    info = dict(meta.get("info", {}))
-    if hyps_gt is not None:
-        info["hypothesis_sources"] = [list(hyps_gt.get(str(im), [])) for im in im_ids]
-    return BopScene(
-        path=d,
-        experiment=meta.get("experiment", ""),
-        seed=int(meta.get("seed", 0)),
-        camera=camera,
-        T_world_cam=T_wc,
-        models=tuple(meta.get("models", ())),
-        info=info,
-        im_ids=im_ids,
-        stamps=stamps,
-        static_groups=groups,
-        has_hypotheses=has_hyps,
-        _classes=classes,
-        _scene_gt=scene_gt,
-        _scene_camera=scene_camera,
-        _scene_info=scene_info,
-        _hypotheses=hyps,
+    return scene
+
+
+def sim_frame(scene: BopScene, k: int) -> SimFrame:
+    """The ``k``-th frame of an ssp scene as a :class:`SimFrame` (ground truth in the world
+    frame of the scene's first image)."""
+    f = scene.load(k)
+    T_wc = scene.T_world_cam_of(0)
+    return SimFrame(
+        index=f.im_id,
+        stamp=f.stamp,
+        gt={iid: (cls, T_wc @ T_co) for iid, (cls, T_co) in f.gt.items()},
+        depth=f.depth,
+        instance=f.instance,
+        visib_fract=f.visib_fract,
+        hypotheses=f.hypotheses,
+        static_group=f.static_group,
     )
 
 
@@ -451,15 +283,49 @@ def read_bop(path, library: Mapping) -> SimSequence:
         InputError: as :func:`open_bop` and :meth:`BopScene.load`.
     """
     scene = open_bop(path, library)
+    meta = scene.meta
+    info = dict(meta.get("info", {}))
+    gt_path = scene.path / "hypotheses_gt.json"
+    if gt_path.exists():
+        hyps_gt = load_json(gt_path)
+        info["hypothesis_sources"] = [list(hyps_gt.get(str(im), [])) for im in scene.im_ids]
     return SimSequence(
-        experiment=scene.experiment,
-        seed=scene.seed,
-        camera=scene.camera,
-        T_world_cam=scene.T_world_cam,
-        frames=list(scene),
+        experiment=meta.get("experiment", ""),
+        seed=int(meta.get("seed", 0)),
+        camera=scene.camera_of(0),
+        T_world_cam=scene.T_world_cam_of(0),
+        frames=[sim_frame(scene, k) for k in range(len(scene))],
         models=scene.models,
-        info=scene.info,
+        info=info,
     )
+
+
+def write_bop_models(library: Mapping, classes, out_dir) -> Path:
+    """Write the models of ``classes`` (``obj_id`` = 1-based position) as a BOP ``models/``
+    folder: ``obj_XXXXXX.ply`` (mm) and ``models_info.json`` (diameter, bounding box, declared
+    symmetries; mm), as the BOP toolkit publishes them. Returns the folder."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    info = {}
+    for i, cls in enumerate(classes, start=1):
+        model = library[cls]
+        mesh = model.mesh.copy()
+        mesh.apply_scale(1000.0)
+        mesh.export(out / f"obj_{i:06d}.ply", encoding="binary")
+        lo, hi = mesh.bounds
+        entry = {
+            "diameter": float(model.diameter) * 1000.0,
+            "min_x": float(lo[0]),
+            "min_y": float(lo[1]),
+            "min_z": float(lo[2]),
+            "size_x": float(hi[0] - lo[0]),
+            "size_y": float(hi[1] - lo[1]),
+            "size_z": float(hi[2] - lo[2]),
+        }
+        entry.update(model.symmetry.to_bop(scale=1000.0))
+        info[str(i)] = entry
+    write_json(out / "models_info.json", info)
+    return out
 
 
 #: ``progress(done, total, path)``: called after each sequence is written.
@@ -482,7 +348,7 @@ def simulate_to_disk(
     **generate_kwargs,
 ) -> list[Path]:
     """Generate ``sequences`` sequences (seeds ``seed, seed + 1, ...``) and write each as a
-    BOP scene ``out_dir/<experiment>/<i:06d>/`` (``i`` = 0, 1, ...; scene id ``i``).
+    BOP scene ``out_dir/<experiment>/test/<i:06d>/`` (``i`` = 0, 1, ...; scene id ``i``).
 
     Args:
         experiment: ``"isolated"`` or ``"structure"``.
@@ -497,7 +363,9 @@ def simulate_to_disk(
         progress: ``progress(done, total, path)`` after each sequence.
 
     Returns:
-        The scene folders, in order. Sequences are generated and written one at a time.
+        The scene folders ``out_dir/<experiment>/test/<i:06d>``, in order. Sequences are
+        generated and written one at a time. ``out_dir/<experiment>`` is a BOP dataset as the
+        toolkit publishes it (module docstring): ``camera.json``, ``models/`` and ``test/``.
     """
     if library is None:
         from ssp.library import ObjectLibrary
@@ -507,6 +375,7 @@ def simulate_to_disk(
         )
     root = Path(out_dir) / experiment
     paths = []
+    classes: list[str] | None = None
     for i in range(int(sequences)):
         t0 = time.perf_counter()
         seq = generate_sequence(
@@ -520,7 +389,13 @@ def simulate_to_disk(
             **generate_kwargs,
         )
         seq.info["generate_seconds"] = round(time.perf_counter() - t0, 3)
-        p = write_bop(seq, root / f"{i:06d}", scene_id=i)
+        p = write_bop(seq, root / SPLIT / f"{i:06d}", scene_id=i)
+        if classes is None:  # the dataset's files, once: every scene shares the library
+            classes = [c for _, c in sorted(load_json(p / "models.json")["obj_ids"].items(),
+                                            key=lambda kv: int(kv[0]))]  # fmt: skip
+            write_bop_models(library, classes, root / "models")
+            write_json(root / "models.json", load_json(p / "models.json"))
+            write_json(root / "camera.json", load_json(p / "camera.json"))
         paths.append(p)
         if progress is not None:
             progress(i + 1, int(sequences), p)

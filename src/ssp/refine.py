@@ -1,0 +1,335 @@
+"""``ssp refine``, ``ssp estimate`` and ``ssp evaluate``: ssp after a pose estimator, on a BOP
+dataset as the toolkit publishes it (:mod:`ssp.io.bop`).
+
+* :func:`refine`: an estimator's output (a BOP19 results CSV or another format of
+  :mod:`ssp.io.estimators`, camera frame) becomes ssp's refined BOP19 CSV. Each scene is one
+  :func:`ssp.runner.run` (per-frame JSON, summary, resume) in ``OUT/scenes/<scene_id>/``; the
+  scenes' rows are gathered in ``OUT/<method>_<dataset>-<split>.csv``, where ``method`` is the
+  input's method name (from its BOP file name) with ``-ssp`` appended.
+* :func:`estimate`: the built-in estimator (:mod:`ssp.perception`) over a dataset, every
+  hypothesis of every object written as a BOP19 CSV: a stand-in for the user's estimator.
+* :func:`evaluate`: the BOP19 average recall (:mod:`ssp.eval.bop_metrics`) of result CSVs
+  against the dataset's ground truth, side by side.
+
+The world frame (gravity, the table) is the scene's ``cam_R_w2c`` when it has one, else fitted
+to the depth of each frame; never taken from the ground truth.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ssp.config import SSPConfig
+from ssp.errors import InputError, SSPError
+from ssp.geometry import invert
+from ssp.io._files import atomic_write_text, write_json
+from ssp.io.bop import bop_scenes, dataset_root, mask_source, open_bop
+from ssp.io.results import BOP_CSV_HEADER, BopCsvWriter, bop_csv_name, read_bop_csv
+
+__all__ = ["RefineSummary", "estimate", "evaluate", "refine", "refined_method"]
+
+log = logging.getLogger(__name__)
+
+_BOP_NAME = re.compile(r"^(?P<method>[^_]+)_(?P<dataset>[^_-]+)-(?P<split>[^_]+)\.csv$")
+REFINE_JSON = "refine.json"
+
+
+def _dataset_name(scenes: Sequence[Path]) -> tuple[str, str]:
+    """``(dataset, split)`` names of scene folders ``DATASET/SPLIT/SCENE``."""
+    root = dataset_root(scenes[0])
+    if root is None:
+        return scenes[0].resolve().name, "test"
+    return root.name, scenes[0].resolve().parent.name
+
+
+def refined_method(estimates_path: str | Path) -> str:
+    """The method name of the refined CSV: the input's (``METHOD_DATASET-SPLIT.csv``) plus
+    ``-ssp``; ``ssp`` when the input's name does not follow the convention."""
+    m = _BOP_NAME.match(Path(estimates_path).name)
+    return f"{m['method']}-ssp" if m else "ssp"
+
+
+@dataclass
+class RefineSummary:
+    """What :func:`refine` did: per scene its run summary (``scenes``), the gathered CSV."""
+
+    csv: Path
+    method: str
+    scenes: list[dict[str, Any]] = field(default_factory=list)
+
+    @property
+    def done(self) -> bool:
+        return all(s["status"] == "finished" for s in self.scenes)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"csv": str(self.csv), "method": self.method, "done": self.done,
+                "scenes": self.scenes}  # fmt: skip
+
+
+def refine(
+    dataset: str | Path,
+    estimates_path: str | Path,
+    library: Mapping,
+    out_dir: str | Path,
+    config: SSPConfig | None = None,
+    *,
+    fmt: str = "auto",
+    split: str | None = None,
+    scene_ids: Sequence[int] | None = None,
+    method: str | None = None,
+    masks: str = "auto",
+    period: float | None = None,
+    resume: bool = False,
+    overwrite: bool = False,
+    models: str | None = None,
+    progress: Callable[[int, int, str], None] | None = None,
+) -> RefineSummary:
+    """Refine an estimator's poses on every scene of ``dataset`` (module docstring).
+
+    Args:
+        dataset: a BOP dataset folder, a split folder, or one scene folder.
+        estimates_path: the estimator's output (:func:`ssp.io.estimators.read_estimates`).
+        library: the models (every class of the dataset).
+        out_dir: output folder (new or empty; ``resume``: a stopped refine of the same input;
+            ``overwrite``: an earlier one, replaced).
+        fmt: the estimates' format (``auto``: detected).
+        scene_ids: only these scenes (default: every scene of the split).
+        method: the output's BOP method name (default :func:`refined_method`).
+        masks, period: as for :func:`ssp.runner.run`.
+        progress: ``progress(done, total, message)`` after each frame of each scene.
+
+    Raises:
+        InputError: no scene, an unreadable estimates file, classes not in the library.
+        ArgumentError: bad options or output folder.
+    """
+    from ssp.io.estimators import read_estimates
+    from ssp.runner import run
+
+    cfg = config if config is not None else SSPConfig()
+    scenes = bop_scenes(dataset, split)
+    if scene_ids is not None:
+        wanted = {int(s) for s in scene_ids}
+        scenes = [s for s in scenes if s.name.isdigit() and int(s.name) in wanted]
+        if not scenes:
+            raise InputError(f"{dataset}: no scene with id {sorted(wanted)}")
+    name, split_name = _dataset_name(scenes)
+    method = method or refined_method(estimates_path)
+    out = Path(out_dir)
+    csv_path = out / bop_csv_name(name, method, split_name)
+    first = open_bop(scenes[0])
+    est = None
+    summary = RefineSummary(csv_path, method)
+    total = len(scenes)
+    for n, scene_path in enumerate(scenes):
+        scene = first if n == 0 else open_bop(scene_path)
+        if est is None or est.format in ("megapose", "foundationpose"):
+            # formats without scene ids name the images of the one scene they are for
+            est = read_estimates(estimates_path, fmt, dict(scene.classes) or None,
+                                 library=library, scene_id=scene.scene_id)  # fmt: skip
+        sub = out / "scenes" / scene_path.name
+        sub_resume = resume and (sub / "run.json").exists()
+        if resume and sub_resume and _finished(sub):
+            from ssp.runner import read_run
+
+            log.info("%s: scene %s finished before; kept", out, scene_path.name)
+            summary.scenes.append({"scene": scene_path.name, "status": "finished",
+                                   "out": str(sub), "input": read_run(sub)["input"]})  # fmt: skip
+            continue
+
+        def report(done: int, frames: int, message: str, n=n) -> None:
+            if progress is not None:
+                progress(done, frames, f"scene {n + 1}/{total} {message}")
+
+        s = run(
+            scene_path,
+            library,
+            sub,
+            cfg,
+            hypotheses="given",
+            method=method,
+            scene_id=scene.scene_id,
+            progress=report,
+            resume=sub_resume,
+            overwrite=overwrite,
+            models=models,
+            estimates=est,
+            masks=masks,
+            period=period,
+        )
+        summary.scenes.append({"scene": scene_path.name, "status": s.status, "out": str(sub),
+                               "input": s.input, "frames": s.frames, "done": len(s.done),
+                               "failed": len(s.failed)})  # fmt: skip
+    _gather(summary, out)
+    write_json(out / REFINE_JSON, {"format": "ssp-refine", "version": 1,
+                                   "estimates": str(Path(estimates_path).resolve()),
+                                   **summary.to_dict()})  # fmt: skip
+    return summary
+
+
+def _finished(sub: Path) -> bool:
+    import json
+
+    try:
+        return json.loads((sub / "summary.json").read_text())["status"] == "finished"
+    except (OSError, ValueError, KeyError):
+        return False
+
+
+def _gather(summary: RefineSummary, out: Path) -> None:
+    """Concatenate the scenes' CSVs (header once) into ``summary.csv``."""
+    lines = [BOP_CSV_HEADER]
+    for s in summary.scenes:
+        for p in sorted(Path(s["out"]).glob("*.csv")):
+            body = p.read_text(encoding="ascii").splitlines()[1:]
+            lines += [ln for ln in body if ln.strip()]
+    atomic_write_text(summary.csv, "\n".join(lines) + "\n")
+
+
+# ------------------------------------------------------------------------------ estimate
+def estimate(
+    dataset: str | Path,
+    library: Mapping,
+    out_csv: str | Path,
+    config: SSPConfig | None = None,
+    *,
+    split: str | None = None,
+    scene_ids: Sequence[int] | None = None,
+    classes: Sequence[str] | None = None,
+    masks: str = "auto",
+    progress: Callable[[int, int, str], None] | None = None,
+) -> dict[str, Any]:
+    """The built-in estimator over a dataset: every hypothesis as a BOP19 CSV row (camera
+    frame, t in mm; ``time`` the image's perception seconds). A frame that fails is logged,
+    reported in the returned ``failed`` list and has no rows.
+
+    ``masks`` as for :func:`ssp.runner.run`. Returns ``{csv, images, rows, failed}``.
+    """
+    from ssp.perception.depth import cloud_from_depth
+    from ssp.perception.pipeline import Perception
+    from ssp.perception.table import TableTracker
+    from ssp.runner import _bop_ids
+
+    cfg = config if config is not None else SSPConfig()
+    mask_source(masks, True)  # a bad mode fails before any work
+    scenes = bop_scenes(dataset, split)
+    if scene_ids is not None:
+        scenes = [s for s in scenes if s.name.isdigit() and int(s.name) in set(scene_ids)]
+    path = Path(out_csv)
+    method = _BOP_NAME.match(path.name)["method"] if _BOP_NAME.match(path.name) else "ssp"
+    report: dict[str, Any] = {"csv": str(path), "images": 0, "rows": 0, "failed": []}
+    with BopCsvWriter(path, method) as csv:
+        for scene_path in scenes:
+            scene = open_bop(scene_path, library)
+            ids = _bop_ids(scene_path, library)
+            perception = Perception(library, cfg, classes or list(scene.models) or None)
+            tracker = None if scene.has_world else TableTracker(cfg.perception.table_distance)
+            use_masks = mask_source(masks, scene.simulated)
+            for k, im in enumerate(scene.im_ids):
+                t0 = time.perf_counter()
+                try:
+                    f = scene.load(k, masks=use_masks)
+                    T_wc = f.T_world_cam
+                    if T_wc is None:
+                        T_wc, _ = tracker.update(cloud_from_depth(f.depth, f.camera).points)
+                    mask = None
+                    if use_masks and f.instance is not None:
+                        mask = np.asarray(f.instance).astype(np.int64)
+                        mask[mask < -1] = -1
+                    res = perception.from_depth(f.depth, f.camera, stamp=f.stamp,
+                                                T_world_cam=T_wc, mask=mask)  # fmt: skip
+                except SSPError as exc:
+                    log.warning("scene %s image %d skipped: %s", scene_path.name, im, exc)
+                    report["failed"].append({"scene": scene.scene_id, "im_id": im,
+                                             "error": str(exc)})  # fmt: skip
+                    continue
+                seconds = time.perf_counter() - t0
+                T_cw = invert(np.asarray(T_wc, dtype=float))
+                rows = [
+                    csv.format_row(
+                        scene.scene_id,
+                        im,
+                        ids[h.class_name],
+                        float(h.score),
+                        T_cw @ h.T_world_obj,
+                        seconds,
+                    )  # fmt: skip
+                    for h in res.frame.hypotheses
+                ]
+                csv.write_rows(rows)
+                report["images"] += 1
+                report["rows"] += len(rows)
+                if progress is not None:
+                    progress(k + 1, len(scene), f"scene {scene_path.name}: {len(rows)} rows")
+    return report
+
+
+# ------------------------------------------------------------------------------ evaluate
+def evaluate(
+    dataset: str | Path,
+    library: Mapping,
+    results: Sequence[str | Path],
+    *,
+    split: str | None = None,
+    vsd: bool = True,
+    progress: Callable[[int, int, str], None] | None = None,
+) -> dict[str, Any]:
+    """BOP19 AR (VSD, MSSD, MSPD; :class:`ssp.eval.bop_metrics.BopEvaluator`) of each results
+    CSV against the ground truth of the dataset's scenes, over the images of the scenes the
+    CSVs name (an image a CSV has no row for counts as missed). Returns ``{label: result}``
+    in the order given (labels: :func:`result_labels`).
+
+    Raises:
+        InputError: a CSV that cannot be read, or a dataset scene without ground truth.
+    """
+    from ssp.eval.bop_metrics import BopEvaluator
+
+    scenes = {int(p.name): p for p in bop_scenes(dataset, split) if p.name.isdigit()}
+    tables = []
+    for r in results:
+        rows = read_bop_csv(r)
+        by_image: dict[tuple[int, int], list] = {}
+        for row in rows:
+            by_image.setdefault((row["scene_id"], row["im_id"]), []).append(row)
+        tables.append((Path(r), by_image))
+    wanted = sorted({sid for _, t in tables for sid, _ in t})
+    missing = [s for s in wanted if s not in scenes]
+    if missing:
+        raise InputError(f"{dataset}: the results name scenes {missing} it does not have")
+    evaluators = [BopEvaluator(library, vsd=vsd) for _ in tables]
+    eye = np.eye(4)
+    for sid in wanted:
+        scene = open_bop(scenes[sid], library)
+        if not (scenes[sid] / "scene_gt.json").exists():
+            raise InputError(f"{scenes[sid]}: no scene_gt.json: nothing to evaluate against")
+        for k, im in enumerate(scene.im_ids):
+            f = scene.load(k, masks=None)
+            for (_, by_image), ev in zip(tables, evaluators, strict=True):
+                ests = []
+                for row in by_image.get((sid, im), []):
+                    T = np.eye(4)
+                    T[:3, :3], T[:3, 3] = row["R"], row["t"] / 1000.0
+                    cls = scene.classes.get(row["obj_id"], f"obj_{row['obj_id']:06d}")
+                    if cls not in library:
+                        raise InputError(f"obj_id {row['obj_id']} ({cls}) is not in the library")
+                    ests.append((cls, T, row["score"]))
+                ev.add_frame(f.gt, f.visib_fract, ests, f.camera, eye,
+                             depth=f.depth if vsd else None)  # fmt: skip
+            if progress is not None:
+                progress(k + 1, len(scene), f"scene {sid}")
+    labels = result_labels([p for p, _ in tables])
+    return {lab: ev.result() for lab, ev in zip(labels, evaluators, strict=True)}
+
+
+def result_labels(paths: Sequence[Path]) -> list[str]:
+    """How results files are named in a comparison: their file names, or the paths as given
+    when two files share a name (two refines write the same BOP file name)."""
+    names = [p.name for p in paths]
+    return names if len(set(names)) == len(names) else [str(p) for p in paths]
