@@ -1496,6 +1496,7 @@ def evaluate_cmd(
     dataset's ground truth, side by side."""
     from ssp.io._files import write_json
     from ssp.refine import evaluate
+
     lib, _ = _dataset_library(dataset, models, config, cache)
     with _bar() as progress:
         task = progress.add_task("evaluating", total=None)
