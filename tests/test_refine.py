@@ -176,3 +176,19 @@ def test_cli_run_masks_option(dataset, tmp_path):
     r = runner.invoke(app, ["run", str(root / "test" / "000000"), "--out", str(tmp_path / "o2"),
                             "--masks", "maybe"])  # fmt: skip
     assert r.exit_code != 0 and "masks must be one of" in r.output
+
+
+def test_refine_output_folder_rules(lib, dataset, tmp_path):
+    from ssp.errors import ArgumentError
+
+    root, est = dataset
+    out = tmp_path / "out"
+    first = refine(root, est, lib, out, scene_ids=[0]).csv.read_text()
+    with pytest.raises(ArgumentError, match="holds an ssp refine: continue it with --resume"):
+        refine(root, est, lib, out)
+    again = refine(root, est, lib, out, resume=True)  # finished scenes are kept
+    assert again.done and again.csv.read_text() == first
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "x.txt").write_text("mine")
+    with pytest.raises(ArgumentError, match="holds no ssp refine"):
+        refine(root, est, lib, tmp_path / "other")

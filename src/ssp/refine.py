@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from ssp.config import SSPConfig
-from ssp.errors import InputError, SSPError
+from ssp.errors import ArgumentError, InputError, SSPError
 from ssp.geometry import invert
 from ssp.io._files import atomic_write_text, write_json
 from ssp.io.bop import bop_scenes, dataset_root, mask_source, open_bop
@@ -123,6 +123,7 @@ def refine(
     name, split_name = _dataset_name(scenes)
     method = method or refined_method(estimates_path)
     out = Path(out_dir)
+    _check_out(out, resume, overwrite)
     csv_path = out / bop_csv_name(name, method, split_name)
     first = open_bop(scenes[0])
     est = None
@@ -172,6 +173,25 @@ def refine(
                                    "estimates": str(Path(estimates_path).resolve()),
                                    **summary.to_dict()})  # fmt: skip
     return summary
+
+
+def _check_out(out: Path, resume: bool, overwrite: bool) -> None:
+    """ArgumentError unless ``out`` can take this refine: new or empty, or an earlier refine
+    that ``resume`` continues or ``overwrite`` replaces."""
+    if resume and overwrite:
+        raise ArgumentError("resume continues a refine; overwrite starts one afresh: not both")
+    if out.exists() and not out.is_dir():
+        raise ArgumentError(f"{out}: the output folder is a file")
+    if not out.exists() or not any(out.iterdir()) or resume or overwrite:
+        if resume and not (out / REFINE_JSON).exists() and not (out / "scenes").is_dir():
+            raise ArgumentError(f"{out}: no ssp refine here: nothing to resume")
+        return
+    if (out / REFINE_JSON).exists() or (out / "scenes").is_dir():
+        raise ArgumentError(
+            f"{out}: the output folder holds an ssp refine: continue it with --resume, replace "
+            "it with --overwrite, or choose a new --out folder"
+        )
+    raise ArgumentError(f"{out}: the output folder is not empty and holds no ssp refine")
 
 
 def _finished(sub: Path) -> bool:
