@@ -21,6 +21,7 @@ __all__ = [
     "atomic_write_text",
     "file_problem",
     "fsync_dir",
+    "read_json",
     "to_jsonable",
     "write_json",
 ]
@@ -133,3 +134,23 @@ def write_json(path: str | os.PathLike, obj: Any, indent: int | None = 1) -> Pat
     """
     text = json.dumps(to_jsonable(obj), indent=indent, allow_nan=False)
     return atomic_write_text(path, text + "\n")
+
+
+def read_json(path: str | os.PathLike, missing: str | None = None) -> Any:
+    """The JSON document of ``path``; :class:`~ssp.errors.InputError` naming the file when
+    it is missing (``missing``: the words for that, default :func:`file_problem`'s), not a
+    regular file (never opened then), unreadable, not UTF-8 or invalid JSON."""
+    from ssp.errors import InputError
+
+    p = Path(path)
+    problem = file_problem(p)
+    if problem is not None:
+        raise InputError(f"{p}: {missing if missing and problem == 'does not exist' else problem}")
+    try:
+        return json.loads(p.read_text(encoding="utf-8"))
+    except FileNotFoundError as exc:  # removed since the check
+        raise InputError(f"{p}: {missing or 'does not exist'}") from exc
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{p}: cannot read: {exc}") from exc
+    except json.JSONDecodeError as exc:
+        raise InputError(f"{p}: invalid JSON: {exc}") from exc

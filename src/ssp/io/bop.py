@@ -36,7 +36,6 @@ scene folders of a dataset (or the one scene given).
 
 from __future__ import annotations
 
-import json
 import os
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
@@ -48,7 +47,7 @@ from PIL import Image
 
 from ssp.camera import Camera
 from ssp.errors import ArgumentError, InputError
-from ssp.io._files import file_problem
+from ssp.io._files import file_problem, read_json
 from ssp.scene import Hypothesis
 
 __all__ = [
@@ -87,16 +86,8 @@ def mask_source(masks: str, simulated: bool) -> str | None:
 
 
 def load_json(path: Path) -> Any:
-    """The JSON of ``path``; InputError naming it when it is missing, not a file, or invalid."""
-    problem = file_problem(path)
-    if problem is not None:
-        raise InputError(f"{path}: {problem}")
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: cannot read: {exc}") from exc
-    except json.JSONDecodeError as exc:
-        raise InputError(f"{path}: invalid JSON: {exc}") from exc
+    """The JSON of ``path`` (:func:`ssp.io._files.read_json`)."""
+    return read_json(path)
 
 
 def read_png(path: Path) -> np.ndarray:

@@ -33,7 +33,6 @@ from __future__ import annotations
 import csv
 import difflib
 import io
-import json
 import logging
 import os
 from collections.abc import Iterable, Mapping
@@ -45,7 +44,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ssp.errors import ArgumentError, InputError
-from ssp.io._files import file_problem
+from ssp.io._files import file_problem, read_json
 from ssp.io.folder import natural_key
 from ssp.io.hypotheses import _check_rotation
 from ssp.io.results import BOP_CSV_HEADER, ObjectIds, scan_bop_csv
@@ -401,15 +400,7 @@ def _megapose_files(folder: Path) -> dict[str, Path]:
 
 
 def _read_json_list(p: Path) -> list:
-    problem = file_problem(p)
-    if problem is not None:
-        raise InputError(f"{p}: {problem}")
-    try:
-        doc = json.loads(p.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{p}: cannot read: {exc}") from exc
-    except json.JSONDecodeError as exc:
-        raise InputError(f"{p}: invalid JSON: {exc}") from exc
+    doc = read_json(p)
     if not isinstance(doc, list):
         raise InputError(
             f"{p}: not MegaPose estimates: expected a JSON list of objects with 'label' and "

@@ -47,7 +47,6 @@ stamps and indices of the other frames never shift.
 from __future__ import annotations
 
 import difflib
-import json
 import logging
 import math
 import os
@@ -61,7 +60,7 @@ import numpy as np
 
 from ssp.errors import CloudFormatError, InputError, InvalidPoseError
 from ssp.geometry import validate_pose
-from ssp.io._files import file_problem
+from ssp.io._files import file_problem, read_json
 from ssp.io.bop import is_bop_scene
 from ssp.io.clouds import CLOUD_SUFFIXES, read_cloud
 from ssp.io.hypotheses import read_hypotheses
@@ -187,16 +186,7 @@ class SceneSpec:
 def read_scene_json(path: str | os.PathLike) -> SceneSpec:
     """Read and validate a ``scene.json`` (InputError if unreadable or invalid)."""
     p = Path(path)
-    problem = file_problem(p)
-    if problem is not None:
-        raise InputError(f"{p}: {problem}")
-    try:
-        doc = json.loads(p.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{p}: cannot read: {exc}") from exc
-    except json.JSONDecodeError as exc:
-        raise InputError(f"{p}: invalid JSON: {exc}") from exc
-    return SceneSpec.from_dict(doc, str(p))
+    return SceneSpec.from_dict(read_json(p), str(p))
 
 
 def _int_key(key: Any, what: str) -> int:

@@ -26,7 +26,6 @@ warning.
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import os
@@ -40,7 +39,7 @@ from scipy.spatial.transform import Rotation
 
 from ssp.errors import InputError, InvalidPoseError
 from ssp.geometry import validate_pose
-from ssp.io._files import file_problem, write_json
+from ssp.io._files import read_json, write_json
 from ssp.scene import Hypothesis
 
 __all__ = [
@@ -86,18 +85,7 @@ def read_hypotheses(path: str | os.PathLike) -> HypothesisFile:
             file and the hypothesis index.
     """
     p = Path(path)
-    problem = file_problem(p)
-    if problem is not None:
-        raise InputError(f"{p}: {'no such file' if problem == 'does not exist' else problem}")
-    try:
-        doc = json.loads(p.read_text(encoding="utf-8"))
-    except FileNotFoundError as exc:
-        raise InputError(f"{p}: no such file") from exc
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{p}: cannot read: {exc}") from exc
-    except json.JSONDecodeError as exc:
-        raise InputError(f"{p}: invalid JSON: {exc}") from exc
-    return parse_hypotheses(doc, str(p))
+    return parse_hypotheses(read_json(p, missing="no such file"), str(p))
 
 
 def parse_hypotheses(doc: Any, where: str = "hypotheses") -> HypothesisFile:
