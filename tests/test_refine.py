@@ -192,3 +192,25 @@ def test_refine_output_folder_rules(lib, dataset, tmp_path):
     (tmp_path / "other" / "x.txt").write_text("mine")
     with pytest.raises(ArgumentError, match="holds no ssp refine"):
         refine(root, est, lib, tmp_path / "other")
+
+
+def test_bad_scene_files_fail_their_frames_only(lib, dataset, tmp_path):
+    """A published scene with an image without cam_K, a negative depth_scale and a truncated
+    depth PNG: those three frames fail, each naming its file; the fourth is refined."""
+    root, est = dataset
+    pub = _published(root, tmp_path / "pub")
+    scene = pub / "test" / "000000"
+    cams = json.loads((scene / "scene_camera.json").read_text())
+    del cams["1"]["cam_K"]
+    cams["2"]["depth_scale"] = -1
+    (scene / "scene_camera.json").write_text(json.dumps(cams))
+    (scene / "depth" / "000003.png").write_bytes(b"\x89PNG\r\n\x1a\n truncated")
+    summary = refine(pub, est, lib_with_bop_names(lib, pub), tmp_path / "out")
+    (s,) = summary.scenes
+    assert (s["done"], s["failed"]) == (1, 3)
+    frames = tmp_path / "out" / "scenes" / "000000" / "frames"
+    errors = {p.stem: json.loads(p.read_text()).get("error", "") for p in frames.glob("*.json")}
+    assert errors["000001"].startswith(f"{scene / 'scene_camera.json'}: im_id 1: no valid cam_K")
+    assert "depth_scale -1" in errors["000002"] and "scene_camera.json" in errors["000002"]
+    assert errors["000003"].startswith(f"{scene / 'depth' / '000003.png'}: cannot read the image")
+    assert {r["im_id"] for r in read_bop_csv(summary.csv)} == {0}

@@ -187,7 +187,7 @@ class _Source:
         if any(f in message for f in self.files):
             return message
         about_hyp = message.startswith(("hypothesis", "instance id", "invalid pose"))
-        f = self.files[-1] if about_hyp and len(self.files) > 1 else self.files[0]
+        f = self.files[1] if about_hyp and len(self.files) > 1 else self.files[0]
         return f"{f}: {message}"
 
 
@@ -355,7 +355,10 @@ def _open_bop_input(
         for k in range(start, len(scene)):
             im = scene.im_ids[k]
             hyp = str(estimates.source) if estimates is not None else str(hyp_file)
-            files = (str(path / "depth" / f"{im:06d}.png"), hyp)
+            # the depth image first (named in an error that names no file), then the files
+            # an error may name itself
+            files = (str(path / "depth" / f"{im:06d}.png"), hyp,
+                     str(path / "scene_camera.json"))  # fmt: skip
             yield _Source(f"{im:06d}", im, files, make(k))
 
     return _Input("bop", len(scene), sources)
