@@ -539,6 +539,35 @@ ModelsOption = typer.Option(
 StagesOption = typer.Option(5, min=1, help="Static scenes per sequence.")
 FramesOption = typer.Option(4, min=1, help="Repeated frames of each static scene.")
 StrideOption = typer.Option(1, min=1, help="Render every n-th pixel (1: 640 x 480).")
+ExecutorOption = typer.Option(
+    None,
+    "--executor",
+    help=(
+        "serial, processes or ray: how independent sequences / trials run (default: serial "
+        "for --workers 1, else processes). Results are those of the serial run."
+    ),
+    show_default=False,
+)
+WorkersOption = typer.Option(
+    1, "--workers", "-j", min=1, help="Worker processes (or CPUs of a local Ray), one core each."
+)
+RayAddressOption = typer.Option(
+    None,
+    "--ray-address",
+    help="Join this Ray cluster (e.g. auto, ray://host:10001) instead of a local Ray.",
+    show_default=False,
+)
+
+
+def _parallel(executor: str | None, workers: int, ray_address: str | None):
+    """The :class:`ssp.executor.Parallel` of the --executor, --workers, --ray-address options."""
+    from ssp.errors import ArgumentError
+    from ssp.executor import Parallel
+
+    try:
+        return Parallel.from_options(executor, workers, ray_address)
+    except ArgumentError as exc:
+        raise typer.BadParameter(str(exc)) from None
 
 
 def _bar():
@@ -719,12 +748,20 @@ def bench_table1(
         None, help="Comma-separated methods to compare (default: ssp and all six baselines)."
     ),
     vsd: bool = typer.Option(True, help="Include VSD in the BOP average recall (slower)."),
+    executor: str | None = ExecutorOption,
+    workers: int = WorkersOption,
+    ray_address: str | None = RayAddressOption,
 ) -> None:
     """The paper's Table I: ssp and its baselines on the same synthetic sequences, with the BOP
     average recall, gross errors, false objects and id switches; writes results.json,
     results.md and plots."""
-    from ssp.eval.table1 import DEFAULT_METHODS, run_table1, write_table1
-    from ssp.sim.generate import generate_sequence
+    from ssp.eval.table1 import (
+        DEFAULT_METHODS,
+        SequenceSpec,
+        merge_table1,
+        run_table1_parts,
+        write_table1,
+    )
     from ssp.sim.realistic import RealisticNoise, SceneRealism
 
     if hypotheses not in ("noisy", "estimated"):
@@ -733,54 +770,44 @@ def bench_table1(
         raise typer.BadParameter("--noise must be 'paper' or 'realistic'")
     names = _methods(methods) if methods else list(DEFAULT_METHODS)
     experiment = _experiment(experiment)
+    parallel = _parallel(executor, workers, ray_address)
     cfg = _config(config)
     lib = _experiment_library(experiment, models, config, cache)
     realistic = noise == "realistic"
-    seqs = []
+    specs = [
+        SequenceSpec(
+            experiment,
+            seed + i,
+            stages=stages,
+            frames_per_stage=frames_per_stage,
+            stride=stride,
+            realistic=realistic,
+            estimated=hypotheses == "estimated",
+        )
+        for i in range(sequences)
+    ]
     with _bar() as progress:
-        task = progress.add_task(f"simulating {experiment}", total=sequences)
-        for i in range(sequences):
-            seqs.append(
-                generate_sequence(
-                    experiment,
-                    seed + i,
-                    lib,
-                    stages=stages,
-                    frames_per_stage=frames_per_stage,
-                    stride=stride,
-                    hypotheses=RealisticNoise() if realistic else None,
-                    realism=SceneRealism() if realistic else None,
-                )
-            )
-            progress.update(task, advance=1)
-        total = sum(len(s) for s in seqs)
-        records: list[dict] = []
-        if hypotheses == "estimated":
-            from ssp.eval.estimated import estimate_sequence
-
-            task = progress.add_task("estimating hypotheses", total=total)
-            for i, seq in enumerate(seqs):
-                seqs[i], recs = estimate_sequence(
-                    seq, lib, cfg, lambda msg: progress.update(task, advance=1)
-                )
-                records.extend({"sequence": i, **r} for r in recs)
-        task = progress.add_task("running the methods", total=total)
-        result = run_table1(
-            seqs,
+        task = progress.add_task(f"{experiment} sequences", total=sequences)
+        parts = run_table1_parts(
+            specs,
             lib,
             cfg,
             methods=names,
-            progress=lambda msg: progress.update(task, advance=1, description=msg),
+            progress=lambda msg: progress.update(task, description=msg),
             vsd=vsd,
+            parallel=parallel,
+            on_sequence=lambda done, total: progress.update(task, completed=done),
         )
+    result = merge_table1(parts, names)
+    records = [{"sequence": p.index, **r} for p in parts for r in p.estimator_records]
     result["hypotheses"] = hypotheses
     result["noise"] = noise
     if realistic:
         result["protocol_settings"] = {
             "estimator": RealisticNoise().to_dict(),
             "scene": SceneRealism().to_dict(),
-            "events": [s.info.get("events") for s in seqs],
-            "events_skipped": [s.info.get("events_skipped") for s in seqs],
+            "events": [p.info.get("events") for p in parts],
+            "events_skipped": [p.info.get("events_skipped") for p in parts],
         }
     if records:
         from ssp.eval.estimated import summarize_estimator
@@ -850,12 +877,16 @@ def bench_stream(
     sequences: int = typer.Option(5, min=1, help="Number of sequences."),
     seed: int = typer.Option(0, help="Seed of the first sequence (development seeds: 0-99)."),
     config: Path | None = ConfigOption,
+    executor: str | None = ExecutorOption,
+    workers: int = WorkersOption,
+    ray_address: str | None = RayAddressOption,
 ) -> None:
     """The realistic estimator stream beside the built-in estimator it is calibrated to: the
     same failure statistics of both on the same scenes; writes results.json and results.md."""
     from ssp.eval.bench_stream import run_stream_calibration, write_stream_calibration
 
     experiment = _experiment(experiment)
+    parallel = _parallel(executor, workers, ray_address)
     cfg = _config(config)
     lib = _library(None, config)
     with _bar() as progress:
@@ -866,6 +897,7 @@ def bench_stream(
             lib,
             cfg,
             progress=lambda msg: progress.update(task, advance=1, description=msg),
+            parallel=parallel,
         )
     files = write_stream_calibration(result, out)
     console.print(files[1].read_text())
@@ -902,6 +934,9 @@ def bench_tower(
         ),
     ),
     config: Path | None = ConfigOption,
+    executor: str | None = ExecutorOption,
+    workers: int = WorkersOption,
+    ray_address: str | None = RayAddressOption,
 ) -> None:
     """The paper's case study (Table III): a simulated robot stacks 8 cubes from perceived
     poses; writes results.json, results.md and a picture of a final tower per method."""
@@ -920,6 +955,7 @@ def bench_tower(
     if hypotheses not in HYPOTHESES:
         raise typer.BadParameter(f"--hypotheses must be one of {', '.join(HYPOTHESES)}")
     names = _methods(methods)
+    parallel = _parallel(executor, workers, ray_address)
     cfg = _config(config)
     lib = _library(None, config)
     pictures = {}
@@ -944,6 +980,7 @@ def bench_tower(
             realism=SceneRealism(events=()) if noise == "realistic" else None,
             progress=lambda msg: progress.update(task, description=msg),
             on_trial=on_trial,
+            parallel=parallel,
         )
     result["command"] = {
         "trials": trials,

@@ -20,10 +20,11 @@ Executors (:class:`Parallel`):
   down at the end. Ray is an optional dependency (``pip install
   'sequential-scene-parsing[ray]'``).
 
-Progress: ``progress(done, total, name)`` is called in this process each time an item
-finishes. Errors: with ``on_error="raise"`` (benchmarks) the first failing item stops the map
-(the items not started are cancelled) with :class:`ItemError`, which names the item; with
-``on_error="collect"`` a failed item's result is an :class:`ItemFailure` and the others go on.
+Progress: ``progress(done, total, name)`` (and ``on_result(index, result)``) is called in
+this process each time an item finishes. Errors: with ``on_error="raise"`` (benchmarks) the
+first failing item stops the map (the items not started are cancelled) with
+:class:`ItemError`, which names the item; with ``on_error="collect"`` a failed item's result
+is an :class:`ItemFailure` and the others go on.
 Log levels of this process (the root logger and those of ``ssp.*``) are set in the workers too.
 """
 
@@ -190,6 +191,7 @@ def map_items(
     parallel: Parallel | None = None,
     names: Sequence[str] | None = None,
     progress: Callable[[int, int, str], None] | None = None,
+    on_result: Callable[[int, Any], None] | None = None,
     on_error: str = "raise",
 ) -> list:
     """``[fn(item, shared) for item in items]``, run by ``parallel`` (module docstring).
@@ -204,6 +206,8 @@ def map_items(
         parallel: the executor (default serial).
         names: one name per item for progress and errors (default ``item <i>``).
         progress: ``progress(done, total, name)`` after each item, in this process.
+        on_result: ``on_result(index, result)`` after each item, in this process, in the
+            order the items finish (serial: item order).
         on_error: ``"raise"``: :class:`ItemError` for the first failed item; ``"collect"``:
             an :class:`ItemFailure` in its place.
 
@@ -221,15 +225,17 @@ def map_items(
     if not items:
         return []
     run = {"serial": _map_serial, "processes": _map_processes, "ray": _map_ray}
-    return run[parallel.executor](fn, items, shared, parallel, names, progress, on_error)
+    results = _Results(names, progress, on_result, on_error)
+    return run[parallel.executor](fn, items, shared, parallel, results)
 
 
 class _Results:
     """Results by item index, progress and the error policy."""
 
-    def __init__(self, names, progress, on_error) -> None:
+    def __init__(self, names, progress, on_result, on_error) -> None:
         self.names = names
         self.progress = progress
+        self.on_result = on_result
         self.on_error = on_error
         self.values: list[Any] = [None] * len(names)
         self.done = 0
@@ -244,30 +250,31 @@ class _Results:
                 raise ItemError(value)
         self.values[i] = value
         self.done += 1
+        if self.on_result is not None:
+            self.on_result(i, value)
         if self.progress is not None:
             self.progress(self.done, len(self.names), self.names[i])
 
 
-def _map_serial(fn, items, shared, parallel, names, progress, on_error) -> list:
-    results = _Results(names, progress, on_error)
+def _map_serial(fn, items, shared, parallel, results: _Results) -> list:
     for i, item in enumerate(items):
         try:
             outcome = (True, fn(item, shared))
         except Exception as exc:
-            if on_error == "raise":  # the exception chained: its traceback with --debug
-                raise ItemError(ItemFailure(names[i], *_describe(exc))) from exc
+            if results.on_error == "raise":  # the exception chained: traceback with --debug
+                raise ItemError(ItemFailure(results.names[i], *_describe(exc))) from exc
             outcome = (False, _describe(exc))
         results.finish(i, outcome)
     return results.values
 
 
-def _map_processes(fn, items, shared, parallel, names, progress, on_error) -> list:
+def _map_processes(fn, items, shared, parallel, results: _Results) -> list:
     import multiprocessing
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
     from concurrent.futures.process import BrokenProcessPool
 
     levels, fmt = _log_levels()
-    results = _Results(names, progress, on_error)
+    names = results.names
     pool = ProcessPoolExecutor(
         max_workers=min(parallel.workers, len(items)),
         mp_context=multiprocessing.get_context("spawn"),
@@ -305,7 +312,7 @@ def _ray():
     return ray
 
 
-def _map_ray(fn, items, shared, parallel, names, progress, on_error) -> list:
+def _map_ray(fn, items, shared, parallel, results: _Results) -> list:
     ray = _ray()
     levels, fmt = _log_levels()
     started = not ray.is_initialized()
@@ -320,7 +327,6 @@ def _map_ray(fn, items, shared, parallel, names, progress, on_error) -> list:
             )
         else:
             ray.init(address=parallel.ray_address, runtime_env=env)
-    results = _Results(names, progress, on_error)
     refs: dict = {}
     try:
         task = ray.remote(num_cpus=1, max_retries=0)(_ray_task)

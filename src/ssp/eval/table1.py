@@ -383,8 +383,10 @@ def run_table1_parts(
     on_output: Callable[[int, int, str, list[Detection]], None] | None = None,
     vsd: bool = True,
     parallel: Parallel | None = None,
+    on_sequence: Callable[[int, int], None] | None = None,
 ) -> list[SequencePart]:
-    """One :class:`SequencePart` per sequence, in order (arguments as :func:`run_table1`).
+    """One :class:`SequencePart` per sequence, in order (arguments as :func:`run_table1`;
+    ``on_sequence(done, total)`` after each sequence).
 
     Raises:
         ItemError: a sequence failed (:mod:`ssp.executor`; named by its index and seed).
@@ -410,9 +412,13 @@ def run_table1_parts(
         f"sequence {s + 1}/{n} (seed {seq.seed}, {seq.experiment})"
         for s, seq in enumerate(sequences)
     ]
-    done = None
-    if progress is not None and not serial:
-        done = lambda k, total, name: progress(f"{name} done ({k}/{total})")  # noqa: E731
+
+    def done(k: int, total: int, name: str) -> None:
+        if progress is not None and not serial:
+            progress(f"{name} done ({k}/{total})")
+        if on_sequence is not None:
+            on_sequence(k, total)
+
     return map_items(
         work,
         list(enumerate(sequences)),
