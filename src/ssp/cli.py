@@ -999,11 +999,12 @@ def bench_tower(
 @app.command("run")
 @_friendly
 def run_cmd(
-    input_path: Path | None = typer.Argument(
+    inputs: list[Path] | None = typer.Argument(
         None,
         help=(
             "A folder of PLY/PCD frames, or a BOP scene folder written by ssp simulate "
-            "(with --resume: the recorded one when omitted)."
+            "(with --resume: the recorded one when omitted). Several: each is run into "
+            "OUT/<its folder name>/ (with --workers, in parallel)."
         ),
         show_default=False,
         metavar="INPUT",
@@ -1052,6 +1053,9 @@ def run_cmd(
     ),  # fmt: skip
     config: Path | None = ConfigOption,
     cache: Path | None = CacheOption,
+    executor: str | None = ExecutorOption,
+    workers: int = WorkersOption,
+    ray_address: str | None = RayAddressOption,
 ) -> None:
     """Perception and scene parsing over recorded frames: per-frame JSON, a BOP19 CSV and a
     summary, kept current after every frame (formats: docs/formats.md). A stopped run
@@ -1059,6 +1063,15 @@ def run_cmd(
     from ssp.runner import HYPOTHESES_MODES, run
 
     names = [c.strip() for c in classes.split(",") if c.strip()] if classes else None
+    if inputs and len(inputs) > 1:
+        if resume is not None:
+            raise typer.BadParameter("--resume continues one run: ssp run --resume OUT/<name>")
+        _run_many(
+            inputs, models, out, overwrite, hypotheses, names, method, config, cache,
+            _parallel(executor, workers, ray_address),
+        )  # fmt: skip
+        return
+    input_path = inputs[0] if inputs else None
     if resume is not None:
         from ssp.config import SSPConfig
         from ssp.runner import read_run
@@ -1127,6 +1140,71 @@ def run_cmd(
             signal.signal(signal.SIGTERM, previous)
     _print_run(summary, input_path)
     if not summary.done:
+        raise typer.Exit(1)
+
+
+def _run_many(
+    inputs, models, out, overwrite, hypotheses, classes, method, config, cache, parallel
+) -> None:
+    """``ssp run IN1 IN2 ...``: each input into OUT/<name>/; one summary line per input."""
+    from ssp.batch import run_inputs
+    from ssp.executor import ItemFailure
+    from ssp.io.results import bop_csv_name
+    from ssp.runner import HYPOTHESES_MODES
+
+    out = out if out is not None else Path("ssp-out")
+    hypotheses = hypotheses or "auto"
+    method = method or "ssp"
+    if hypotheses not in HYPOTHESES_MODES:
+        raise typer.BadParameter(f"--hypotheses must be one of {', '.join(HYPOTHESES_MODES)}")
+    bop_csv_name("input", method)  # a bad method name fails before the models load
+    lib = _library(models, config, cache)
+    previous = _stop_on_sigterm()
+    try:
+        with _bar() as progress:
+            task = progress.add_task("inputs", total=len(inputs))
+            results = run_inputs(
+                inputs,
+                lib,
+                out,
+                _config(config),
+                parallel=parallel,
+                overwrite=overwrite,
+                progress=lambda done, total, name: progress.update(task, completed=done),
+                hypotheses=hypotheses,
+                classes=classes,
+                method=method,
+                models=None if models is None else str(models.resolve()),
+            )
+    except KeyboardInterrupt:
+        err_console.print(
+            f"[bold red]interrupted[/]; each input's results so far are in {out}/<name>. "
+            f"Continue one with: ssp run --resume {out}/<name>"
+        )
+        raise typer.Exit(130) from None
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+    bad = 0
+    for src, res in zip(inputs, results, strict=True):
+        if isinstance(res, ItemFailure):
+            bad += 1
+            console.print(
+                f"[red]failed[/] {src}: {escape(res.error_type)}: {escape(res.error)}",
+                highlight=False,
+            )
+            continue
+        info = res.to_dict()
+        bad += not res.done
+        line = f"{escape(str(src))}: {info['done']} of {info['frames']} frames done"
+        if info["sec_per_frame"]:
+            line += f", {info['sec_per_frame']:.2f} s per frame"
+        if res.failed:
+            line += f", [red]{len(res.failed)} skipped[/]"
+        if info["unexpected_errors"]:
+            line += f" ([bold red]{info['unexpected_errors']} unexpected errors[/])"
+        console.print(line + f" -> {escape(str(out / Path(src).resolve().name))}", highlight=False)
+    if bad:
         raise typer.Exit(1)
 
 
