@@ -1147,10 +1147,10 @@ def _run_many(
     inputs, models, out, overwrite, hypotheses, classes, method, config, cache, parallel
 ) -> None:
     """``ssp run IN1 IN2 ...``: each input into OUT/<name>/; one summary line per input."""
-    from ssp.batch import run_inputs
+    from ssp.batch import input_out_dirs, run_inputs
     from ssp.executor import ItemFailure
     from ssp.io.results import bop_csv_name
-    from ssp.runner import HYPOTHESES_MODES
+    from ssp.runner import HYPOTHESES_MODES, check_out_dir
 
     out = out if out is not None else Path("ssp-out")
     hypotheses = hypotheses or "auto"
@@ -1158,6 +1158,8 @@ def _run_many(
     if hypotheses not in HYPOTHESES_MODES:
         raise typer.BadParameter(f"--hypotheses must be one of {', '.join(HYPOTHESES_MODES)}")
     bop_csv_name("input", method)  # a bad method name fails before the models load
+    for d in input_out_dirs(inputs, out):
+        check_out_dir(d, overwrite)
     lib = _library(models, config, cache)
     previous = _stop_on_sigterm()
     try:
