@@ -539,6 +539,35 @@ ModelsOption = typer.Option(
 StagesOption = typer.Option(5, min=1, help="Static scenes per sequence.")
 FramesOption = typer.Option(4, min=1, help="Repeated frames of each static scene.")
 StrideOption = typer.Option(1, min=1, help="Render every n-th pixel (1: 640 x 480).")
+ExecutorOption = typer.Option(
+    None,
+    "--executor",
+    help=(
+        "serial, processes or ray: how independent sequences / trials run (default: serial "
+        "for --workers 1, else processes). Results are those of the serial run."
+    ),
+    show_default=False,
+)
+WorkersOption = typer.Option(
+    1, "--workers", "-j", min=1, help="Worker processes (or CPUs of a local Ray), one core each."
+)
+RayAddressOption = typer.Option(
+    None,
+    "--ray-address",
+    help="Join this Ray cluster (e.g. auto, ray://host:10001) instead of a local Ray.",
+    show_default=False,
+)
+
+
+def _parallel(executor: str | None, workers: int, ray_address: str | None):
+    """The :class:`ssp.executor.Parallel` of the --executor, --workers, --ray-address options."""
+    from ssp.errors import ArgumentError
+    from ssp.executor import Parallel
+
+    try:
+        return Parallel.from_options(executor, workers, ray_address)
+    except ArgumentError as exc:
+        raise typer.BadParameter(str(exc)) from None
 
 
 def _bar():
@@ -719,12 +748,20 @@ def bench_table1(
         None, help="Comma-separated methods to compare (default: ssp and all six baselines)."
     ),
     vsd: bool = typer.Option(True, help="Include VSD in the BOP average recall (slower)."),
+    executor: str | None = ExecutorOption,
+    workers: int = WorkersOption,
+    ray_address: str | None = RayAddressOption,
 ) -> None:
     """The paper's Table I: ssp and its baselines on the same synthetic sequences, with the BOP
     average recall, gross errors, false objects and id switches; writes results.json,
     results.md and plots."""
-    from ssp.eval.table1 import DEFAULT_METHODS, run_table1, write_table1
-    from ssp.sim.generate import generate_sequence
+    from ssp.eval.table1 import (
+        DEFAULT_METHODS,
+        SequenceSpec,
+        merge_table1,
+        run_table1_parts,
+        write_table1,
+    )
     from ssp.sim.realistic import RealisticNoise, SceneRealism
 
     if hypotheses not in ("noisy", "estimated"):
@@ -733,54 +770,44 @@ def bench_table1(
         raise typer.BadParameter("--noise must be 'paper' or 'realistic'")
     names = _methods(methods) if methods else list(DEFAULT_METHODS)
     experiment = _experiment(experiment)
+    parallel = _parallel(executor, workers, ray_address)
     cfg = _config(config)
     lib = _experiment_library(experiment, models, config, cache)
     realistic = noise == "realistic"
-    seqs = []
+    specs = [
+        SequenceSpec(
+            experiment,
+            seed + i,
+            stages=stages,
+            frames_per_stage=frames_per_stage,
+            stride=stride,
+            realistic=realistic,
+            estimated=hypotheses == "estimated",
+        )
+        for i in range(sequences)
+    ]
     with _bar() as progress:
-        task = progress.add_task(f"simulating {experiment}", total=sequences)
-        for i in range(sequences):
-            seqs.append(
-                generate_sequence(
-                    experiment,
-                    seed + i,
-                    lib,
-                    stages=stages,
-                    frames_per_stage=frames_per_stage,
-                    stride=stride,
-                    hypotheses=RealisticNoise() if realistic else None,
-                    realism=SceneRealism() if realistic else None,
-                )
-            )
-            progress.update(task, advance=1)
-        total = sum(len(s) for s in seqs)
-        records: list[dict] = []
-        if hypotheses == "estimated":
-            from ssp.eval.estimated import estimate_sequence
-
-            task = progress.add_task("estimating hypotheses", total=total)
-            for i, seq in enumerate(seqs):
-                seqs[i], recs = estimate_sequence(
-                    seq, lib, cfg, lambda msg: progress.update(task, advance=1)
-                )
-                records.extend({"sequence": i, **r} for r in recs)
-        task = progress.add_task("running the methods", total=total)
-        result = run_table1(
-            seqs,
+        task = progress.add_task(f"{experiment} sequences", total=sequences)
+        parts = run_table1_parts(
+            specs,
             lib,
             cfg,
             methods=names,
-            progress=lambda msg: progress.update(task, advance=1, description=msg),
+            progress=lambda msg: progress.update(task, description=msg),
             vsd=vsd,
+            parallel=parallel,
+            on_sequence=lambda done, total: progress.update(task, completed=done),
         )
+    result = merge_table1(parts, names)
+    records = [{"sequence": p.index, **r} for p in parts for r in p.estimator_records]
     result["hypotheses"] = hypotheses
     result["noise"] = noise
     if realistic:
         result["protocol_settings"] = {
             "estimator": RealisticNoise().to_dict(),
             "scene": SceneRealism().to_dict(),
-            "events": [s.info.get("events") for s in seqs],
-            "events_skipped": [s.info.get("events_skipped") for s in seqs],
+            "events": [p.info.get("events") for p in parts],
+            "events_skipped": [p.info.get("events_skipped") for p in parts],
         }
     if records:
         from ssp.eval.estimated import summarize_estimator
@@ -850,12 +877,16 @@ def bench_stream(
     sequences: int = typer.Option(5, min=1, help="Number of sequences."),
     seed: int = typer.Option(0, help="Seed of the first sequence (development seeds: 0-99)."),
     config: Path | None = ConfigOption,
+    executor: str | None = ExecutorOption,
+    workers: int = WorkersOption,
+    ray_address: str | None = RayAddressOption,
 ) -> None:
     """The realistic estimator stream beside the built-in estimator it is calibrated to: the
     same failure statistics of both on the same scenes; writes results.json and results.md."""
     from ssp.eval.bench_stream import run_stream_calibration, write_stream_calibration
 
     experiment = _experiment(experiment)
+    parallel = _parallel(executor, workers, ray_address)
     cfg = _config(config)
     lib = _library(None, config)
     with _bar() as progress:
@@ -866,6 +897,7 @@ def bench_stream(
             lib,
             cfg,
             progress=lambda msg: progress.update(task, advance=1, description=msg),
+            parallel=parallel,
         )
     files = write_stream_calibration(result, out)
     console.print(files[1].read_text())
@@ -902,6 +934,9 @@ def bench_tower(
         ),
     ),
     config: Path | None = ConfigOption,
+    executor: str | None = ExecutorOption,
+    workers: int = WorkersOption,
+    ray_address: str | None = RayAddressOption,
 ) -> None:
     """The paper's case study (Table III): a simulated robot stacks 8 cubes from perceived
     poses; writes results.json, results.md and a picture of a final tower per method."""
@@ -920,6 +955,7 @@ def bench_tower(
     if hypotheses not in HYPOTHESES:
         raise typer.BadParameter(f"--hypotheses must be one of {', '.join(HYPOTHESES)}")
     names = _methods(methods)
+    parallel = _parallel(executor, workers, ray_address)
     cfg = _config(config)
     lib = _library(None, config)
     pictures = {}
@@ -944,6 +980,7 @@ def bench_tower(
             realism=SceneRealism(events=()) if noise == "realistic" else None,
             progress=lambda msg: progress.update(task, description=msg),
             on_trial=on_trial,
+            parallel=parallel,
         )
     result["command"] = {
         "trials": trials,
@@ -972,11 +1009,12 @@ def _bag_option(name: str, what: str):
 @app.command("run")
 @_friendly
 def run_cmd(
-    input_path: Path | None = typer.Argument(
+    inputs: list[Path] | None = typer.Argument(
         None,
         help=(
-            "A folder of PLY/PCD frames, a BOP scene folder written by ssp simulate, or a ROS "
-            "bag (.bag, .mcap, ROS 2 folder) (with --resume: the recorded one when omitted)."
+            "A folder of PLY/PCD frames, a BOP scene folder, or a ROS bag (.bag, .mcap, ROS 2 "
+            "folder) (with --resume: the recorded one when omitted). Several: each is run "
+            "into OUT/<its folder name>/ (with --workers, in parallel)."
         ),
         show_default=False,
         metavar="INPUT",
@@ -1068,6 +1106,9 @@ def run_cmd(
         show_default=False,
         metavar="RUN.rrd",
     ),
+    executor: str | None = ExecutorOption,
+    workers: int = WorkersOption,
+    ray_address: str | None = RayAddressOption,
 ) -> None:
     """Perception and scene parsing over recorded frames: per-frame JSON, a BOP19 CSV and a
     summary, kept current after every frame (formats: docs/formats.md). A stopped run
@@ -1093,6 +1134,20 @@ def run_cmd(
         from ssp.io.rosbag import parse_class_map
 
         bag_given["class_map"] = parse_class_map(class_map)
+    if inputs and len(inputs) > 1:
+        if resume is not None:
+            raise typer.BadParameter("--resume continues one run: ssp run --resume OUT/<name>")
+        if bag_given or results_bag is not None or record is not None:
+            raise typer.BadParameter(
+                "--topic-*, --world-frame, --class-map, --results-bag and --record take one "
+                "input: run each bag or recording on its own"
+            )
+        _run_many(
+            inputs, models, out, overwrite, hypotheses, names, method, config, cache,
+            _parallel(executor, workers, ray_address), masks=masks or "auto", period=period,
+        )  # fmt: skip
+        return
+    input_path = inputs[0] if inputs else None
     if resume is not None:
         from ssp.config import SSPConfig
         from ssp.runner import read_run
@@ -1219,6 +1274,84 @@ def view(
     else:
         console.print(f"opening {recording} in the rerun viewer", highlight=False)
     open_viewer(recording, web=web)
+
+
+def _run_many(
+    inputs,
+    models,
+    out,
+    overwrite,
+    hypotheses,
+    classes,
+    method,
+    config,
+    cache,
+    parallel,
+    **options,
+) -> None:
+    """``ssp run IN1 IN2 ...``: each input into OUT/<name>/; one summary line per input."""
+    from ssp.batch import input_out_dirs, run_inputs
+    from ssp.executor import ItemFailure
+    from ssp.io.results import bop_csv_name
+    from ssp.runner import HYPOTHESES_MODES, check_out_dir
+
+    out = out if out is not None else Path("ssp-out")
+    hypotheses = hypotheses or "auto"
+    method = method or "ssp"
+    if hypotheses not in HYPOTHESES_MODES:
+        raise typer.BadParameter(f"--hypotheses must be one of {', '.join(HYPOTHESES_MODES)}")
+    bop_csv_name("input", method)  # a bad method name fails before the models load
+    for d in input_out_dirs(inputs, out):
+        check_out_dir(d, overwrite)
+    lib = _library(models, config, cache)
+    previous = _stop_on_sigterm()
+    try:
+        with _bar() as progress:
+            task = progress.add_task("inputs", total=len(inputs))
+            results = run_inputs(
+                inputs,
+                lib,
+                out,
+                _config(config),
+                parallel=parallel,
+                overwrite=overwrite,
+                progress=lambda done, total, name: progress.update(task, completed=done),
+                hypotheses=hypotheses,
+                classes=classes,
+                method=method,
+                models=None if models is None else str(models.resolve()),
+                **options,
+            )
+    except KeyboardInterrupt:
+        err_console.print(
+            f"[bold red]interrupted[/]; each input's results so far are in {out}/<name>. "
+            f"Continue one with: ssp run --resume {out}/<name>"
+        )
+        raise typer.Exit(130) from None
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+    bad = 0
+    for src, res in zip(inputs, results, strict=True):
+        if isinstance(res, ItemFailure):
+            bad += 1
+            console.print(
+                f"[red]failed[/] {src}: {escape(res.error_type)}: {escape(res.error)}",
+                highlight=False,
+            )
+            continue
+        info = res.to_dict()
+        bad += not res.done
+        line = f"{escape(str(src))}: {info['done']} of {info['frames']} frames done"
+        if info["sec_per_frame"]:
+            line += f", {info['sec_per_frame']:.2f} s per frame"
+        if res.failed:
+            line += f", [red]{len(res.failed)} skipped[/]"
+        if info["unexpected_errors"]:
+            line += f" ([bold red]{info['unexpected_errors']} unexpected errors[/])"
+        console.print(line + f" -> {escape(str(out / Path(src).resolve().name))}", highlight=False)
+    if bad:
+        raise typer.Exit(1)
 
 
 def _stop_on_sigterm():

@@ -14,11 +14,13 @@ from __future__ import annotations
 import json
 from collections.abc import Callable, Sequence
 from dataclasses import replace
+from functools import partial
 from pathlib import Path
 
 from ssp.config import SSPConfig
 from ssp.eval.estimated import estimate_sequence
 from ssp.eval.stream_stats import stream_records, summarize_stream
+from ssp.executor import Parallel, map_items
 from ssp.sim.generate import generate_sequence
 from ssp.sim.realistic import RealisticNoise, RealisticStream
 
@@ -32,24 +34,37 @@ def run_stream_calibration(
     config: SSPConfig | None = None,
     noise: RealisticNoise | None = None,
     progress: Callable[[str], None] | None = None,
+    parallel: Parallel | None = None,
 ) -> dict:
-    """Both sources' statistics on the sequences of ``seeds`` (module docstring)."""
+    """Both sources' statistics on the sequences of ``seeds`` (module docstring).
+
+    ``progress`` gets a message per seed as it starts (serial) or ends (in parallel);
+    ``parallel``: how the seeds are run (:mod:`ssp.executor`), the result is the serial one.
+    """
     cfg = config if config is not None else SSPConfig()
     noise = noise if noise is not None else RealisticNoise()
-    est_records, stream_records_ = [], []
-    for s in seeds:
-        if progress is not None:
-            progress(f"seed {s}: scenes and the built-in estimator")
-        seq = generate_sequence(experiment, int(s), library)
-        est, _ = estimate_sequence(seq, library, cfg)
-        est_records += stream_records(est, library)
-        stream = RealisticStream(library, noise, int(s), classes=seq.models)
-        frames = []
-        for sf in seq.frames:
-            labels = {g: k for k, g in enumerate(sf.gt)}
-            drawn = stream.draw(sf.index, sf.gt, sf.visib_fract, segments=labels)
-            frames.append(replace(sf, hypotheses=[d.hypothesis for d in drawn]))
-        stream_records_ += stream_records(replace(seq, frames=frames), library)
+    parallel = parallel if parallel is not None else Parallel()
+    seeds = [int(s) for s in seeds]
+    work = partial(
+        _seed_records,
+        experiment=experiment,
+        config=cfg,
+        noise=noise,
+        progress=progress if parallel.serial else None,
+    )
+    done = None
+    if progress is not None and not parallel.serial:
+        done = lambda k, total, name: progress(f"{name} done ({k}/{total})")  # noqa: E731
+    parts = map_items(
+        work,
+        seeds,
+        shared=library,
+        parallel=parallel,
+        names=[f"seed {s}" for s in seeds],
+        progress=done,
+    )
+    est_records = [r for est, _ in parts for r in est]
+    stream_records_ = [r for _, stream in parts for r in stream]
     return {
         "protocol": "stream",
         "experiment": experiment,
@@ -58,6 +73,30 @@ def run_stream_calibration(
         "stream": summarize_stream(stream_records_),
         "noise": noise.to_dict(),
     }
+
+
+def _seed_records(
+    seed: int,
+    library,
+    *,
+    experiment: str,
+    config: SSPConfig,
+    noise: RealisticNoise,
+    progress: Callable[[str], None] | None = None,
+) -> tuple[list[dict], list[dict]]:
+    """The built-in estimator's and the realistic stream's records on the sequence of
+    ``seed`` (a work item of :func:`run_stream_calibration`)."""
+    if progress is not None:
+        progress(f"seed {seed}: scenes and the built-in estimator")
+    seq = generate_sequence(experiment, seed, library)
+    est, _ = estimate_sequence(seq, library, config)
+    stream = RealisticStream(library, noise, seed, classes=seq.models)
+    frames = []
+    for sf in seq.frames:
+        labels = {g: k for k, g in enumerate(sf.gt)}
+        drawn = stream.draw(sf.index, sf.gt, sf.visib_fract, segments=labels)
+        frames.append(replace(sf, hypotheses=[d.hypothesis for d in drawn]))
+    return stream_records(est, library), stream_records(replace(seq, frames=frames), library)
 
 
 _ROWS = (

@@ -304,6 +304,23 @@ class BopEvaluator:
         f = _distance_factor(camera, win.u0, win.v0, win.h, win.w)
         return vsd(d_est * f, gt_full * f, test * f, model.diameter)
 
+    # ------------------------------------------------------------------ merging
+    def counts(self) -> tuple[bool, _Counts, dict[str, _Counts]]:
+        """The accumulated counts (picklable, without the library): ``(vsd, all, per class)``,
+        for :meth:`add_counts` of another evaluator (frames evaluated elsewhere)."""
+        return self.use_vsd, self._counts, self._per_class
+
+    def add_counts(self, counts: tuple[bool, _Counts, dict[str, _Counts]]) -> None:
+        """Add the :meth:`counts` of another evaluator: as if its frames were added here."""
+        _, total, per_class = counts
+        for mine, theirs in ((self._counts, total),) + tuple(
+            (self._per_class.setdefault(k, _Counts()), v) for k, v in per_class.items()
+        ):
+            mine.targets += theirs.targets
+            mine.mssd += theirs.mssd
+            mine.mspd += theirs.mspd
+            mine.vsd += theirs.vsd
+
     # ------------------------------------------------------------------ results
     @staticmethod
     def _summary(c: _Counts) -> dict:

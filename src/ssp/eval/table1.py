@@ -32,11 +32,14 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 
 from ssp.config import SSPConfig
+from ssp.errors import ArgumentError
 from ssp.eval.baselines import METHODS, Detection, make_method
 from ssp.eval.bop_metrics import BopEvaluator
 from ssp.eval.failures import (
@@ -55,6 +58,7 @@ from ssp.eval.metrics import (
     summarize,
 )
 from ssp.eval.tracking import IdSwitches
+from ssp.executor import Parallel, map_items
 from ssp.library.model import ObjectInstance
 from ssp.physics import World
 from ssp.sim.sequence import SimSequence
@@ -64,7 +68,11 @@ __all__ = [
     "DEFAULT_METHODS",
     "PAPER_TABLE1",
     "PhysicsCheck",
+    "SequencePart",
+    "SequenceSpec",
+    "merge_table1",
     "run_table1",
+    "run_table1_parts",
     "write_table1",
 ]
 
@@ -89,6 +97,7 @@ PAPER_TABLE1 = {
 #: Downward acceleration from rest (fraction of g) above which an object is unsupported.
 UNSUPPORTED_ACCELERATION = 0.1
 
+_COUNT_KEYS = ("matched", "missed", "false_positives")
 _OBJECT_COLUMNS = ("sequence", "frame", "object", "class", "visib_fract", "trans_mm", "rot_deg")
 _FRAME_COLUMNS = (
     "sequence",
@@ -190,6 +199,23 @@ class _Tails:
         self.static_switches += ids.static_switches
         self.switch_events += [{"sequence": sequence, **e} for e in ids.events[:20]]
 
+    def merge(self, other: _Tails) -> None:
+        """Add ``other``'s counts and examples after this one's (sequence order)."""
+        self.object_frames += other.object_frames
+        self.gross += other.gross
+        self.visible += other.visible
+        self.gross_visible += other.gross_visible
+        for k, (n, g) in other.by_condition.items():
+            row = self.by_condition.setdefault(k, [0, 0])
+            row[0] += n
+            row[1] += g
+        for k, v in other.fp_causes.items():
+            self.fp_causes[k] = self.fp_causes.get(k, 0) + v
+        self.switches += other.switches
+        self.static_switches += other.static_switches
+        self.tracked |= other.tracked
+        self.switch_events += other.switch_events
+
     def result(self) -> dict:
         n = max(self.object_frames, 1)
         out = {
@@ -225,8 +251,83 @@ def _common(values: list):
     return values[0] if values and all(v == values[0] for v in values) else values
 
 
+@dataclass(frozen=True)
+class SequenceSpec:
+    """A synthetic sequence to generate where it is run (in a worker, so the images are never
+    pickled): :func:`ssp.sim.generate.generate_sequence` with these settings (``realistic``:
+    the realistic estimator stream and scene), then, with ``estimated``, its hypotheses
+    replaced by the perception front end's (:func:`ssp.eval.estimated.estimate_sequence`)."""
+
+    experiment: str
+    seed: int
+    stages: int | None = None
+    frames_per_stage: int = 4
+    stride: int = 1
+    realistic: bool = False
+    estimated: bool = False
+
+    def build(self, library, config: SSPConfig) -> tuple[SimSequence, list[dict]]:
+        """The sequence and the estimator's records (empty unless ``estimated``)."""
+        from ssp.sim.generate import generate_sequence
+        from ssp.sim.realistic import RealisticNoise, SceneRealism
+
+        seq = generate_sequence(
+            self.experiment,
+            self.seed,
+            library,
+            stages=self.stages,
+            frames_per_stage=self.frames_per_stage,
+            stride=self.stride,
+            hypotheses=RealisticNoise() if self.realistic else None,
+            realism=SceneRealism() if self.realistic else None,
+        )
+        if not self.estimated:
+            return seq, []
+        from ssp.eval.estimated import estimate_sequence
+
+        return estimate_sequence(seq, library, config)
+
+
+@dataclass
+class SequencePart:
+    """What one sequence adds to Table I (:func:`run_table1_parts`); :func:`merge_table1`
+    joins the parts in sequence order.
+
+    Per method: ``errors`` (translation mm, rotation deg of every match), ``counts``,
+    ``precision`` (deviations over the sequence's static scenes, mm and deg), ``records``
+    (the columns of ``result["records"]``), ``bop`` (:meth:`BopEvaluator.counts`) and
+    ``tails``. ``info``: the sequence's ``info`` without the per-frame hypothesis sources;
+    ``estimator_records``: :func:`ssp.eval.estimated.estimate_sequence`'s, for a
+    :class:`SequenceSpec` with ``estimated``.
+    """
+
+    index: int
+    experiment: str
+    seed: int
+    frames: int
+    hyp_t: list[float]
+    hyp_r: list[float]
+    hyp_outliers: int
+    errors: dict[str, tuple[list[float], list[float]]]
+    counts: dict[str, dict[str, int]]
+    precision: dict[str, tuple[list[float], list[float]]]
+    records: dict[str, dict[str, dict[str, list]]]
+    bop: dict[str, tuple]
+    tails: dict[str, _Tails]
+    info: dict = field(default_factory=dict)
+    estimator_records: list[dict] = field(default_factory=list)
+
+
+def _check_methods(methods: Sequence[str]) -> tuple[str, ...]:
+    methods = tuple(methods)
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown:
+        raise ValueError(f"unknown methods {unknown}; known: {', '.join(METHODS)}")
+    return methods
+
+
 def run_table1(
-    sequences: Sequence[SimSequence],
+    sequences: Sequence[SimSequence | SequenceSpec],
     library,
     config: SSPConfig | None = None,
     methods: Sequence[str] = DEFAULT_METHODS,
@@ -236,38 +337,130 @@ def run_table1(
     on_output: Callable[[int, int, str, list[Detection]], None] | None = None,
     vsd: bool = True,
     on_estimate: Callable[..., None] | None = None,
+    parallel: Parallel | None = None,
 ) -> dict:
     """Run every method on every frame of ``sequences``; a JSON-ready dict (module docstring).
 
     Args:
-        sequences: the synthetic sequences (:class:`SimSequence`), usually of one experiment.
+        sequences: the synthetic sequences (:class:`SimSequence`, or :class:`SequenceSpec` to
+            generate them where they are run), usually of one experiment.
         library: the object library (every class of the sequences).
         config: ssp's constants (also used by the baselines: association gates, segments, data
             fit radius); default ``SSPConfig()``.
         methods: names from :data:`ssp.eval.baselines.METHODS`, in report order.
-        progress: called with a short message before each frame.
+        progress: called with a short message before each frame (serial), or after each
+            sequence (in parallel).
         gate: matching gate, m (:func:`ssp.eval.metrics.match_frame`).
         on_output: called as ``on_output(sequence index, frame index, method, detections)``
-            after each method's update (e.g. to draw estimate-vs-truth images).
+            after each method's update (e.g. to draw estimate-vs-truth images); serial only.
         vsd: include VSD in the BOP metrics (one render per estimate-object pair that
             overlaps in the image).
         on_estimate: called as ``on_estimate(sequence index, frame index, frame, estimate)``
             after the ``ssp`` method's update, with the parser's input and its last
             :class:`ssp.estimate.SceneEstimate` (that of an earlier frame when this one failed;
-            e.g. to record the run, :mod:`ssp.viz.record`).
+            e.g. to record the run, :mod:`ssp.viz.record`); serial only.
+        parallel: how the sequences are run (:mod:`ssp.executor`; default serial). The result
+            is the serial one but for the wall times (``sec`` and ``sec_per_frame``).
+    """
+    methods = _check_methods(methods)
+    parts = run_table1_parts(
+        sequences,
+        library,
+        config,
+        methods,
+        progress,
+        gate=gate,
+        on_output=on_output,
+        vsd=vsd,
+        parallel=parallel,
+        on_estimate=on_estimate,
+    )
+    return merge_table1(parts, methods, gate)
+
+
+def run_table1_parts(
+    sequences: Sequence[SimSequence | SequenceSpec],
+    library,
+    config: SSPConfig | None = None,
+    methods: Sequence[str] = DEFAULT_METHODS,
+    progress: Callable[[str], None] | None = None,
+    *,
+    gate: float = DEFAULT_GATE,
+    on_output: Callable[[int, int, str, list[Detection]], None] | None = None,
+    vsd: bool = True,
+    parallel: Parallel | None = None,
+    on_sequence: Callable[[int, int], None] | None = None,
+    on_estimate: Callable[..., None] | None = None,
+) -> list[SequencePart]:
+    """One :class:`SequencePart` per sequence, in order (arguments as :func:`run_table1`;
+    ``on_sequence(done, total)`` after each sequence).
+
+    Raises:
+        ItemError: a sequence failed (:mod:`ssp.executor`; named by its index and seed).
     """
     config = config if config is not None else SSPConfig()
-    methods = tuple(methods)
-    unknown = [m for m in methods if m not in METHODS]
-    if unknown:
-        raise ValueError(f"unknown methods {unknown}; known: {', '.join(METHODS)}")
-    physics = PhysicsCheck(library, config)
+    methods = _check_methods(methods)
+    parallel = parallel if parallel is not None else Parallel()
+    if (on_output is not None or on_estimate is not None) and not parallel.serial:
+        raise ArgumentError("on_output and on_estimate need the serial executor")
+    n = len(sequences)
+    serial = parallel.serial
+    work = partial(
+        _sequence_part,
+        n=n,
+        config=config,
+        methods=methods,
+        gate=gate,
+        vsd=vsd,
+        progress=progress if serial else None,
+        on_output=on_output,
+        on_estimate=on_estimate,
+    )
+    names = [
+        f"sequence {s + 1}/{n} (seed {seq.seed}, {seq.experiment})"
+        for s, seq in enumerate(sequences)
+    ]
 
+    def done(k: int, total: int, name: str) -> None:
+        if progress is not None and not serial:
+            progress(f"{name} done ({k}/{total})")
+        if on_sequence is not None:
+            on_sequence(k, total)
+
+    return map_items(
+        work,
+        list(enumerate(sequences)),
+        shared=library,
+        parallel=parallel,
+        names=names,
+        progress=done,
+    )
+
+
+def _sequence_part(
+    item: tuple[int, SimSequence | SequenceSpec],
+    library,
+    *,
+    n: int,
+    config: SSPConfig,
+    methods: tuple[str, ...],
+    gate: float,
+    vsd: bool,
+    progress: Callable[[str], None] | None = None,
+    on_output: Callable[[int, int, str, list[Detection]], None] | None = None,
+    on_estimate: Callable[..., None] | None = None,
+) -> SequencePart:
+    """Every method on every frame of one sequence (``item``: its index and the sequence)."""
+    s, seq = item
+    estimator_records: list[dict] = []
+    if isinstance(seq, SequenceSpec):
+        seq, estimator_records = seq.build(library, config)
+    physics = PhysicsCheck(library, config)
     hyp_t: list[float] = []
     hyp_r: list[float] = []
     hyp_outliers = 0
     err = {m: ([], []) for m in methods}
-    counts = {m: {"matched": 0, "missed": 0, "false_positives": 0} for m in methods}
+    counts = {m: dict.fromkeys(_COUNT_KEYS, 0) for m in methods}
     stacks: dict[str, dict[tuple, list[np.ndarray]]] = {m: {} for m in methods}
     stack_class: dict[tuple, str] = {}
     records = {
@@ -277,114 +470,158 @@ def run_table1(
         }
         for m in methods
     }
-    total_frames = 0
     bop = {m: BopEvaluator(library, vsd=vsd) for m in methods}
     tails = {m: _Tails() for m in methods}
 
-    for s, seq in enumerate(sequences):
-        runners = {m: make_method(m, library, config) for m in methods}
-        ids = {m: IdSwitches() for m in methods}
-        sources = _sources(seq)
-        kinds = (seq.info or {}).get("hypothesis_kinds") if sources is not None else None
-        history = DetectionHistory()
-        for i, sf in enumerate(seq.frames):
-            if progress is not None:
-                progress(f"sequence {s + 1}/{len(sequences)}, frame {i + 1}/{len(seq)}")
-            total_frames += 1
-            frame = seq.frame(i)
-            errs, outliers = hypothesis_errors(
-                sf.gt, sf.hypotheses, library, gate, None if sources is None else sources[i]
+    runners = {m: make_method(m, library, config) for m in methods}
+    ids = {m: IdSwitches() for m in methods}
+    sources = _sources(seq)
+    kinds = (seq.info or {}).get("hypothesis_kinds") if sources is not None else None
+    history = DetectionHistory()
+    for i, sf in enumerate(seq.frames):
+        if progress is not None:
+            progress(f"sequence {s + 1}/{n}, frame {i + 1}/{len(seq)}")
+        frame = seq.frame(i)
+        errs, outliers = hypothesis_errors(
+            sf.gt, sf.hypotheses, library, gate, None if sources is None else sources[i]
+        )
+        hyp_outliers += outliers
+        hyp_t.extend(e[0] for e in errs)
+        hyp_r.extend(e[1] for e in errs)
+        conditions = None
+        if kinds is not None:
+            seen = history.update(sf.gt, {g for g in sources[i] if g is not None})
+            conditions = object_conditions(
+                sf.gt, sf.visib_fract, sf.hypotheses, sources[i], kinds[i], seen
             )
-            hyp_outliers += outliers
-            hyp_t.extend(e[0] for e in errs)
-            hyp_r.extend(e[1] for e in errs)
-            conditions = None
-            if kinds is not None:
-                seen = history.update(sf.gt, {g for g in sources[i] if g is not None})
-                conditions = object_conditions(
-                    sf.gt, sf.visib_fract, sf.hypotheses, sources[i], kinds[i], seen
-                )
-            for m, runner in runners.items():
-                t0 = time.perf_counter()
-                dets = runner.update(frame)
-                wall = time.perf_counter() - t0
-                if on_output is not None:
-                    on_output(s, i, m, dets)
-                if on_estimate is not None and m == "ssp":
-                    on_estimate(s, i, frame, runner.last_estimate)
-                fm = match_frame(sf.gt, dets, library, gate)
-                bop[m].add_frame(
-                    sf.gt,
-                    sf.visib_fract,
-                    [(d.class_name, d.T_world_obj, d.score) for d in dets],
-                    seq.camera,
-                    seq.T_world_cam,
-                    sf.depth,
-                )
-                ids[m].update(
-                    sf.index, sf.gt, {mt.gt_id: dets[mt.est_index].id for mt in fm.matches}
-                )
-                tails[m].add(sf, fm, dets, conditions, kinds[i] if kinds else None, gate)
-                depth, n_unsup = physics(dets)
-                c = counts[m]
-                c["matched"] += len(fm.matches)
-                c["missed"] += len(fm.missed)
-                c["false_positives"] += len(fm.false_positives)
-                by_gt = fm.by_gt()
-                obj = records[m]["objects"]
-                for gid, (cls, _) in sf.gt.items():
-                    mt = by_gt.get(gid)
-                    vis = sf.visib_fract.get(gid)
-                    obj["sequence"].append(s)
-                    obj["frame"].append(sf.index)
-                    obj["object"].append(gid)
-                    obj["class"].append(cls)
-                    obj["visib_fract"].append(None if vis is None else float(vis))
-                    obj["trans_mm"].append(None if mt is None else mt.trans_mm)
-                    obj["rot_deg"].append(None if mt is None else mt.rot_deg)
-                    if mt is not None:
-                        err[m][0].append(mt.trans_mm)
-                        err[m][1].append(mt.rot_deg)
-                        key = (s, gid, sf.static_group)
-                        stacks[m].setdefault(key, []).append(np.array(dets[mt.est_index][1]))
-                        stack_class[key] = cls
-                fr = records[m]["frames"]
-                for name, value in (
-                    ("sequence", s),
-                    ("frame", sf.index),
-                    ("objects", len(dets)),
-                    ("matched", len(fm.matches)),
-                    ("missed", len(fm.missed)),
-                    ("false_positives", len(fm.false_positives)),
-                    ("penetration_mm", 1000.0 * depth),
-                    ("unsupported", n_unsup),
-                    ("sec", wall),
-                ):
-                    fr[name].append(value)
-        for m in methods:
-            tails[m].add_ids(ids[m], getattr(runners[m], "tracks_ids", False), s)
-
-    out_methods = {}
+        for m, runner in runners.items():
+            t0 = time.perf_counter()
+            dets = runner.update(frame)
+            wall = time.perf_counter() - t0
+            if on_output is not None:
+                on_output(s, i, m, dets)
+            if on_estimate is not None and m == "ssp":
+                on_estimate(s, i, frame, runner.last_estimate)
+            fm = match_frame(sf.gt, dets, library, gate)
+            bop[m].add_frame(
+                sf.gt,
+                sf.visib_fract,
+                [(d.class_name, d.T_world_obj, d.score) for d in dets],
+                seq.camera,
+                seq.T_world_cam,
+                sf.depth,
+            )
+            ids[m].update(sf.index, sf.gt, {mt.gt_id: dets[mt.est_index].id for mt in fm.matches})
+            tails[m].add(sf, fm, dets, conditions, kinds[i] if kinds else None, gate)
+            depth, n_unsup = physics(dets)
+            c = counts[m]
+            c["matched"] += len(fm.matches)
+            c["missed"] += len(fm.missed)
+            c["false_positives"] += len(fm.false_positives)
+            by_gt = fm.by_gt()
+            obj = records[m]["objects"]
+            for gid, (cls, _) in sf.gt.items():
+                mt = by_gt.get(gid)
+                vis = sf.visib_fract.get(gid)
+                obj["sequence"].append(s)
+                obj["frame"].append(sf.index)
+                obj["object"].append(gid)
+                obj["class"].append(cls)
+                obj["visib_fract"].append(None if vis is None else float(vis))
+                obj["trans_mm"].append(None if mt is None else mt.trans_mm)
+                obj["rot_deg"].append(None if mt is None else mt.rot_deg)
+                if mt is not None:
+                    err[m][0].append(mt.trans_mm)
+                    err[m][1].append(mt.rot_deg)
+                    key = (s, gid, sf.static_group)
+                    stacks[m].setdefault(key, []).append(np.array(dets[mt.est_index][1]))
+                    stack_class[key] = cls
+            fr = records[m]["frames"]
+            for name, value in (
+                ("sequence", s),
+                ("frame", sf.index),
+                ("objects", len(dets)),
+                ("matched", len(fm.matches)),
+                ("missed", len(fm.missed)),
+                ("false_positives", len(fm.false_positives)),
+                ("penetration_mm", 1000.0 * depth),
+                ("unsupported", n_unsup),
+                ("sec", wall),
+            ):
+                fr[name].append(value)
+    for m in methods:
+        tails[m].add_ids(ids[m], getattr(runners[m], "tracks_ids", False), s)
+    precision = {}
     for m in methods:
         pt, pr = [], []
         for key, poses in stacks[m].items():
             dt, dr = precision_deviations(poses, library[stack_class[key]].symmetry)
             pt.extend(dt)
             pr.extend(dr)
+        precision[m] = (pt, pr)
+    info = {k: v for k, v in (seq.info or {}).items() if k != "hypothesis_sources"}
+    return SequencePart(
+        index=s,
+        experiment=seq.experiment,
+        seed=seq.seed,
+        frames=len(seq.frames),
+        hyp_t=hyp_t,
+        hyp_r=hyp_r,
+        hyp_outliers=hyp_outliers,
+        errors=err,
+        counts=counts,
+        precision=precision,
+        records=records,
+        bop={m: bop[m].counts() for m in methods},
+        tails=tails,
+        info=info,
+        estimator_records=estimator_records,
+    )
+
+
+def merge_table1(
+    parts: Sequence[SequencePart], methods: Sequence[str], gate: float = DEFAULT_GATE
+) -> dict:
+    """The Table I result (module docstring) of the sequences' parts, joined in their order."""
+    methods = tuple(methods)
+    hyp_t = [v for p in parts for v in p.hyp_t]
+    hyp_r = [v for p in parts for v in p.hyp_r]
+    hyp_outliers = sum(p.hyp_outliers for p in parts)
+    records = {
+        m: {
+            kind: {c: [v for p in parts for v in p.records[m][kind][c]] for c in cols}
+            for kind, cols in (("objects", _OBJECT_COLUMNS), ("frames", _FRAME_COLUMNS))
+        }
+        for m in methods
+    }
+    out_methods = {}
+    for m in methods:
+        errs_t = [v for p in parts for v in p.errors[m][0]]
+        errs_r = [v for p in parts for v in p.errors[m][1]]
+        pt = [v for p in parts for v in p.precision[m][0]]
+        pr = [v for p in parts for v in p.precision[m][1]]
+        counts = {
+            k: sum(p.counts[m][k] for p in parts) for k in ("matched", "missed", "false_positives")
+        }
+        bop = BopEvaluator({}, vsd=parts[0].bop[m][0] if parts else True)
+        tails = _Tails()
+        for p in parts:
+            bop.add_counts(p.bop[m])
+            tails.merge(p.tails[m])
         fr = records[m]["frames"]
         n = max(len(fr["sec"]), 1)
         out_methods[m] = {
-            "accuracy": summarize(*err[m]),
+            "accuracy": summarize(errs_t, errs_r),
             "precision": summarize(pt, pr),
             "max_penetration_mm": float(max(fr["penetration_mm"], default=0.0)),
             "unsupported_objects": float(sum(fr["unsupported"]) / n),
             "unsupported_total": int(sum(fr["unsupported"])),
             "sec_per_frame": float(sum(fr["sec"]) / n),
-            **counts[m],
-            "missed_per_frame": counts[m]["missed"] / n,
-            "false_positives_per_frame": counts[m]["false_positives"] / n,
-            "bop": bop[m].result(),
-            **tails[m].result(),
+            **counts,
+            "missed_per_frame": counts["missed"] / n,
+            "false_positives_per_frame": counts["false_positives"] / n,
+            "bop": bop.result(),
+            **tails.result(),
         }
 
     # accuracy over the object-frames every method matched (methods that keep hard, occluded
@@ -403,10 +640,10 @@ def run_table1(
     noise = summarize(hyp_t, hyp_r)
     return {
         "protocol": "table1",
-        "experiment": _common([seq.experiment for seq in sequences]),
-        "seed": _common([seq.seed for seq in sequences]),
-        "sequences": len(sequences),
-        "frames": total_frames,
+        "experiment": _common([p.experiment for p in parts]),
+        "seed": _common([p.seed for p in parts]),
+        "sequences": len(parts),
+        "frames": sum(p.frames for p in parts),
         "induced_noise": {
             "trans_mm_mean": noise["trans_mm_mean"],
             "rot_deg_mean": noise["rot_deg_mean"],

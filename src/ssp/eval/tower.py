@@ -63,6 +63,7 @@ import math
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -76,6 +77,7 @@ from ssp.eval.metrics import (
     precision_deviations,
     summarize,
 )
+from ssp.executor import Parallel, map_items
 from ssp.geometry import yaw_pose
 from ssp.library.model import ObjectInstance, ObjectModel
 from ssp.physics.world import World
@@ -561,6 +563,12 @@ def ghosts(trial: TowerTrial, library, gate: float = DEFAULT_GATE) -> tuple[int,
     return total, frames
 
 
+def _trial_item(item: tuple[str, int], library, **kwargs) -> TowerTrial:
+    """:func:`run_trial` of one ``(method, trial)`` pair (a work item of :func:`run_tower`)."""
+    name, trial = item
+    return run_trial(name, trial, library=library, **kwargs)
+
+
 def _mean_std(values: Sequence[float], ddof: int = 0) -> tuple[float | None, float | None]:
     if len(values) == 0:
         return None, None
@@ -583,16 +591,54 @@ def run_tower(
     realism: SceneRealism | None = None,
     progress: Callable[[str], None] | None = None,
     on_trial: Callable[[str, int, TowerTrial], None] | None = None,
+    parallel: Parallel | None = None,
 ) -> dict:
     """Every method on trials ``0 .. trials - 1``; a JSON-ready dict (``methods`` holds the
-    Table III measures, ``trials_detail`` one row per trial)."""
+    Table III measures, ``trials_detail`` one row per trial).
+
+    ``progress`` gets a message per stack (serial) or per finished trial (in parallel);
+    ``on_trial(method, trial, result)`` is called as each trial finishes. ``parallel``: how
+    the method-trial pairs are run (:mod:`ssp.executor`; each pair is independent and seeded
+    by ``seed`` and the trial); the result is the serial one but for the wall times
+    (``wall_s``, ``sec_per_frame``).
+    """
     if hypotheses not in HYPOTHESES:
         raise ValueError(f"hypotheses must be one of {HYPOTHESES}, got {hypotheses!r}")
     if trials < 1 or frames_per_step < 1:
         raise ValueError("trials and frames_per_step must be >= 1")
     config = config if config is not None else SSPConfig()
+    parallel = parallel if parallel is not None else Parallel()
     model = library[CUBE]
     t_start = time.perf_counter()
+    items = [(name, t) for name in methods for t in range(trials)]
+    work = partial(
+        _trial_item,
+        seed=seed,
+        config=config,
+        hypotheses=hypotheses,
+        frames_per_step=frames_per_step,
+        noise=noise,
+        blocks=blocks,
+        stride=stride,
+        realism=realism,
+        progress=progress if parallel.serial else None,
+    )
+    done = None
+    if progress is not None and not parallel.serial:
+        done = lambda k, total, name: progress(f"{name} done ({k}/{total})")  # noqa: E731
+    report = None
+    if on_trial is not None:
+        report = lambda i, tr: on_trial(*items[i], tr)  # noqa: E731
+    results = map_items(
+        work,
+        items,
+        shared=library,
+        parallel=parallel,
+        names=[f"{name}: trial {t} (seed {seed})" for name, t in items],
+        progress=done,
+        on_result=report,
+    )
+    by_item = dict(zip(items, results, strict=True))
     out_methods: dict[str, dict] = {}
     detail: dict[str, list[dict]] = {}
     for name in methods:
@@ -601,13 +647,7 @@ def run_tower(
         failures: dict[str, int] = {}
         rows = []
         for t in range(trials):
-            tr = run_trial(
-                name, t, seed, library, config, hypotheses=hypotheses,
-                frames_per_step=frames_per_step, noise=noise, blocks=blocks, stride=stride,
-                realism=realism, progress=progress,
-            )  # fmt: skip
-            if on_trial is not None:
-                on_trial(name, t, tr)
+            tr = by_item[name, t]
             a, b = straightness(tr, model)
             c, d = consistency(tr, library)
             g, g_frames = ghosts(tr, library)
