@@ -2,6 +2,7 @@
 
 import json
 
+import pytest
 import yaml
 from typer.testing import CliRunner
 
@@ -132,3 +133,26 @@ def test_run_reports_bad_frames_and_fails_without_good_ones(tmp_path):
 def test_run_rejects_unknown_hypotheses_mode(tmp_path):
     r = runner.invoke(app, ["run", str(tmp_path), "--hypotheses", "magic"])
     assert r.exit_code != 0
+
+
+def test_an_interrupt_a_library_swallows_stops_the_run_at_the_next_frame():
+    """Some libraries catch BaseException: Ctrl-C inside them was lost and the run went on."""
+    import os
+    import signal
+
+    from ssp.cli import _restore_signals, _stop_on_sigterm, _stopped
+
+    previous = _stop_on_sigterm()
+    try:
+        _stopped()  # nothing asked yet
+        try:
+            os.kill(os.getpid(), signal.SIGINT)
+            for _ in range(1000):  # the handler runs between bytecodes
+                pass
+        except BaseException:  # what such a library does
+            pass
+        with pytest.raises(KeyboardInterrupt):
+            _stopped()
+    finally:
+        _restore_signals(previous)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler

@@ -1206,6 +1206,7 @@ def run_cmd(
             def report(done: int, total: int, message: str) -> None:
                 frames_done[0] = done
                 progress.update(task, completed=done, total=total, description=message[:60])
+                _stopped()
 
             summary = run(
                 input_path,
@@ -1236,8 +1237,7 @@ def run_cmd(
         )
         raise typer.Exit(130) from None
     finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
+        _restore_signals(previous)
     _print_run(summary, input_path)
     if record is not None:
         console.print(f"wrote [bold]{record}[/]; view it with: ssp view {record}")
@@ -1329,8 +1329,7 @@ def _run_many(
         )
         raise typer.Exit(130) from None
     finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
+        _restore_signals(previous)
     bad = 0
     for src, res in zip(inputs, results, strict=True):
         if isinstance(res, ItemFailure):
@@ -1355,16 +1354,31 @@ def _run_many(
 
 
 def _stop_on_sigterm():
-    """Make SIGTERM stop a run like Ctrl-C (a clean 'interrupted' summary and a resume hint);
-    returns the previous handler (None when signals cannot be set here)."""
+    """Make SIGTERM stop a run like Ctrl-C (a clean 'interrupted' summary and a resume hint),
+    and remember either signal: an interrupt raised inside a library that swallows exceptions
+    (some catch BaseException) is raised again at the next frame (:func:`_stopped`). Returns
+    the previous handlers (None when signals cannot be set here)."""
+    _state["stop"] = False
 
     def stop(signum, frame):
+        _state["stop"] = True
         raise KeyboardInterrupt
 
     try:
-        return signal.signal(signal.SIGTERM, stop)
+        return {sig: signal.signal(sig, stop) for sig in (signal.SIGTERM, signal.SIGINT)}
     except ValueError:  # not the main thread
         return None
+
+
+def _restore_signals(previous) -> None:
+    for sig, handler in (previous or {}).items():
+        signal.signal(sig, handler)
+
+
+def _stopped() -> None:
+    """KeyboardInterrupt when a stop was asked for (between frames)."""
+    if _state.get("stop"):
+        raise KeyboardInterrupt
 
 
 def _print_run(summary, input_path: Path) -> None:
