@@ -266,3 +266,30 @@ def test_label_kind_is_checked():
     f = Frame(0.0, np.zeros((5, 3)) + [0, 0, 0.01], label_kind="instances")
     with pytest.raises(FrameError, match="label_kind"):
         f.validate(LIB)
+
+
+def test_an_object_kept_at_its_hypothesis_is_not_put_into_another(monkeypatch):
+    """Step 8 keeps a new object whose searched pose fails at a hypothesis that passes; two
+    such objects (a duplicate in a cluster of touching boxes, real captures) were both put at
+    one place, 1262 deep in each other. The second is now judged where the search put it."""
+    import ssp.parser as parser_mod
+    from ssp.verification import Verdict
+
+    rng = np.random.default_rng(12)
+    gt = {"a": ("cube", on_table(CUBE)), "b": ("cube", on_table(CUBE, 3 * E, 0.0))}
+    f = frame(gt, rng, ids=True)
+    real = parser_mod.verify_final
+
+    def at_a(model, T_final, hypotheses, *args, **kw):
+        v = real(model, T_final, hypotheses, *args, **kw)
+        return Verdict(True, "kept at its hypothesis", v.evidence, gt["a"][1].copy(),
+                       Verdict(False, "its search failed", v.evidence))  # fmt: skip
+
+    monkeypatch.setattr(parser_mod, "verify_final", at_a)
+    est = SceneParser(LIB).update(f)
+    kept = [o for o in est.objects if np.allclose(o.T_world_obj, gt["a"][1])]
+    assert len(kept) == 1  # one of them at the shared hypothesis, not both
+    others = [o for o in est.objects if o is not kept[0]] + list(est.rejected)
+    assert len(others) == 1
+    (other,) = others
+    assert "inside another object" in other.reason and "its search failed" in other.reason

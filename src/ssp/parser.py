@@ -654,6 +654,12 @@ class SceneParser:
             chosen.update({oid: "hypothesis (data fallback)" for oid in fallbacks})
 
         with timer("verification"):
+            final_verdicts, placed = self._verify_final(
+                world, scorer, score, models, groups, segments, owner, view, prev_pose,
+                removed, timer,
+            )  # fmt: skip
+            if placed:
+                score = scorer.evaluate(world, timer)
             final = {
                 oid: evidence(
                     models[oid],
@@ -687,8 +693,68 @@ class SceneParser:
                 segments=segments,
                 view=view,
                 fallbacks={oid: note for oid, (_, note) in fallbacks.items()},
+                final_verdicts=final_verdicts,
+                placed=placed,
             ),
         )
+
+    def _verify_final(
+        self, world, scorer, score, models, groups, segments, owner, view, prev_pose, removed,
+        timer,
+    ) -> tuple[dict[str, Verdict], dict[str, np.ndarray]]:
+        """Step 8: :func:`verify_final` of every new object at its searched pose; those kept
+        at a hypothesis instead are put there in ``world``, one at a time, strongest data
+        first, unless there it would be inside another object (its collision term below
+        ``verification.fallback_collision``, the data fallbacks' rule): then it stays where
+        the search put it and fails (a duplicate of a kept object, or a hypothesis physics
+        cannot hold). Returns the verdicts and the objects put at a hypothesis."""
+        cfg = self.config
+        ids = score.ids
+        verdicts: dict[str, Verdict] = {}
+        for oid in ids:
+            if oid in removed or oid in prev_pose:
+                continue
+            i = ids.index(oid)
+            verdicts[oid] = verify_final(
+                models[oid],
+                score.poses[i],
+                [h.T_world_obj for h in groups.get(oid, ())],
+                segments.get(oid),
+                view,
+                cfg,
+                own_label=owner.get(oid),
+                stability=float(score.terms[i, 0]),
+            )
+        to_place = [oid for oid, v in verdicts.items() if v.keep and v.T_world_obj is not None]
+
+        def strength(oid: str) -> float:
+            e = verdicts[oid].evidence
+            return -(e.fit if e.explained is None else e.explained)
+
+        placed: dict[str, np.ndarray] = {}
+        # judged against what stays for sure: known and verified objects (a failed one may be
+        # a false object, as a false cube under a true one; it may still stay, holding others)
+        unverified = [oid for oid, v in verdicts.items() if not v.keep]
+        for oid in unverified:
+            world.set_enabled(oid, False)
+        for oid in sorted(to_place, key=lambda o: (strength(o), o)):
+            searched = world.get_pose(oid)
+            world.set_pose(oid, verdicts[oid].T_world_obj)
+            collision = float(scorer.evaluate(world, timer).terms[world.index(oid), 1])
+            if collision >= cfg.verification.fallback_collision:
+                placed[oid] = verdicts[oid].T_world_obj
+                continue
+            world.set_pose(oid, searched)
+            v = verdicts[oid]
+            verdicts[oid] = Verdict(
+                False,
+                f"{v.searched.reason}; at its best hypothesis it would be inside another object "
+                f"(collision term {collision:.1f})",
+                v.searched.evidence,
+            )
+        for oid in unverified:
+            world.set_enabled(oid, True)
+        return verdicts, placed
 
     def _unchanged(self, scorer: SceneScorer, i: int, known: _Known, hyps) -> bool:
         """Is object ``i`` where it was? Its hypotheses agree (their per-axis median position
@@ -762,26 +828,12 @@ class SceneParser:
         reasons: dict[str, str] = {}
         evidences: dict[str, Evidence] = {}
         failed: dict[str, Verdict] = {}
-        placed: dict[str, np.ndarray] = {}
-        for oid in ids:
-            if oid in out.removed or oid in prev_pose:
-                continue
-            i = ids.index(oid)
-            verdict = verify_final(
-                models[oid],
-                score.poses[i],
-                [h.T_world_obj for h in out.groups.get(oid, ())],
-                out.segments.get(oid),
-                out.view,
-                cfg,
-                own_label=out.owner.get(oid),
-                stability=float(score.terms[i, 0]),
-            )
+        placed = dict(out.placed)  # in the scene's poses already
+        for oid, verdict in out.final_verdicts.items():
             evidences[oid] = verdict.evidence
             if verdict.keep:
                 reasons[oid] = verdict.reason
-                if verdict.T_world_obj is not None:  # kept where its data puts it
-                    placed[oid] = verdict.T_world_obj
+                if oid in placed:  # kept where its data puts it
                     warnings.append(f"{oid}: {verdict.reason}")
             else:
                 failed[oid] = verdict
@@ -1016,6 +1068,9 @@ class _Outcome:
     segments: Mapping[str, np.ndarray]
     view: CameraView | None
     fallbacks: Mapping[str, str]
+    #: step 8's verdict on each new object, and those put at a hypothesis by it
+    final_verdicts: Mapping[str, Verdict]
+    placed: Mapping[str, np.ndarray]
 
 
 def parse_sequence(

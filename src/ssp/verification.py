@@ -102,12 +102,13 @@ class Evidence:
 class Verdict:
     """Whether an object is kept, and why (a short sentence for people); ``T_world_obj``:
     the pose to keep it at when that is not the pose it was judged for (:func:`verify_final`),
-    else None."""
+    else None; ``searched``: then, the failed verdict at the pose it was judged for."""
 
     keep: bool
     reason: str
     evidence: Evidence | None = None
     T_world_obj: np.ndarray | None = None
+    searched: Verdict | None = None
 
 
 #: A surface sample counts as explained within this many point spacings of the segment (at
@@ -271,6 +272,7 @@ def verify_final(
             f"its data puts it ({verdict.reason} there)",
             hv.evidence,
             T.copy(),
+            verdict,
         )
     v = config.verification
     strength = ev.fit if ev.explained is None else ev.explained
