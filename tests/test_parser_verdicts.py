@@ -271,7 +271,8 @@ def test_label_kind_is_checked():
 def test_an_object_kept_at_its_hypothesis_is_not_put_into_another(monkeypatch):
     """Step 8 keeps a new object whose searched pose fails at a hypothesis that passes; two
     such objects (a duplicate in a cluster of touching boxes, real captures) were both put at
-    one place, 1262 deep in each other. The second is now judged where the search put it."""
+    one place, 1262 deep in each other. Without its own instance segment the second is now
+    judged where the search put it; with one, it stays, with the doubt in its reason."""
     import ssp.parser as parser_mod
     from ssp.verification import Verdict
 
@@ -286,10 +287,17 @@ def test_an_object_kept_at_its_hypothesis_is_not_put_into_another(monkeypatch):
                        Verdict(False, "its search failed", v.evidence))  # fmt: skip
 
     monkeypatch.setattr(parser_mod, "verify_final", at_a)
-    est = SceneParser(LIB).update(f)
+    clusters = replace(f, labels=np.where(f.labels >= 0, 0, f.labels), label_kind="cluster")
+    est = SceneParser(LIB).update(clusters)
     kept = [o for o in est.objects if np.allclose(o.T_world_obj, gt["a"][1])]
     assert len(kept) == 1  # one of them at the shared hypothesis, not both
     others = [o for o in est.objects if o is not kept[0]] + list(est.rejected)
     assert len(others) == 1
     (other,) = others
     assert "inside another object" in other.reason and "its search failed" in other.reason
+    # each with its own instance segment: both stay, the second with the doubt said
+    est = SceneParser(LIB).update(f)
+    assert len(est.objects) == 2 and not est.rejected
+    doubt = [o for o in est.objects if "inside another object" in o.reason]
+    assert len(doubt) == 1 and doubt[0].terms.collision < -1.0
+    assert any("inside another object" in w for w in est.warnings)

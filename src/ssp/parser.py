@@ -707,7 +707,9 @@ class SceneParser:
         first, unless there it would be inside another object (its collision term below
         ``verification.fallback_collision``, the data fallbacks' rule): then it stays where
         the search put it and fails (a duplicate of a kept object, or a hypothesis physics
-        cannot hold). Returns the verdicts and the objects put at a hypothesis."""
+        cannot hold), unless it accounts for its own instance segment: then it is kept there
+        with that doubt in its reason (and so in the frame's warnings). Returns the verdicts
+        and the objects put at a hypothesis."""
         cfg = self.config
         ids = score.ids
         verdicts: dict[str, Verdict] = {}
@@ -732,19 +734,31 @@ class SceneParser:
             return -(e.fit if e.explained is None else e.explained)
 
         placed: dict[str, np.ndarray] = {}
-        # judged against what stays for sure: known and verified objects (a failed one may be
-        # a false object, as a false cube under a true one; it may still stay, holding others)
+        # judged against what stays for sure: known and verified objects and those placed
+        # before it; not against a failed one (it may be a false object, as a false cube under
+        # a true one, though it may still stay, holding others), nor against the others still
+        # to place (where the search left them is where their data says they are not)
         unverified = [oid for oid, v in verdicts.items() if not v.keep]
-        for oid in unverified:
+        for oid in unverified + to_place:
             world.set_enabled(oid, False)
         for oid in sorted(to_place, key=lambda o: (strength(o), o)):
             searched = world.get_pose(oid)
+            world.set_enabled(oid, True)
             world.set_pose(oid, verdicts[oid].T_world_obj)
             collision = float(scorer.evaluate(world, timer).terms[world.index(oid), 1])
-            if collision >= cfg.verification.fallback_collision:
+            own = verdicts[oid].evidence.explained is not None  # it accounts for its segment
+            if collision >= cfg.verification.fallback_collision or own:
                 placed[oid] = verdicts[oid].T_world_obj
+                if collision < cfg.verification.fallback_collision:
+                    # its own instance segment says it is there: kept, with the doubt said
+                    v = verdicts[oid]
+                    verdicts[oid] = replace(v, reason=(
+                        f"{v.reason}; there it is inside another object (collision term "
+                        f"{collision:.1f}): its model or a neighbour's may not match the data"
+                    ))  # fmt: skip
                 continue
             world.set_pose(oid, searched)
+            world.set_enabled(oid, False)
             v = verdicts[oid]
             verdicts[oid] = Verdict(
                 False,
@@ -752,7 +766,7 @@ class SceneParser:
                 f"(collision term {collision:.1f})",
                 v.searched.evidence,
             )
-        for oid in unverified:
+        for oid in unverified + to_place:
             world.set_enabled(oid, True)
         return verdicts, placed
 
