@@ -273,20 +273,20 @@ def test_an_object_kept_at_its_hypothesis_is_not_put_into_another(monkeypatch):
     such objects (a duplicate in a cluster of touching boxes, real captures) were both put at
     one place, 1262 deep in each other. Without its own instance segment the second is now
     judged where the search put it; with one, it stays, with the doubt in its reason."""
-    import ssp.parser as parser_mod
+    import ssp.verification as verification_mod
     from ssp.verification import Verdict
 
     rng = np.random.default_rng(12)
     gt = {"a": ("cube", on_table(CUBE)), "b": ("cube", on_table(CUBE, 3 * E, 0.0))}
     f = frame(gt, rng, ids=True)
-    real = parser_mod.verify_final
+    real = verification_mod.verify_final
 
     def at_a(model, T_final, hypotheses, *args, **kw):
         v = real(model, T_final, hypotheses, *args, **kw)
         return Verdict(True, "kept at its hypothesis", v.evidence, gt["a"][1].copy(),
                        Verdict(False, "its search failed", v.evidence))  # fmt: skip
 
-    monkeypatch.setattr(parser_mod, "verify_final", at_a)
+    monkeypatch.setattr(verification_mod, "verify_final", at_a)
     clusters = replace(f, labels=np.where(f.labels >= 0, 0, f.labels), label_kind="cluster")
     est = SceneParser(LIB).update(clusters)
     kept = [o for o in est.objects if np.allclose(o.T_world_obj, gt["a"][1])]

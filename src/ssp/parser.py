@@ -86,7 +86,7 @@ from ssp.verification import (
     evidence,
     held_up,
     may_hold_up,
-    verify_final,
+    verify_and_place,
 )
 from ssp.visibility import CameraView
 
@@ -654,9 +654,9 @@ class SceneParser:
             chosen.update({oid: "hypothesis (data fallback)" for oid in fallbacks})
 
         with timer("verification"):
-            final_verdicts, placed = self._verify_final(
-                world, scorer, score, models, groups, segments, owner, view, prev_pose,
-                removed, timer,
+            final_verdicts, placed = verify_and_place(
+                world, scorer, score, models, groups, segments, owner, view,
+                set(prev_pose) | set(removed), self.config, timer,
             )  # fmt: skip
             if placed:
                 score = scorer.evaluate(world, timer)
@@ -697,78 +697,6 @@ class SceneParser:
                 placed=placed,
             ),
         )
-
-    def _verify_final(
-        self, world, scorer, score, models, groups, segments, owner, view, prev_pose, removed,
-        timer,
-    ) -> tuple[dict[str, Verdict], dict[str, np.ndarray]]:
-        """Step 8: :func:`verify_final` of every new object at its searched pose; those kept
-        at a hypothesis instead are put there in ``world``, one at a time, strongest data
-        first, unless there it would be inside another object (its collision term below
-        ``verification.fallback_collision``, the data fallbacks' rule): then it stays where
-        the search put it and fails (a duplicate of a kept object, or a hypothesis physics
-        cannot hold), unless it accounts for its own instance segment: then it is kept there
-        with that doubt in its reason (and so in the frame's warnings). Returns the verdicts
-        and the objects put at a hypothesis."""
-        cfg = self.config
-        ids = score.ids
-        verdicts: dict[str, Verdict] = {}
-        for oid in ids:
-            if oid in removed or oid in prev_pose:
-                continue
-            i = ids.index(oid)
-            verdicts[oid] = verify_final(
-                models[oid],
-                score.poses[i],
-                [h.T_world_obj for h in groups.get(oid, ())],
-                segments.get(oid),
-                view,
-                cfg,
-                own_label=owner.get(oid),
-                stability=float(score.terms[i, 0]),
-            )
-        to_place = [oid for oid, v in verdicts.items() if v.keep and v.T_world_obj is not None]
-
-        def strength(oid: str) -> float:
-            e = verdicts[oid].evidence
-            return -(e.fit if e.explained is None else e.explained)
-
-        placed: dict[str, np.ndarray] = {}
-        # judged against what stays for sure: known and verified objects and those placed
-        # before it; not against a failed one (it may be a false object, as a false cube under
-        # a true one, though it may still stay, holding others), nor against the others still
-        # to place (where the search left them is where their data says they are not)
-        unverified = [oid for oid, v in verdicts.items() if not v.keep]
-        for oid in unverified + to_place:
-            world.set_enabled(oid, False)
-        for oid in sorted(to_place, key=lambda o: (strength(o), o)):
-            searched = world.get_pose(oid)
-            world.set_enabled(oid, True)
-            world.set_pose(oid, verdicts[oid].T_world_obj)
-            collision = float(scorer.evaluate(world, timer).terms[world.index(oid), 1])
-            own = verdicts[oid].evidence.explained is not None  # it accounts for its segment
-            if collision >= cfg.verification.fallback_collision or own:
-                placed[oid] = verdicts[oid].T_world_obj
-                if collision < cfg.verification.fallback_collision:
-                    # its own instance segment says it is there: kept, with the doubt said
-                    v = verdicts[oid]
-                    verdicts[oid] = replace(v, reason=(
-                        f"{v.reason}; there it is inside another object (collision term "
-                        f"{collision:.1f}): its model or a neighbour's may not match the data"
-                    ))  # fmt: skip
-                continue
-            world.set_pose(oid, searched)
-            world.set_enabled(oid, False)
-            v = verdicts[oid]
-            verdicts[oid] = Verdict(
-                False,
-                f"{v.searched.reason}; at its best hypothesis it would be inside another object "
-                f"(collision term {collision:.1f})",
-                v.searched.evidence,
-            )
-        for oid in unverified + to_place:
-            world.set_enabled(oid, True)
-        return verdicts, placed
 
     def _unchanged(self, scorer: SceneScorer, i: int, known: _Known, hyps) -> bool:
         """Is object ``i`` where it was? Its hypotheses agree (their per-axis median position

@@ -29,7 +29,7 @@ before; :func:`still_visible` decides whether an undetected known object is stil
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -57,6 +57,7 @@ __all__ = [
     "held_up",
     "may_hold_up",
     "still_visible",
+    "verify_and_place",
     "verify_final",
 ]
 
@@ -365,3 +366,77 @@ def still_visible(ev: Evidence, config: SSPConfig) -> bool:
         and ev.fit >= config.temporal.visible_fit
         and ev.seen_through < config.temporal.seen_through_fraction
     )
+
+
+def verify_and_place(
+    world, scorer, score, models, groups, segments, owner, view, skip, config, timer
+) -> tuple[dict[str, Verdict], dict[str, np.ndarray]]:
+    """Parser step 8: :func:`verify_final` of every new object (not in ``skip``: known or
+    removed ones) at its searched pose (``score``: the scene ``world`` holds, scored by
+    ``scorer``; ``groups``, ``segments``, ``owner``: the hypotheses, points and label per id);
+    those kept at a hypothesis instead are put there in ``world``, one at a time, strongest data
+    first, unless there it would be inside another object (its collision term below
+    ``verification.fallback_collision``, the data fallbacks' rule): then it stays where
+    the search put it and fails (a duplicate of a kept object, or a hypothesis physics
+    cannot hold), unless it accounts for its own instance segment: then it is kept there
+    with that doubt in its reason (and so in the frame's warnings). Returns the verdicts
+    and the objects put at a hypothesis."""
+    cfg = config
+    ids = score.ids
+    verdicts: dict[str, Verdict] = {}
+    for oid in ids:
+        if oid in skip:
+            continue
+        i = ids.index(oid)
+        verdicts[oid] = verify_final(
+            models[oid],
+            score.poses[i],
+            [h.T_world_obj for h in groups.get(oid, ())],
+            segments.get(oid),
+            view,
+            cfg,
+            own_label=owner.get(oid),
+            stability=float(score.terms[i, 0]),
+        )
+    to_place = [oid for oid, v in verdicts.items() if v.keep and v.T_world_obj is not None]
+
+    def strength(oid: str) -> float:
+        e = verdicts[oid].evidence
+        return -(e.fit if e.explained is None else e.explained)
+
+    placed: dict[str, np.ndarray] = {}
+    # judged against what stays for sure: known and verified objects and those placed
+    # before it; not against a failed one (it may be a false object, as a false cube under
+    # a true one, though it may still stay, holding others), nor against the others still
+    # to place (where the search left them is where their data says they are not)
+    unverified = [oid for oid, v in verdicts.items() if not v.keep]
+    for oid in unverified + to_place:
+        world.set_enabled(oid, False)
+    for oid in sorted(to_place, key=lambda o: (strength(o), o)):
+        searched = world.get_pose(oid)
+        world.set_enabled(oid, True)
+        world.set_pose(oid, verdicts[oid].T_world_obj)
+        collision = float(scorer.evaluate(world, timer).terms[world.index(oid), 1])
+        own = verdicts[oid].evidence.explained is not None  # it accounts for its segment
+        if collision >= cfg.verification.fallback_collision or own:
+            placed[oid] = verdicts[oid].T_world_obj
+            if collision < cfg.verification.fallback_collision:
+                # its own instance segment says it is there: kept, with the doubt said
+                v = verdicts[oid]
+                verdicts[oid] = replace(v, reason=(
+                    f"{v.reason}; there it is inside another object (collision term "
+                    f"{collision:.1f}): its model or a neighbour's may not match the data"
+                ))  # fmt: skip
+            continue
+        world.set_pose(oid, searched)
+        world.set_enabled(oid, False)
+        v = verdicts[oid]
+        verdicts[oid] = Verdict(
+            False,
+            f"{v.searched.reason}; at its best hypothesis it would be inside another object "
+            f"(collision term {collision:.1f})",
+            v.searched.evidence,
+        )
+    for oid in unverified + to_place:
+        world.set_enabled(oid, True)
+    return verdicts, placed
