@@ -301,3 +301,20 @@ def test_an_object_kept_at_its_hypothesis_is_not_put_into_another(monkeypatch):
     doubt = [o for o in est.objects if "inside another object" in o.reason]
     assert len(doubt) == 1 and doubt[0].terms.collision < -1.0
     assert any("inside another object" in w for w in est.warnings)
+
+
+def test_the_output_terms_leave_out_the_rejected_objects():
+    """A false cube 1 cm beside a true one is rejected (seen empty); the true cube, kept at
+    its hypothesis, reported a collision term of -1860 and a support fraction of 12.9 from the
+    rejected cube, which was still in the scored scene."""
+    rng = np.random.default_rng(3)
+    gt = {"a": ("cube", on_table(CUBE))}
+    f = frame(gt, rng, ids=True)
+    T = on_table(CUBE).copy()
+    T[0, 3] += 0.01
+    f.hypotheses += [Hypothesis("cube", T, 0.95, instance_id="x")]
+    est = SceneParser(LIB).update(f)
+    assert est.ids == ("a",) and [r.id for r in est.rejected] == ["x"]
+    assert est["a"].terms.collision > -1.0
+    (edge,) = est.support
+    assert edge.supported == "a" and edge.fraction < 1.5

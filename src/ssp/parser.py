@@ -46,6 +46,7 @@ import logging
 import math
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, replace
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -695,6 +696,7 @@ class SceneParser:
                 fallbacks={oid: note for oid, (_, note) in fallbacks.items()},
                 final_verdicts=final_verdicts,
                 placed=placed,
+                rescore=partial(_rescore, world, scorer, timer),
             ),
         )
 
@@ -834,6 +836,9 @@ class SceneParser:
         moved_away = set(renamed.values())
         superseded = moved_away & set(contradicted)  # their new pose replaces them
         gone |= superseded
+        dropped = [oid for oid in ids if oid in gone and oid not in out.removed]
+        if dropped:  # the output's terms and support without what is not in it
+            score = out.rescore(dropped)
 
         objects: list[ObjectEstimate] = []
         known: dict[str, _Known] = {}
@@ -941,6 +946,17 @@ class SceneParser:
         return estimate, commit
 
 
+def _rescore(world: World, scorer: SceneScorer, timer, drop: Sequence[str]) -> SceneScore:
+    """The scene's score with the objects ``drop`` disabled (then enabled again)."""
+    for oid in drop:
+        world.set_enabled(oid, False)
+    try:
+        return scorer.evaluate(world, timer)
+    finally:
+        for oid in drop:
+            world.set_enabled(oid, True)
+
+
 def _segment_verdicts(
     frame: Frame,
     owner: Mapping[str, int],
@@ -1013,6 +1029,8 @@ class _Outcome:
     #: step 8's verdict on each new object, and those put at a hypothesis by it
     final_verdicts: Mapping[str, Verdict]
     placed: Mapping[str, np.ndarray]
+    #: the scene scored again without some objects (those the output leaves out)
+    rescore: Callable[[Sequence[str]], SceneScore]
 
 
 def parse_sequence(
