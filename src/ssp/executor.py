@@ -46,6 +46,7 @@ __all__ = [
     "ItemFailure",
     "Parallel",
     "SINGLE_THREAD_ENV",
+    "done_messages",
     "map_items",
 ]
 
@@ -183,6 +184,17 @@ def _log_levels() -> tuple[dict[str, int], str | None]:
 
 
 # ------------------------------------------------------------------------------ main side
+def done_messages(
+    progress: Callable[[str], None] | None, parallel: Parallel
+) -> Callable[[int, int, str], None] | None:
+    """A :func:`map_items` ``progress`` that tells a benchmark's message ``progress`` which
+    item finished (``"<name> done (k/n)"``), when the items run in parallel (serially, the
+    items report their own steps); None when there is nothing to tell."""
+    if progress is None or parallel.serial:
+        return None
+    return lambda k, total, name: progress(f"{name} done ({k}/{total})")
+
+
 def map_items(
     fn: Callable[[Any, Any], Any],
     items: Sequence[Any],

@@ -18,7 +18,6 @@ to the depth of each frame; never taken from the ground truth.
 from __future__ import annotations
 
 import logging
-import re
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -32,13 +31,18 @@ from ssp.errors import ArgumentError, InputError, SSPError
 from ssp.geometry import invert
 from ssp.io._files import atomic_write_text, write_json
 from ssp.io.bop import bop_scenes, dataset_root, mask_source, open_bop
-from ssp.io.results import BOP_CSV_HEADER, BopCsvWriter, bop_csv_name, read_bop_csv
+from ssp.io.results import (
+    BOP_CSV_HEADER,
+    BopCsvWriter,
+    bop_csv_name,
+    bop_csv_parts,
+    read_bop_csv,
+)
 
 __all__ = ["RefineSummary", "estimate", "evaluate", "refine", "refined_method"]
 
 log = logging.getLogger(__name__)
 
-_BOP_NAME = re.compile(r"^(?P<method>[^_]+)_(?P<dataset>[^_-]+)-(?P<split>[^_]+)\.csv$")
 REFINE_JSON = "refine.json"
 
 
@@ -53,8 +57,8 @@ def _dataset_name(scenes: Sequence[Path]) -> tuple[str, str]:
 def refined_method(estimates_path: str | Path) -> str:
     """The method name of the refined CSV: the input's (``METHOD_DATASET-SPLIT.csv``) plus
     ``-ssp``; ``ssp`` when the input's name does not follow the convention."""
-    m = _BOP_NAME.match(Path(estimates_path).name)
-    return f"{m['method']}-ssp" if m else "ssp"
+    parts = bop_csv_parts(Path(estimates_path).name)
+    return f"{parts['method']}-ssp" if parts else "ssp"
 
 
 @dataclass
@@ -232,10 +236,7 @@ def estimate(
 
     ``masks`` as for :func:`ssp.runner.run`. Returns ``{csv, images, rows, failed}``.
     """
-    from ssp.perception.depth import cloud_from_depth
-    from ssp.perception.pipeline import Perception
-    from ssp.perception.table import TableTracker
-    from ssp.runner import _bop_ids
+    from ssp.runner import _bop_ids, _open_bop_input
 
     cfg = config if config is not None else SSPConfig()
     mask_source(masks, True)  # a bad mode fails before any work
@@ -243,39 +244,34 @@ def estimate(
     if scene_ids is not None:
         scenes = [s for s in scenes if s.name.isdigit() and int(s.name) in set(scene_ids)]
     path = Path(out_csv)
-    method = _BOP_NAME.match(path.name)["method"] if _BOP_NAME.match(path.name) else "ssp"
+    parts = bop_csv_parts(path.name)
+    method = parts["method"] if parts else "ssp"
     report: dict[str, Any] = {"csv": str(path), "images": 0, "rows": 0, "failed": []}
     with BopCsvWriter(path, method) as csv:
         for scene_path in scenes:
-            scene = open_bop(scene_path, library)
+            # the frames exactly as ssp run perceives them (world frame, masks, estimator)
+            inp = _open_bop_input(scene_path, library, cfg, classes, "estimated", masks=masks)
             ids = _bop_ids(scene_path, library)
-            perception = Perception(library, cfg, classes or list(scene.models) or None)
-            tracker = None if scene.has_world else TableTracker(cfg.perception.table_distance)
-            use_masks = mask_source(masks, scene.simulated)
-            for k, im in enumerate(scene.im_ids):
+            scene_id = open_bop(scene_path).scene_id
+            for k, source in enumerate(inp.sources(0)):
                 t0 = time.perf_counter()
                 try:
-                    f = scene.load(k, masks=use_masks)
-                    T_wc = f.T_world_cam
-                    if T_wc is None:
-                        T_wc, _ = tracker.update(cloud_from_depth(f.depth, f.camera).points)
-                    mask = None
-                    if use_masks and f.instance is not None:
-                        mask = np.asarray(f.instance).astype(np.int64)
-                        mask[mask < -1] = -1
-                    res = perception.from_depth(f.depth, f.camera, stamp=f.stamp,
-                                                T_world_cam=T_wc, mask=mask)  # fmt: skip
+                    res, warnings = source.perceive()
                 except SSPError as exc:
-                    log.warning("scene %s image %d skipped: %s", scene_path.name, im, exc)
-                    report["failed"].append({"scene": scene.scene_id, "im_id": im,
-                                             "error": str(exc)})  # fmt: skip
+                    error = source.where(str(exc))
+                    log.warning("scene %s image %d skipped: %s", scene_path.name, source.index,
+                                error)  # fmt: skip
+                    report["failed"].append({"scene": scene_id, "im_id": source.index,
+                                             "error": error})  # fmt: skip
                     continue
+                for w in warnings:
+                    log.warning("scene %s image %d: %s", scene_path.name, source.index, w)
                 seconds = time.perf_counter() - t0
-                T_cw = invert(np.asarray(T_wc, dtype=float))
+                T_cw = invert(np.asarray(res.frame.T_world_cam, dtype=float))
                 rows = [
                     csv.format_row(
-                        scene.scene_id,
-                        im,
+                        scene_id,
+                        source.index,
                         ids[h.class_name],
                         float(h.score),
                         T_cw @ h.T_world_obj,
@@ -287,7 +283,7 @@ def estimate(
                 report["images"] += 1
                 report["rows"] += len(rows)
                 if progress is not None:
-                    progress(k + 1, len(scene), f"scene {scene_path.name}: {len(rows)} rows")
+                    progress(k + 1, inp.total, f"scene {scene_path.name}: {len(rows)} rows")
     return report
 
 

@@ -20,7 +20,7 @@ from pathlib import Path
 from ssp.config import SSPConfig
 from ssp.eval.estimated import estimate_sequence
 from ssp.eval.stream_stats import stream_records, summarize_stream
-from ssp.executor import Parallel, map_items
+from ssp.executor import Parallel, done_messages, map_items
 from ssp.sim.generate import generate_sequence
 from ssp.sim.realistic import RealisticNoise, RealisticStream
 
@@ -52,9 +52,7 @@ def run_stream_calibration(
         noise=noise,
         progress=progress if parallel.serial else None,
     )
-    done = None
-    if progress is not None and not parallel.serial:
-        done = lambda k, total, name: progress(f"{name} done ({k}/{total})")  # noqa: E731
+    done = done_messages(progress, parallel)
     parts = map_items(
         work,
         seeds,

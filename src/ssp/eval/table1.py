@@ -58,7 +58,7 @@ from ssp.eval.metrics import (
     summarize,
 )
 from ssp.eval.tracking import IdSwitches
-from ssp.executor import Parallel, map_items
+from ssp.executor import Parallel, done_messages, map_items
 from ssp.library.model import ObjectInstance
 from ssp.physics import World
 from ssp.sim.sequence import SimSequence
@@ -421,9 +421,11 @@ def run_table1_parts(
         for s, seq in enumerate(sequences)
     ]
 
+    tell = done_messages(progress, parallel)
+
     def done(k: int, total: int, name: str) -> None:
-        if progress is not None and not serial:
-            progress(f"{name} done ({k}/{total})")
+        if tell is not None:
+            tell(k, total, name)
         if on_sequence is not None:
             on_sequence(k, total)
 

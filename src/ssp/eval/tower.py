@@ -77,7 +77,7 @@ from ssp.eval.metrics import (
     precision_deviations,
     summarize,
 )
-from ssp.executor import Parallel, map_items
+from ssp.executor import Parallel, done_messages, map_items
 from ssp.geometry import yaw_pose
 from ssp.library.model import ObjectInstance, ObjectModel
 from ssp.physics.world import World
@@ -623,9 +623,7 @@ def run_tower(
         realism=realism,
         progress=progress if parallel.serial else None,
     )
-    done = None
-    if progress is not None and not parallel.serial:
-        done = lambda k, total, name: progress(f"{name} done ({k}/{total})")  # noqa: E731
+    done = done_messages(progress, parallel)
     report = None
     if on_trial is not None:
         report = lambda i, tr: on_trial(*items[i], tr)  # noqa: E731

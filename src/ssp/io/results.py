@@ -38,6 +38,7 @@ __all__ = [
     "BopCsvWriter",
     "ObjectIds",
     "bop_csv_name",
+    "bop_csv_parts",
     "frame_record",
     "read_bop_csv",
     "scan_bop_csv",
@@ -96,6 +97,13 @@ def bop_csv_name(dataset: str, method: str = "ssp", split: str = "test") -> str:
     if not split or "_" in split:
         raise ValueError(f"split must be non-empty without '_', got {split!r}")
     return f"{method}_{clean}-{split}.csv"
+
+
+def bop_csv_parts(name: str) -> dict[str, str] | None:
+    """``{method, dataset, split}`` of a BOP results file name ``METHOD_DATASET-SPLIT.csv``,
+    or None when the name does not follow the convention."""
+    m = _BOP_NAME.match(name)
+    return None if m is None else m.groupdict()
 
 
 def _check_method(method: str) -> None:
