@@ -31,3 +31,32 @@ def test_bench_parser_reports_every_frame_kind(tmp_path):
     j, m = write_report(result, tmp_path)
     assert json.loads(j.read_text())["protocol"] == "parser-timing"
     assert "| 3 | unchanged |" in m.read_text()
+
+
+def test_link_node_structure_puts_every_link_end_on_a_node_face():
+    from ssp.eval.bench_parser import links_structure
+
+    lib = ObjectLibrary.builtin()  # a block plays the link, a cube the node
+    gt = links_structure(lib, link="block", node="cube")
+    assert len(gt) == 6
+    for cls, T in gt.values():
+        assert T[2, 3] + (lib[cls].mesh.vertices @ T[:3, :3].T)[:, 2].min() > -1e-9
+    size = float(lib["cube"].extents[0])
+    (_, a), (_, b), (_, c) = gt["node_a"], gt["node_b"], gt["node_c"]
+    long_side = float(lib["block"].extents[2])  # the link's own z axis is laid along x, y
+    assert abs(b[0, 3] - a[0, 3] - (size + long_side)) < 1e-9
+    assert abs(c[1, 3] - b[1, 3] - (size + long_side)) < 1e-9
+
+
+def test_targets_are_checked_against_the_rows_measured():
+    from ssp.eval.bench_parser import _checks
+
+    def row(n, changed, scene="stacks"):
+        frames = {f: {"sec_per_frame_mean": changed} for f in FRAMES}
+        return {"scene": scene, "objects": n, **frames}
+
+    checks = {c["what"]: c for c in _checks([row(10, 0.2), row(20, 0.5), row(6, 0.3, "links")])}
+    assert checks["changed frame, N = 10 (s)"]["met"]
+    assert not checks["changed frame, N = 20 / N = 10"]["met"]  # 2.5 > 2.1
+    assert checks["link/node structure, added frame (s)"]["met"]
+    assert _checks([row(5, 0.1)]) == []

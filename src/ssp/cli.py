@@ -442,28 +442,49 @@ def bench_parser_cmd(
     k: int = typer.Option(5, min=1, help="Hypotheses per object."),
     repeats: int = typer.Option(2, min=1, help="Scenes per size."),
     seed: int = typer.Option(0, help="Seed of the scenes and the noise."),
+    links: Path | None = typer.Option(
+        None,
+        "--links",
+        help="Folder with the paper's link_uniform and node_uniform meshes (e.g. "
+        "../shared/data/costar-links): adds a 6-object link/node structure.",
+    ),
 ) -> None:
     """Seconds per frame of the scene parser (added, changed and unchanged frames) for stacks
-    of N cubes and blocks on rendered depth, with the share of each stage. One core."""
+    of N cubes and blocks on rendered depth, with the share of each stage, and whether
+    issue 19's targets are met. One core."""
     from ssp.eval.bench_parser import FRAMES, STAGES, bench_parser, write_report
+    from ssp.library import ObjectLibrary
 
     try:
         ns = tuple(int(x) for x in sizes.split(",") if x.strip())
     except ValueError as exc:
         raise typer.BadParameter(f"--sizes must be integers separated by commas: {exc}") from exc
+    cfg = _config(config)
+    link_lib = None
+    if links is not None:
+        with console.status(f"loading the models of {links}") as status:
+            link_lib = ObjectLibrary.from_folder(links, cfg, status=status.update)
+        missing = {"link_uniform", "node_uniform"} - set(link_lib.names)
+        if missing:
+            raise typer.BadParameter(
+                f"--links {links} has no {', '.join(sorted(missing))} model "
+                f"(it has {', '.join(link_lib.names)})"
+            )
     with console.status("timing the scene parser") as status:
         result = bench_parser(
-            ns, k=k, repeats=repeats, seed=seed, config=_config(config), progress=status.update
-        )
+            ns, k=k, repeats=repeats, seed=seed, config=cfg, progress=status.update,
+            links=link_lib,
+        )  # fmt: skip
     files = write_report(result, out)
     table = Table(title=f"scene parser, k = {k}, {repeats} scenes per size, one core")
     for col in ("N", "frame", "s/frame", "max", "tested", *STAGES, "other"):
         table.add_column(col, justify="right")
     for r in result["rows"]:
+        label = f"{r['objects']}" + (" (links)" if r["scene"] == "links" else "")
         for name in FRAMES:
             d = r[name]
             table.add_row(
-                str(r["objects"]),
+                label,
                 name,
                 f"{d['sec_per_frame_mean']:.3f}",
                 f"{d['sec_per_frame_max']:.3f}",
@@ -471,6 +492,9 @@ def bench_parser_cmd(
                 *(f"{100 * d['stage_share'][s]:.0f} %" for s in (*STAGES, "other")),
             )
     console.print(table)
+    for c in result["checks"]:
+        mark = "[green]met[/]" if c["met"] else "[red]not met[/]"
+        console.print(f"{c['what']}: {c['value']:.3f} (target <= {c['limit']:g}) {mark}")
     for f in files:
         console.print(f"wrote [bold]{f}[/]")
 

@@ -32,7 +32,7 @@ from ssp.parser import SceneEstimate, SceneParser
 from ssp.sim.frames import synthetic_frame
 from ssp.sim.render import look_at
 
-__all__ = ["bench_parser", "stacks", "write_report"]
+__all__ = ["bench_parser", "links_structure", "stacks", "write_report"]
 
 STAGES = ("forces", "stepping", "contacts", "scoring")
 FRAMES = ("added", "changed", "unchanged")
@@ -62,6 +62,58 @@ def stacks(library: ObjectLibrary, n: int, seed: int = 0, spacing: float = 0.09)
     return gt
 
 
+def _rot(axis: str, angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    if axis == "x":
+        return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+    if axis == "y":
+        return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def links_structure(library, link: str = "link_uniform", node: str = "node_uniform") -> dict:
+    """A link/node structure of the paper's real experiment (``../shared/data/costar-links``):
+    three nodes and three links, ``id -> (class, T_world_obj)``.
+
+    Node ``a`` sits on the table; link 1 lies on the table along x, its end cap flush on
+    ``a``'s +x face, with node ``b`` at its other end; link 3 lies along y from ``b``'s +y face
+    to node ``c``; link 2 stands on ``a``'s top face. Every link end is centred on a node
+    face, as the parts' magnets hold them.
+    """
+    ml, mn = library[link], library[node]
+
+    def lowest(m, R) -> float:  # height of the model origin above its lowest point, m
+        return -float((np.asarray(m.mesh.vertices) @ R.T)[:, 2].min())
+
+    def along(m, R, axis: int) -> tuple[float, float]:  # extent of the rotated mesh on an axis
+        v = (np.asarray(m.mesh.vertices) @ R.T)[:, axis]
+        return float(v.min()), float(v.max())
+
+    eye = np.eye(3)
+    R_x = _rot("y", np.pi / 2)  # the link's long (z) axis along world x
+    R_y = _rot("x", -np.pi / 2)  # ... along world y
+    zn = lowest(mn, eye)
+    n_lo, n_hi = along(mn, eye, 0)
+    l_lo, l_hi = along(ml, R_x, 0)
+    a = np.array([0.0, 0.0, zn])
+    l1 = np.array([a[0] + n_hi - l_lo, 0.0, lowest(ml, R_x)])
+    b = np.array([l1[0] + l_hi - n_lo, 0.0, zn])
+    ny_lo, ny_hi = along(mn, eye, 1)
+    ly_lo, ly_hi = along(ml, R_y, 1)
+    l3 = np.array([b[0], b[1] + ny_hi - ly_lo, lowest(ml, R_y)])
+    c = np.array([b[0], l3[1] + ly_hi - ny_lo, zn])
+    top = a[2] + float(np.asarray(mn.mesh.vertices)[:, 2].max())
+    l2 = np.array([a[0], a[1], top + lowest(ml, eye)])
+    return {
+        "node_a": (node, make_pose(eye, a)),
+        "link_2": (link, make_pose(eye, l2)),
+        "link_1": (link, make_pose(R_x, l1)),
+        "node_b": (node, make_pose(eye, b)),
+        "link_3": (link, make_pose(R_y, l3)),
+        "node_c": (node, make_pose(eye, c)),
+    }
+
+
 def _slide(gt: dict, dx: float) -> dict:
     """The same scene with the first stack (the objects at the first x, y) moved by dx in x."""
     first = next(iter(gt.values()))[1][:2, 3]
@@ -89,6 +141,48 @@ def _shares(est: SceneEstimate) -> dict[str, float]:
     return out
 
 
+def _time_scene(parser: SceneParser, lib, gt: dict, T_world_cam, rng, k: int) -> dict:
+    """The three frames (added, changed, unchanged) of one scene: ``frame -> (wall s, estimate,
+    ssp errors, hypothesis errors)``."""
+    scenes = {"added": gt, "changed": _slide(gt, 0.015)}
+    scenes["unchanged"] = scenes["changed"]
+    out = {}
+    for t, name in enumerate(FRAMES):
+        f = synthetic_frame(
+            lib, scenes[name], T_world_cam=T_world_cam, rng=rng, k=k, stamp=float(t)
+        )
+        t0 = time.perf_counter()
+        est = parser.update(f)
+        wall = time.perf_counter() - t0
+        out[name] = (wall, est, *_errors(est, f, scenes[name], lib))
+    return out
+
+
+def _row(runs: Sequence[dict]) -> dict:
+    """Per frame kind: mean/max seconds, hypotheses tested, stage shares, mean errors."""
+    row = {}
+    for name in FRAMES:
+        walls = [r[name][0] for r in runs]
+        ests = [r[name][1] for r in runs]
+        e = [x for r in runs for x in r[name][2]]
+        h = [x for r in runs for x in r[name][3]]
+        shares = [_shares(x) for x in ests]
+        row[name] = {
+            "sec_per_frame_mean": float(np.mean(walls)),
+            "sec_per_frame_max": float(np.max(walls)),
+            "hypotheses_tested_mean": float(np.mean([x.hypotheses_tested for x in ests])),
+            "unchanged_shortcut": [bool(x.unchanged) for x in ests],
+            "stage_share": {s: float(np.mean([sh[s] for sh in shares])) for s in shares[0]},
+            "error": {
+                "ssp_mm_mean": float(np.mean([x[0] for x in e])),
+                "ssp_deg_mean": float(np.mean([x[1] for x in e])),
+                "hypotheses_mm_mean": float(np.mean([x[0] for x in h])),
+                "hypotheses_deg_mean": float(np.mean([x[1] for x in h])),
+            },
+        }
+    return row
+
+
 def bench_parser(
     sizes: Sequence[int] = (5, 10, 20),
     k: int = 5,
@@ -96,57 +190,45 @@ def bench_parser(
     seed: int = 0,
     config: SSPConfig | None = None,
     progress: Callable[[str], None] | None = None,
+    links: ObjectLibrary | None = None,
 ) -> dict:
-    """Time the parser on ``repeats`` scenes of each size; returns a JSON-ready dict."""
+    """Time the parser on ``repeats`` scenes of each size; returns a JSON-ready dict.
+
+    ``links``: a library with the paper's ``link_uniform`` and ``node_uniform`` models
+    (``../shared/data/costar-links``); adds a row for :func:`links_structure` (6 objects).
+    """
     config = config if config is not None else SSPConfig()
     lib = ObjectLibrary.builtin(config)
     T_world_cam = look_at([-0.5, -0.6, 0.65], [0.0, 0.0, 0.03])
     rows = []
     for n in sizes:
-        per: dict[str, list] = {f: [] for f in FRAMES}
-        err: dict[str, tuple[list, list]] = {f: ([], []) for f in FRAMES}
+        runs = []
         for r in range(repeats):
             if progress:
                 progress(f"N = {n}, scene {r + 1}/{repeats}")
             rng = np.random.default_rng([seed, n, r])
             gt = stacks(lib, n, seed=seed * 1000 + n * 10 + r)
-            scenes = {"added": gt, "changed": _slide(gt, 0.015)}
-            scenes["unchanged"] = scenes["changed"]
-            parser = SceneParser(lib, config)
-            for t, name in enumerate(FRAMES):
-                f = synthetic_frame(
-                    lib, scenes[name], T_world_cam=T_world_cam, rng=rng, k=k, stamp=float(t)
-                )
-                t0 = time.perf_counter()
-                est = parser.update(f)
-                wall = time.perf_counter() - t0
-                per[name].append((wall, est))
-                e, h = _errors(est, f, scenes[name], lib)
-                err[name][0].extend(e)
-                err[name][1].extend(h)
-        row = {"objects": n, "k": k, "n_times_k": n * k}
-        for name in FRAMES:
-            walls = [w for w, _ in per[name]]
-            ests = [e for _, e in per[name]]
-            shares = [_shares(e) for e in ests]
-            row[name] = {
-                "sec_per_frame_mean": float(np.mean(walls)),
-                "sec_per_frame_max": float(np.max(walls)),
-                "hypotheses_tested_mean": float(np.mean([e.hypotheses_tested for e in ests])),
-                "unchanged_shortcut": [bool(e.unchanged) for e in ests],
-                "stage_share": {s: float(np.mean([sh[s] for sh in shares])) for s in shares[0]},
-                "error": {
-                    "ssp_mm_mean": float(np.mean([e[0] for e in err[name][0]])),
-                    "ssp_deg_mean": float(np.mean([e[1] for e in err[name][0]])),
-                    "hypotheses_mm_mean": float(np.mean([e[0] for e in err[name][1]])),
-                    "hypotheses_deg_mean": float(np.mean([e[1] for e in err[name][1]])),
-                },
-            }
-        rows.append(row)
-    xs = np.array([r["n_times_k"] for r in rows], dtype=float)
+            runs.append(_time_scene(SceneParser(lib, config), lib, gt, T_world_cam, rng, k))
+        rows.append({"scene": "stacks", "objects": n, "k": k, "n_times_k": n * k, **_row(runs)})
+    if links is not None:
+        gt = links_structure(links)
+        T_links_cam = look_at([-0.4, -0.6, 0.7], [0.15, 0.1, 0.05])
+        runs = []
+        for r in range(repeats):
+            if progress:
+                progress(f"link/node structure, scene {r + 1}/{repeats}")
+            rng = np.random.default_rng([seed, len(gt), r, 1])
+            parser = SceneParser(links, config)
+            runs.append(_time_scene(parser, links, gt, T_links_cam, rng, k))
+        link_row = {"scene": "links", "objects": len(gt), "k": k, "n_times_k": len(gt) * k}
+        link_row.update(_row(runs))
+    stack_rows = list(rows)
+    if links is not None:
+        rows.append(link_row)
+    xs = np.array([r["n_times_k"] for r in stack_rows], dtype=float)
     fits = {}
     for name in FRAMES:
-        ys = np.array([r[name]["sec_per_frame_mean"] for r in rows])
+        ys = np.array([r[name]["sec_per_frame_mean"] for r in stack_rows])
         if len(xs) >= 2:
             slope, icept = np.polyfit(xs, ys, 1)
             pred = slope * xs + icept
@@ -170,8 +252,36 @@ def bench_parser(
         },
         "rows": rows,
         "linear_fit_vs_n_times_k": fits,
-        "targets_s": {"changed": 2.0, "unchanged": 0.2},
+        "checks": _checks(rows),
     }
+
+
+#: Issue 19's targets: (what, frame kind, scene, N, limit); N/N: the cost ratio of two sizes.
+TARGETS = (
+    ("changed frame, N = 10 (s)", "changed", "stacks", 10, 0.3),
+    ("unchanged frame, N = 10 (s)", "unchanged", "stacks", 10, 0.05),
+    ("changed frame, N = 20 / N = 10", "changed", "stacks", (20, 10), 2.1),
+    ("added frame, N = 20 / N = 10", "added", "stacks", (20, 10), 2.1),
+    ("link/node structure, added frame (s)", "added", "links", 6, 0.35),
+)
+
+
+def _checks(rows: Sequence[dict]) -> list[dict]:
+    """Each target whose rows were measured: the value, the limit and whether it is met."""
+    at = {(r["scene"], r["objects"]): r for r in rows}
+    out = []
+    for what, frame, scene, n, limit in TARGETS:
+        if isinstance(n, tuple):
+            if (scene, n[0]) not in at or (scene, n[1]) not in at:
+                continue
+            a, b = (at[(scene, m)][frame]["sec_per_frame_mean"] for m in n)
+            value = a / b
+        elif (scene, n) in at:
+            value = at[(scene, n)][frame]["sec_per_frame_mean"]
+        else:
+            continue
+        out.append({"what": what, "value": value, "limit": limit, "met": bool(value <= limit)})
+    return out
 
 
 def write_report(result: dict, out: Path) -> tuple[Path, Path]:
@@ -187,11 +297,12 @@ def write_report(result: dict, out: Path) -> tuple[Path, Path]:
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in result["rows"]:
+        label = f"{r['objects']}" + (" (links)" if r.get("scene") == "links" else "")
         for name in FRAMES:
             d = r[name]
             sh = d["stage_share"]
             lines.append(
-                f"| {r['objects']} | {name} | {d['sec_per_frame_mean']:.3f} | "
+                f"| {label} | {name} | {d['sec_per_frame_mean']:.3f} | "
                 f"{d['sec_per_frame_max']:.3f} | {d['hypotheses_tested_mean']:.0f} | "
                 + " | ".join(f"{100 * sh[s]:.0f} %" for s in (*STAGES, "other"))
                 + f" | {d['error']['ssp_mm_mean']:.2f} mm / {d['error']['ssp_deg_mean']:.2f} deg"
@@ -204,6 +315,12 @@ def write_report(result: dict, out: Path) -> tuple[Path, Path]:
             f"- {name}: {1000 * f['sec_per_hypothesis']:.1f} ms per hypothesis, intercept "
             f"{f['intercept_s']:.3f} s, R^2 {f['r2']:.3f}"
         )
+    if result.get("checks"):
+        lines += ["", "| target | measured | limit | met |", "|---|---|---|---|"]
+        lines += [
+            f"| {c['what']} | {c['value']:.3f} | {c['limit']:g} | {'yes' if c['met'] else 'no'} |"
+            for c in result["checks"]
+        ]
     m = out / "results.md"
     m.write_text("\n".join(lines) + "\n")
     return j, m
