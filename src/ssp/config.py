@@ -464,6 +464,20 @@ class SearchConfig(_Section):
     final_settle: float = Field(
         0.2, ge=0, description="Settle of the whole chosen scene, with forces, s."
     )
+    rest_check_every: int = Field(
+        4,
+        ge=0,
+        description=(
+            "Steps between rest checks in a window without forces: the window ends early once "
+            "no object moved more than rest_translation / rest_rotation per step (0: never)."
+        ),
+    )
+    rest_translation: float = Field(
+        2e-6, gt=0, description="At rest below this motion per step, m (0.4 mm/s at 5 ms)."
+    )
+    rest_rotation: float = Field(
+        2e-4, gt=0, description="At rest below this rotation per step, rad (0.04 rad/s)."
+    )
     hypotheses_per_object: int = Field(5, ge=1, description="k: hypotheses kept per object.")
     reach: float = Field(
         0.02,
@@ -482,6 +496,20 @@ class SearchConfig(_Section):
             "Skip the search when nothing changed: no object appeared or vanished, every "
             "object's hypotheses (per-axis median) lie within the static translation of its "
             "previous pose, and that pose still fits the data (see unchanged_fit_ratio)."
+        ),
+    )
+    skip_settled: bool = Field(
+        True,
+        description=(
+            "An unchanged object (as for unchanged_shortcut) that no changed object comes "
+            "within reach of keeps its previous pose without tests (ssp.static)."
+        ),
+    )
+    retest_static: bool = Field(
+        False,
+        description=(
+            "Test every hypothesis of an unchanged object near a change too (False: only its "
+            "first-guess and previous poses; ssp.static)."
         ),
     )
     unchanged_fit_ratio: float = Field(

@@ -50,6 +50,7 @@ from functools import partial
 from typing import Any
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ssp.config import SSPConfig, TemporalConfig
 from ssp.errors import InvalidPoseError, PhysicsError, SSPError, UnknownObjectError
@@ -67,6 +68,7 @@ from ssp.scene import Frame, FrameError, Hypothesis, TransitionMode
 from ssp.scoring import SceneScore, SceneScorer
 from ssp.search import Candidate, Simulator, layered_search
 from ssp.segments import explained_fraction, object_segments
+from ssp.static import is_unchanged, settled_objects
 from ssp.support import GROUND
 from ssp.temporal import (
     associate,
@@ -87,6 +89,7 @@ from ssp.verification import (
     evidence,
     held_up,
     may_hold_up,
+    point_spacing,
     verify_and_place,
 )
 from ssp.visibility import CameraView
@@ -443,10 +446,13 @@ class SceneParser:
         out: dict[str, Rejected] = {}
         for oid in new:
             best: tuple[tuple, Evidence, Hypothesis] | None = None
+            seg = segments.get(oid)
+            tree = cKDTree(np.asarray(seg, dtype=float)) if seg is not None and len(seg) else None
+            spacing = point_spacing(tree) if tree is not None else None
             for h in groups[oid]:
                 ev = evidence(
-                    models[oid], h.T_world_obj, segments.get(oid), view, self.config,
-                    own_label=owner.get(oid),
+                    models[oid], h.T_world_obj, tree, view, self.config,
+                    own_label=owner.get(oid), segment_spacing=spacing,
                 )  # fmt: skip
                 key = (check_new(ev, self.config, loose=True).keep, ev.fit, -ev.seen_through)
                 if best is None or key > best[0]:
@@ -566,15 +572,26 @@ class SceneParser:
                 camera_position=cam,
             )
 
+        static = {
+            oid
+            for oid in detected
+            if oid in self._known
+            and is_unchanged(
+                scorer,
+                world.index(oid),
+                self._known[oid].T_world_obj,
+                self._known[oid].fit,
+                groups[oid],
+                models[oid],
+                cfg,
+            )  # fmt: skip
+        }
         unchanged = (
             cfg.search.unchanged_shortcut
             and bool(self._known)
             and not missing
             and set(detected) == set(self._known)
-            and all(
-                self._unchanged(scorer, world.index(oid), self._known[oid], groups[oid])
-                for oid in detected
-            )
+            and static == set(detected)
         )
         retained: dict[str, list[str]] = {}
         tested = 0
@@ -589,8 +606,24 @@ class SceneParser:
             # static object whose hidden part fits a wrong pose best thus starts where it was,
             # and the objects on it settle onto it: the search tests each object with the
             # objects it carries at their first-guess poses.
+            settled = set()
+            if cfg.search.skip_settled:
+                settled = settled_objects(
+                    static,
+                    {
+                        oid: [prev_pose[oid]]
+                        if oid in static
+                        else [*cand_poses[oid], *([prev_pose[oid]] if oid in prev_pose else [])]
+                        for oid in ids
+                    },
+                    models,
+                    cfg.search.reach,
+                )
             for oid in detected:
                 i = world.index(oid)
+                if oid in settled:
+                    first[oid] = prev_pose[oid]
+                    continue
                 first[oid] = best_first_guess(
                     groups[oid], prev_pose.get(oid), lambda T, i=i: scorer.unsimulated(i, T)
                 )
@@ -619,13 +652,17 @@ class SceneParser:
             }
             candidates: dict[str, list[Candidate]] = {}
             for oid in ids:
-                cands = [
-                    Candidate(h.T_world_obj, "hypothesis", h.score) for h in groups.get(oid, [])
-                ]
+                # an unchanged object near a change: where it was, or where its first guess
+                # put it (the best of that and its hypotheses by data fit and transition)
+                hyps = [] if oid in static and not cfg.search.retest_static else groups.get(oid, [])
+                cands = [Candidate(h.T_world_obj, "hypothesis", h.score) for h in hyps]
                 if oid in prev_pose and (cfg.search.previous_candidates or oid not in groups):
                     cands.append(Candidate(prev_pose[oid], "previous"))
                 candidates[oid] = cands
-            result = layered_search(world, sim, scorer, candidates, layers, children, timer)
+            result = layered_search(
+                world, sim, scorer, candidates, layers, children, timer,
+                settled={index[oid] for oid in settled},
+            )  # fmt: skip
             score, chosen, tested = result.score, result.chosen, result.tested
             for oid in removed:
                 if oid in index:
@@ -699,22 +736,6 @@ class SceneParser:
                 rescore=partial(_rescore, world, scorer, timer),
             ),
         )
-
-    def _unchanged(self, scorer: SceneScorer, i: int, known: _Known, hyps) -> bool:
-        """Is object ``i`` where it was? Its hypotheses agree (their per-axis median position
-        lies within the static threshold of the previous pose) and the previous pose fits this
-        frame's data about as well as it fitted the frame that set it
-        (``c_now >= ratio c_then - tolerance``)."""
-        s = self.config.search
-        cfg_t = self.config.temporal
-        c = np.asarray(self.library[known.class_name].center_of_mass, dtype=float)
-        at = [h.T_world_obj[:3, :3] @ c + h.T_world_obj[:3, 3] for h in hyps]
-        centre = np.median(at, axis=0)  # per-axis median of the hypotheses' centres of mass
-        was = known.T_world_obj[:3, :3] @ c + known.T_world_obj[:3, 3]
-        if np.linalg.norm(centre - was) >= cfg_t.static_translation:
-            return False
-        c_now = scorer.fit_fraction(i, known.T_world_obj)
-        return c_now >= s.unchanged_fit_ratio * known.fit - s.unchanged_fit_tolerance
 
     def _polish(
         self,

@@ -18,7 +18,7 @@ within the layer"), and no test can make the partial scene worse than before it.
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -107,8 +107,7 @@ class Simulator:
         if not with_forces:
             world.clear_wrenches()
             with self.timer("stepping"):
-                world.step(n)
-            self.steps += n
+                self.steps += self._until_rest(n)
             return
         g = float(self.config.physics.gravity)
         done = 0
@@ -126,6 +125,30 @@ class Simulator:
             world.set_friction_scale(1.0)
             world.clear_wrenches()
         self.steps += n
+
+    def _until_rest(self, n: int) -> int:
+        """Up to ``n`` steps without forces, in chunks of ``search.rest_check_every``; stops
+        once a chunk moved no object more than ``search.rest_translation`` (m) and
+        ``search.rest_rotation`` (rad) per step: the scene is at rest and further steps would
+        leave it where it is. Returns the steps taken. (0 disables the check.)"""
+        s = self.config.search
+        chunk = int(s.rest_check_every)
+        if chunk <= 0:
+            self.world.step(n)
+            return n
+        done = 0
+        tol_t = chunk * float(s.rest_translation)
+        tol_q = chunk * float(s.rest_rotation) / 2.0  # a quaternion moves by about angle / 2
+        while done < n:
+            k = min(chunk, n - done)
+            q0 = self.world.configuration()
+            self.world.step(k)
+            done += k
+            d = np.abs(self.world.configuration() - q0)
+            moved_t = d[:, :3].max(initial=0.0)
+            if k == chunk and moved_t <= tol_t and d[:, 3:].max(initial=0.0) <= tol_q:
+                break
+        return done
 
     def window(self) -> None:
         """The per-hypothesis window: with forces, then without (``config.search``)."""
@@ -204,6 +227,7 @@ def layered_search(
     layers: Sequence[Sequence[int]],
     children: Mapping[int, Sequence[int]],
     timer: StageTimer,
+    settled: Collection[int] = (),
 ) -> SearchResult:
     """Alg. 3 on ``world``, whose objects sit at their settled first guesses.
 
@@ -215,6 +239,8 @@ def layered_search(
         layers: object indices by support layer (:meth:`SupportGraph.layers`).
         children: object index -> indices of the objects it supports (first-guess graph).
         timer: stage timer.
+        settled: object indices that keep their current pose untested, in their layer
+            (:func:`ssp.static.settled_objects`; ``chosen`` says ``"previous (settled)"``).
 
     Returns:
         The final scene (all objects in ``layers`` enabled, settled ``config.search.final_settle``
@@ -237,6 +263,9 @@ def layered_search(
             world.set_enabled(ids[i], True)
         for i in sorted(layer, key=lambda k: ids[k]):
             oid = ids[i]
+            if i in settled:
+                chosen[oid] = "previous (settled)"
+                continue
             kids = [c for c in children.get(i, ()) if not world.is_enabled(ids[c])]
             tests = [Candidate(world.get_pose(oid), "current"), *candidates.get(oid, ())]
             # Objects out of reach of every candidate (and of the children) that hold up none

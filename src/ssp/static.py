@@ -1,0 +1,86 @@
+"""Static objects across frames: which objects are where they were, and which of them the
+search can leave where they were (issue 19, "caching across frames for static objects").
+
+An object is **unchanged** (:func:`is_unchanged`) when this frame's hypotheses agree with its
+previous pose and that pose still fits the data. When every object is unchanged the parser
+skips the search altogether (``search.unchanged_shortcut``). Otherwise an unchanged object
+whose **neighbourhood is unchanged** too (:func:`settled_objects`: no object that changed
+comes within ``search.reach`` of it, at any of that object's candidate poses) keeps its
+previous pose without tests (``search.skip_settled``): testing its candidates again would
+only repeat the previous frame's search on the same evidence. Objects near a change, and the
+objects that hold those up, are searched as usual, so the cost of a frame grows with what
+changed in it, not with the size of the scene.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping, Sequence
+
+import numpy as np
+
+from ssp.config import SSPConfig
+from ssp.library.model import ObjectModel
+from ssp.scene import Hypothesis
+from ssp.scoring import SceneScorer
+
+__all__ = ["is_unchanged", "settled_objects"]
+
+
+def is_unchanged(
+    scorer: SceneScorer,
+    i: int,
+    T_prev: np.ndarray,
+    fit_prev: float,
+    hypotheses: Sequence[Hypothesis],
+    model: ObjectModel,
+    config: SSPConfig,
+) -> bool:
+    """Is object ``i`` of the scorer's world where it was (``T_prev``, 4x4, m)? Its
+    ``hypotheses`` agree (the per-axis median of their centres of mass lies within
+    ``temporal.static_translation`` of the previous one) and ``T_prev`` fits this frame's data
+    about as well as it fitted the frame that set it: ``c_now >= ratio c_then - tolerance``
+    (``search.unchanged_fit_ratio``, ``unchanged_fit_tolerance``; ``fit_prev`` = c_then)."""
+    s = config.search
+    c = np.asarray(model.center_of_mass, dtype=float)
+    at = [h.T_world_obj[:3, :3] @ c + h.T_world_obj[:3, 3] for h in hypotheses]
+    centre = np.median(at, axis=0)
+    was = T_prev[:3, :3] @ c + T_prev[:3, 3]
+    if np.linalg.norm(centre - was) >= config.temporal.static_translation:
+        return False
+    c_now = scorer.fit_fraction(i, T_prev)
+    return c_now >= s.unchanged_fit_ratio * fit_prev - s.unchanged_fit_tolerance
+
+
+def _box(model: ObjectModel, poses: Iterable[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """World axis-aligned box ``(lo (3,), hi (3,))`` of the model's convex hull over ``poses``."""
+    v = np.asarray(model.hull_vertices, dtype=float)
+    w = np.concatenate([v @ T[:3, :3].T + T[:3, 3] for T in poses])
+    return w.min(axis=0), w.max(axis=0)
+
+
+def settled_objects(
+    unchanged: Iterable[str],
+    poses: Mapping[str, Sequence[np.ndarray]],
+    models: Mapping[str, ObjectModel],
+    reach: float,
+) -> set[str]:
+    """The ``unchanged`` objects that no other object comes near: their box at their previous
+    pose stays farther than ``reach`` (m, per axis) from the box of every object that is not
+    unchanged, over all that object's ``poses`` (``id -> candidate poses``: previous pose,
+    hypotheses). Every object of the scene must be in ``poses``; an unchanged object's first
+    pose is its previous one."""
+    still = set(unchanged)
+    moving = [oid for oid in poses if oid not in still]
+    if not still:
+        return set()
+    if not moving:
+        return still
+    lo_m, hi_m = zip(*(_box(models[o], poses[o]) for o in moving), strict=True)
+    lo_m, hi_m = np.array(lo_m) - reach, np.array(hi_m) + reach
+    out = set()
+    for oid in still:
+        lo, hi = _box(models[oid], poses[oid][:1])
+        near = np.all((lo[None] <= hi_m) & (hi[None] >= lo_m), axis=1)
+        if not near.any():
+            out.add(oid)
+    return out
