@@ -212,9 +212,9 @@ def test_max_points_subsample_close_to_full(cube):
 class _CountingField(SegmentField):
     calls = 0
 
-    def nearest(self, points):
+    def _nearest(self, points):
         type(self).calls += 1
-        return super().nearest(points)
+        return super()._nearest(points)
 
 
 def test_refresh_cadence_reuses_targets(cube):
@@ -278,3 +278,21 @@ def test_world_integration_pulls_cube_to_segment(cube_model, make_box):
     assert abs(T[2, 3] - CUBE_EDGE / 2) < 1e-4  # gravity + table keep z
     angle = np.degrees(np.arccos(np.clip((np.trace(T[:3, :3]) - 1) / 2, -1, 1)))
     assert angle < 1.0
+
+
+def test_matches_at_a_seen_pose_are_reused_and_the_same(cube):
+    """After reset(), an object back at a pose it was matched at is not queried again (the
+    objects a search test does not move), and the wrench is the one a fresh query gives."""
+    _CountingField.calls = 0
+    field = _CountingField(cube.surface_points, DT)
+    df = DataForces([cube], [field])
+    T = pose(x=0.004, yaw_deg=3)[None]
+    first = df.compute(T, G)
+    df.compute(pose(x=0.002)[None], G)
+    df.reset()
+    again = df.compute(T, G)
+    assert _CountingField.calls == 2
+    fresh = DataForces([cube], [self_field(cube)]).compute(T, G)
+    for a, b, c in zip(first, again, fresh, strict=True):
+        np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(a, c)

@@ -114,7 +114,10 @@ class SegmentField:
         Returns ``(targets (M, 3), dist (M,))``. A point with no segment point within
         ``max_distance`` gets ``dist = inf`` and its own position as target (zero force).
         """
-        q = _check_points(points, "query points")
+        return self._nearest(_check_points(points, "query points"))
+
+    def _nearest(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`nearest` of (M, 3) finite, C-contiguous float points (not checked again)."""
         m = len(q)
         if self._tree is None or m == 0:
             return q.copy(), np.full(m, np.inf)
@@ -178,6 +181,10 @@ class DataForces:
         self.sample_filter = sample_filter
         self._pose_targets: dict[int, np.ndarray] = {}
         self._filter_cache: dict[int, np.ndarray] = {}
+        # sample_filter results and segment matches by the exact pose they were computed at
+        # (pure functions of it: a hit returns what the computation would): the objects a
+        # test does not move start every candidate's window at the same pose
+        self._by_pose: dict[tuple[int, str, bytes], np.ndarray | tuple] = {}
         models = list(models)
         fields = list(fields)
         if len(models) != len(fields):
@@ -286,12 +293,18 @@ class DataForces:
                 mk = self.counts[k]
                 self._targets[k, :, :mk] = targets
                 self._matched[k, :mk] = 1.0
+        if len(self._by_pose) > 50 * max(self.n, 1):
+            self._by_pose.clear()
         for k in np.flatnonzero(active):
             if k in self._pose_targets:
                 continue
             mk = self.counts[k]
-            pts = (r[k, :, :mk] + cog[k, :, None]).T
-            tgt, dist = self.fields[k].nearest(pts)
+            pose = T[k].tobytes()
+            pts = np.ascontiguousarray((r[k, :, :mk] + cog[k, :, None]).T)
+            hit = self._by_pose.get((k, "nearest", pose))
+            if hit is None:
+                hit = self._by_pose[(k, "nearest", pose)] = self.fields[k]._nearest(pts)
+            tgt, dist = hit
             self._targets[k, :, :mk] = tgt.T
             ok = np.isfinite(dist)
             if facing is not None:
@@ -299,7 +312,10 @@ class DataForces:
             if self.sample_filter is not None and ok.any():
                 keep = self._filter_cache.get(k)
                 if keep is None:  # once per reset(): visibility changes little within a window
-                    keep = np.asarray(self.sample_filter(k, pts, nw[k, :, :mk].T), dtype=bool)
+                    keep = self._by_pose.get((k, "filter", pose))
+                    if keep is None:
+                        keep = np.asarray(self.sample_filter(k, pts, nw[k, :, :mk].T), dtype=bool)
+                        self._by_pose[(k, "filter", pose)] = keep
                     self._filter_cache[k] = keep
                 ok &= keep
             self._matched[k, :mk] = ok

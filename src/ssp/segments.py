@@ -147,6 +147,7 @@ def explained_fraction(
     near = np.linalg.norm(points - centre, axis=1) <= r + radius
     if not near.any():
         return 0.0
-    tree = cKDTree(transform_points(T_world_obj, np.asarray(model.surface_points, dtype=float)))
-    dist, _ = tree.query(points[near], k=1, distance_upper_bound=radius)
+    R, t = T_world_obj[:3, :3], T_world_obj[:3, 3]
+    local = (points[near] - t) @ R  # R^T (p - t): the points in the model frame
+    dist, _ = model.surface_tree.query(local, k=1, distance_upper_bound=radius)
     return float(np.count_nonzero(np.isfinite(dist))) / len(points)

@@ -147,10 +147,13 @@ def evidence(
     config: SSPConfig,
     *,
     own_label: int | None = None,
+    segment_spacing: float | None = None,
 ) -> Evidence:
     """The :class:`Evidence` for ``model`` at ``T_world_obj`` (4x4, m): ``segment`` ``(K, 3)``
     (or its KD-tree) is the object's part of the cloud, ``own_label`` the instance label it
-    came from when it is the object's instance segment (then ``explained`` is computed)."""
+    came from when it is the object's instance segment (then ``explained`` is computed).
+    ``segment_spacing``: the segment's :func:`point_spacing` when already known (several
+    poses of one object)."""
     own_segment = own_label is not None
     pts, nrm = _samples(model, int(config.search.fit_samples))
     T = np.asarray(T_world_obj, dtype=float)
@@ -174,7 +177,9 @@ def evidence(
         if tree is None and len(segment):
             tree = cKDTree(np.asarray(segment, dtype=float))
     if tree is not None and n_visible:
-        radius = max(config.data.inlier_radius, SPACING_COVER * point_spacing(tree))
+        if segment_spacing is None:
+            segment_spacing = point_spacing(tree)
+        radius = max(config.data.inlier_radius, SPACING_COVER * segment_spacing)
         d, _ = tree.query(pw[visible], k=1, distance_upper_bound=radius)
         fit = float(np.count_nonzero(np.isfinite(d))) / n_visible
     explained = None

@@ -14,6 +14,7 @@ from typing import NamedTuple
 
 import numpy as np
 import trimesh
+from scipy.spatial import cKDTree
 
 from ssp.library.symmetry import Symmetry, SymmetryDetection
 
@@ -98,6 +99,12 @@ class ObjectModel:
     def hull_vertices(self) -> np.ndarray:
         """(V, 3) vertices of the convex hull of the mesh."""
         return np.asarray(self.mesh.convex_hull.vertices, dtype=float)
+
+    @cached_property
+    def surface_tree(self) -> cKDTree:
+        """KD-tree of :attr:`surface_points` (model frame), built once: a query of world
+        points moved into the model frame replaces a tree built per pose."""
+        return cKDTree(np.asarray(self.surface_points, dtype=float))
 
     @cached_property
     def diameter(self) -> float:

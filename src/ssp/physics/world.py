@@ -360,6 +360,11 @@ class World:
         T[:, 3, 3] = 1.0
         return T
 
+    def configuration(self) -> np.ndarray:
+        """(n, 7) copy of every object's ``[x, y, z, qw, qx, qy, qz]`` (m; unit quaternion),
+        id order: a cheap snapshot to measure motion between steps."""
+        return self._qpos.copy()
+
     def poses(self) -> dict[str, np.ndarray]:
         """``{id: T_world_obj}`` for every object."""
         return dict(zip(self._ids, self.pose_array(), strict=True))
