@@ -487,6 +487,15 @@ class SearchConfig(_Section):
             "the tested object are left out of its tests (cost independent of scene size)."
         ),
     )
+    threads: int = Field(
+        1,
+        ge=1,
+        le=64,
+        description=(
+            "Threads evaluating an object's candidates at once, each on its own copy of the "
+            "world (ssp.lanes); the results are identical for any number."
+        ),
+    )
     previous_candidates: bool = Field(
         True, description="Add the previous frame's pose of an object as a candidate (V-C)."
     )
@@ -506,10 +515,12 @@ class SearchConfig(_Section):
         ),
     )
     retest_static: bool = Field(
-        False,
+        True,
         description=(
-            "Test every hypothesis of an unchanged object near a change too (False: only its "
-            "first-guess and previous poses; ssp.static)."
+            "Test every hypothesis of an unchanged object near a change (False: only its "
+            "first-guess and previous poses: faster changed frames, but on the paper's "
+            "structures 12 gross object-frames instead of 4: a block a new one lands on may "
+            "need another of its hypotheses; ssp.static)."
         ),
     )
     unchanged_fit_ratio: float = Field(

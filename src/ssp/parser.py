@@ -57,6 +57,7 @@ from ssp.errors import InvalidPoseError, PhysicsError, SSPError, UnknownObjectEr
 from ssp.estimate import ObjectEstimate, Rejected, SceneEstimate, SupportEdge
 from ssp.forces import SegmentField
 from ssp.geometry import validate_pose
+from ssp.lanes import Lanes, thread_pool
 from ssp.library.library import ObjectLibrary
 from ssp.library.model import ObjectInstance, ObjectModel
 from ssp.library.symmetry import Symmetry
@@ -213,6 +214,9 @@ class SceneParser:
         self._last_stamp: float | None = None
         self._world: World | None = None
         self._world_key: tuple[tuple[str, str], ...] | None = None
+        self._replicas: list[World] = []  # of _world, for search.threads > 1
+        self._replica_of: World | None = None
+        self._pool = None  # their worker threads, made when first needed
 
     def __repr__(self) -> str:
         return f"SceneParser({len(self._known)} objects, {self._frame_index} frames)"
@@ -309,6 +313,30 @@ class SceneParser:
             self._world = World(instances, table=self.table, config=self.config.physics)
             self._world_key = key
         return self._world
+
+    def _lanes(self, world: World, fields, sim: Simulator, cam, sample_filter) -> Lanes | None:
+        """``search.threads`` lanes for the layered search (:mod:`ssp.lanes`): lane 0 is
+        ``sim``, the others replicas of ``world`` with the same data forces; None for one."""
+        n = int(self.config.search.threads)
+        if n <= 1:
+            return None
+        if self._pool is None:
+            self._pool = thread_pool(n)
+        if len(self._replicas) != n - 1 or self._replica_of is not world:
+            self._replicas = [world.replica() for _ in range(n - 1)]
+            self._replica_of = world
+        sims = [sim] + [
+            Simulator.for_world(
+                r,
+                fields,
+                self.config,
+                StageTimer(),
+                camera_position=cam,
+                sample_filter=sample_filter,
+            )  # fmt: skip
+            for r in self._replicas
+        ]
+        return Lanes(sims, self._pool)
 
     def _id_factory(self, counters: dict[str, int], taken: set[str]):
         def new_id(class_name: str) -> str:
@@ -659,10 +687,13 @@ class SceneParser:
                 if oid in prev_pose and (cfg.search.previous_candidates or oid not in groups):
                     cands.append(Candidate(prev_pose[oid], "previous"))
                 candidates[oid] = cands
+            lanes = self._lanes(world, fields, sim, cam, sample_filter)
             result = layered_search(
                 world, sim, scorer, candidates, layers, children, timer,
-                settled={index[oid] for oid in settled},
+                settled={index[oid] for oid in settled}, lanes=lanes,
             )  # fmt: skip
+            if lanes is not None:
+                lanes.merge_timers(timer)
             score, chosen, tested = result.score, result.chosen, result.tested
             for oid in removed:
                 if oid in index:

@@ -248,7 +248,7 @@ def bench_parser(
         "machine": {
             "python": platform.python_version(),
             "cpu": platform.processor() or "?",
-            "threads": 1,
+            "threads": int(config.search.threads),
         },
         "rows": rows,
         "linear_fit_vs_n_times_k": fits,
@@ -290,7 +290,8 @@ def write_report(result: dict, out: Path) -> tuple[Path, Path]:
     j = out / "results.json"
     j.write_text(json.dumps(result, indent=2))
     lines = [
-        f"# Parser timing (k = {result['k']}, {result['repeats']} scenes per size, one core)",
+        f"# Parser timing (k = {result['k']}, {result['repeats']} scenes per size, "
+        f"{result['machine']['threads']} thread(s))",
         "",
         "| N | frame | s/frame mean | s/frame max | tested | forces | stepping | contacts "
         "| scoring | other | ssp error | hypotheses error |",
