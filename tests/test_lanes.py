@@ -47,12 +47,15 @@ def test_two_threads_give_the_same_scenes_as_one():
     cam = look_at([-0.5, -0.6, 0.65], [0.0, 0.0, 0.03])
     frames = [
         synthetic_frame(LIB, g, T_world_cam=cam, rng=rng, k=3, stamp=float(t))
-        for t, g in enumerate([gt, _slide(gt, 0.015)])
+        for t, g in enumerate([gt, _slide(gt, 0.015), _slide(gt, 0.015)])
     ]
     one, two = _run(1, frames), _run(2, frames)
+    assert one[2].unchanged  # the third frame: the shortcut (ICP polish, evidence in lanes)
     for a, b in zip(one, two, strict=True):
-        assert a.hypotheses_tested == b.hypotheses_tested > 0
+        assert a.hypotheses_tested == b.hypotheses_tested
+        assert a.segments == b.segments and a.warnings == b.warnings
         assert [o.id for o in a.objects] == [o.id for o in b.objects]
         for oa, ob in zip(a.objects, b.objects, strict=True):
             np.testing.assert_array_equal(oa.T_world_obj, ob.T_world_obj)
             assert oa.source == ob.source and oa.terms == ob.terms
+            assert oa.evidence == ob.evidence and oa.reason == ob.reason

@@ -21,7 +21,7 @@ from concurrent.futures import ThreadPoolExecutor
 from ssp.physics.world import WorldState
 from ssp.timing import StageTimer
 
-__all__ = ["Lanes", "TestResult", "thread_pool"]
+__all__ = ["Lanes", "TestResult", "in_lanes", "thread_pool"]
 
 #: ``(total log-probability or None when the simulation failed, the state it ended in or None,
 #: the error message)``
@@ -54,18 +54,9 @@ class Lanes:
     ) -> list[TestResult]:
         """``test(sim, job, base)`` for every job, lane ``j`` taking jobs ``j, j + L, ...``
         in order; results in job order."""
-        n_lanes = min(len(self.sims), len(jobs))
-        if n_lanes <= 1:
-            return [test(self.sims[0], job, base) for job in jobs]
-
-        def lane(j: int) -> list[tuple[int, TestResult]]:
-            return [(k, test(self.sims[j], jobs[k], base)) for k in range(j, len(jobs), n_lanes)]
-
-        futures = [self._pool.submit(lane, j) for j in range(1, n_lanes)]
-        done = lane(0)
-        for f in futures:
-            done.extend(f.result())
-        return [r for _, r in sorted(done, key=lambda kr: kr[0])]
+        return in_lanes(
+            self._pool, len(self.sims), lambda j, job: test(self.sims[j], job, base), jobs
+        )
 
     def merge_timers(self, timer: StageTimer) -> None:
         """Add the worker lanes' stage seconds to ``timer`` (lane 0 uses it directly): with
@@ -74,6 +65,29 @@ class Lanes:
             for name, sec in sim.timer.seconds.items():
                 timer.add(name, sec)
             sim.timer.seconds.clear()
+
+
+def in_lanes(
+    pool: ThreadPoolExecutor | None,
+    lanes: int,
+    fn: Callable[[int, object], object],
+    jobs: Sequence[object],
+) -> list:
+    """``fn(lane, job)`` for every job, in ``lanes`` lanes: lane ``j`` takes jobs ``j, j + L,
+    ...`` in order, lane 0 in the calling thread and the others on ``pool``; the results in job
+    order. One lane (or no pool) runs everything here, in order."""
+    n = min(int(lanes), len(jobs)) if pool is not None else 1
+    if n <= 1:
+        return [fn(0, job) for job in jobs]
+
+    def lane(j: int) -> list[tuple[int, object]]:
+        return [(k, fn(j, jobs[k])) for k in range(j, len(jobs), n)]
+
+    futures = [pool.submit(lane, j) for j in range(1, n)]
+    done = lane(0)
+    for f in futures:
+        done.extend(f.result())
+    return [r for _, r in sorted(done, key=lambda kr: kr[0])]
 
 
 def thread_pool(threads: int) -> ThreadPoolExecutor | None:

@@ -57,7 +57,7 @@ from ssp.errors import InvalidPoseError, PhysicsError, SSPError, UnknownObjectEr
 from ssp.estimate import ObjectEstimate, Rejected, SceneEstimate, SupportEdge
 from ssp.forces import SegmentField
 from ssp.geometry import validate_pose
-from ssp.lanes import Lanes, thread_pool
+from ssp.lanes import Lanes, in_lanes, thread_pool
 from ssp.library.library import ObjectLibrary
 from ssp.library.model import ObjectInstance, ObjectModel
 from ssp.library.symmetry import Symmetry
@@ -314,14 +314,32 @@ class SceneParser:
             self._world_key = key
         return self._world
 
+    def _threads(self):
+        """The worker threads of ``search.threads`` (None for one), made when first needed."""
+        if self._pool is None and int(self.config.search.threads) > 1:
+            self._pool = thread_pool(int(self.config.search.threads))
+        return self._pool
+
+    def _map(self, fn: Callable[[Any], Any], items: Sequence[Any]) -> list:
+        """``[fn(x) for x in items]``, spread over ``search.threads`` threads (``fn`` must
+        not change shared state; the results are the same for any number of threads)."""
+        return in_lanes(self._threads(), self.config.search.threads, lambda _, x: fn(x), items)
+
+    def _background(self, fn: Callable[[], Any]) -> Callable[[], Any]:
+        """Start ``fn()`` on a worker thread (here and now with one thread); returns the
+        call that waits for its result."""
+        pool = self._threads()
+        if pool is None:
+            result = fn()
+            return lambda: result
+        return pool.submit(fn).result
+
     def _lanes(self, world: World, fields, sim: Simulator, cam, sample_filter) -> Lanes | None:
         """``search.threads`` lanes for the layered search (:mod:`ssp.lanes`): lane 0 is
         ``sim``, the others replicas of ``world`` with the same data forces; None for one."""
         n = int(self.config.search.threads)
         if n <= 1:
             return None
-        if self._pool is None:
-            self._pool = thread_pool(n)
         if len(self._replicas) != n - 1 or self._replica_of is not world:
             self._replicas = [world.replica() for _ in range(n - 1)]
             self._replica_of = world
@@ -336,7 +354,7 @@ class SceneParser:
             )  # fmt: skip
             for r in self._replicas
         ]
-        return Lanes(sims, self._pool)
+        return Lanes(sims, self._threads())
 
     def _id_factory(self, counters: dict[str, int], taken: set[str]):
         def new_id(class_name: str) -> str:
@@ -471,8 +489,8 @@ class SceneParser:
         """Stage 4: new objects the data does not support at any of their hypotheses
         (:func:`ssp.verification.check_new` with ``loose``: the raw hypotheses may be a few
         millimetres off)."""
-        out: dict[str, Rejected] = {}
-        for oid in new:
+
+        def verdict(oid: str) -> Rejected | None:
             best: tuple[tuple, Evidence, Hypothesis] | None = None
             seg = segments.get(oid)
             tree = cKDTree(np.asarray(seg, dtype=float)) if seg is not None and len(seg) else None
@@ -485,14 +503,19 @@ class SceneParser:
                 key = (check_new(ev, self.config, loose=True).keep, ev.fit, -ev.seen_through)
                 if best is None or key > best[0]:
                     best = (key, ev, h)
+                if key[0]:  # one hypothesis the data supports keeps the object
+                    return None
             _, ev, h = best
-            verdict = check_new(ev, self.config, loose=True)
-            if not verdict.keep:
-                out[oid] = Rejected(
-                    oid, h.class_name, np.array(h.T_world_obj), verdict.reason, ev.as_dict(),
-                    h.segment,
-                )  # fmt: skip
-                log.info("%s (%s) rejected: %s", oid, h.class_name, verdict.reason)
+            return Rejected(
+                oid, h.class_name, np.array(h.T_world_obj),
+                check_new(ev, self.config, loose=True).reason, ev.as_dict(), h.segment,
+            )  # fmt: skip
+
+        out: dict[str, Rejected] = {}
+        for oid, r in zip(new, self._map(verdict, list(new)), strict=True):
+            if r is not None:
+                out[oid] = r
+                log.info("%s (%s) rejected: %s", oid, r.class_name, r.reason)
         return out
 
     def _update(self, frame: Frame, timer: StageTimer):
@@ -529,6 +552,19 @@ class SceneParser:
             segment_labels = {oid: s for oid, s in segment_labels.items() if s is not None}
             segment_labels.update(claimed)
             members: dict[str, int] = {}
+            # the camera's view is indexed while the segments are cut (another thread)
+            view = self._background(
+                lambda: (
+                    None
+                    if frame.T_world_cam is None
+                    else CameraView(
+                        frame.points,
+                        frame.T_world_cam,
+                        labels=frame.labels,
+                        depth_tolerance=cfg.temporal.depth_tolerance,
+                    )
+                )
+            )
             segments, owner = object_segments(
                 frame,
                 {oid: (models[oid], cand_poses[oid]) for oid in cand_poses},
@@ -537,14 +573,7 @@ class SceneParser:
                 labels=segment_labels,
                 members=members,
             )
-            view = None
-            if frame.T_world_cam is not None:
-                view = CameraView(
-                    frame.points,
-                    frame.T_world_cam,
-                    labels=frame.labels,
-                    depth_tolerance=cfg.temporal.depth_tolerance,
-                )
+            view = view()
         with timer("verification"):
             rejected = self._verify_new(
                 [oid for oid in groups if oid not in self._known],
@@ -729,18 +758,24 @@ class SceneParser:
             )  # fmt: skip
             if placed:
                 score = scorer.evaluate(world, timer)
-            final = {
-                oid: evidence(
-                    models[oid],
-                    score.poses[world.index(oid)],
-                    segments.get(oid),
-                    view,
-                    cfg,
-                    own_label=owner.get(oid),
-                )  # fmt: skip
-                for oid in ids
-                if oid not in removed
-            }
+            kept = [oid for oid in ids if oid not in removed]
+            final = dict(
+                zip(
+                    kept,
+                    self._map(
+                        lambda oid: evidence(
+                            models[oid],
+                            score.poses[world.index(oid)],
+                            segments.get(oid),
+                            view,
+                            cfg,
+                            own_label=owner.get(oid),
+                        ),  # fmt: skip
+                        kept,
+                    ),
+                    strict=True,
+                )
+            )
         return self._finish(
             frame,
             _Outcome(
@@ -787,21 +822,25 @@ class SceneParser:
         cfg = self.config
         forces = sim.forces
         with timer("icp"):
-            for oid, seg in segments.items():
-                if not world.is_enabled(oid) or len(seg) < 30:
-                    continue
-                k = world.index(oid)
-                T = world.get_pose(oid)
-                T_icp = icp_refine(
-                    world.model_of(oid),
-                    T,
-                    seg,
+            todo = [
+                (oid, world.get_pose(oid), seg)
+                for oid, seg in segments.items()
+                if world.is_enabled(oid) and len(seg) >= 30
+            ]
+            found = self._map(
+                lambda job: icp_refine(
+                    world.model_of(job[0]),
+                    job[1],
+                    job[2],
                     camera_position,
                     max_distance=cfg.forces.icp_max_distance,
-                )
+                ),  # fmt: skip
+                todo,
+            )
+            for (oid, T, _), T_icp in zip(todo, found, strict=True):
                 dt, dth = pose_change(T, T_icp, None, world.model_of(oid).center_of_mass)
                 if dt < 0.02 and dth < math.radians(20.0):
-                    forces.set_pose_target(k, T_icp)
+                    forces.set_pose_target(world.index(oid), T_icp)
         forces.reset()
         state = world.save_state()
         try:

