@@ -579,6 +579,15 @@ ExecutorOption = typer.Option(
 WorkersOption = typer.Option(
     1, "--workers", "-j", min=1, help="Worker processes (or CPUs of a local Ray), one core each."
 )
+ThreadsOption = typer.Option(
+    None,
+    "--threads",
+    min=1,
+    max=64,
+    help="Threads per frame (search.threads): an object's candidates simulated at once; the "
+    "results are the same for any number.",
+    show_default=False,
+)
 RayAddressOption = typer.Option(
     None,
     "--ray-address",
@@ -1137,6 +1146,7 @@ def run_cmd(
     executor: str | None = ExecutorOption,
     workers: int = WorkersOption,
     ray_address: str | None = RayAddressOption,
+    threads: int | None = ThreadsOption,
 ) -> None:
     """Perception and scene parsing over recorded frames: per-frame JSON, a BOP19 CSV and a
     summary, kept current after every frame (formats: docs/formats.md). A stopped run
@@ -1205,6 +1215,8 @@ def run_cmd(
         method = method or "ssp"
         masks = masks or "auto"
         cfg = _config(config)
+    if threads is not None:
+        cfg.search.threads = threads
     if hypotheses not in HYPOTHESES_MODES:
         raise typer.BadParameter(f"--hypotheses must be one of {', '.join(HYPOTHESES_MODES)}")
     from ssp.io.rosbag import BagOptions, is_bag
@@ -1584,12 +1596,16 @@ def refine_cmd(
     models: Path | None = ModelsOption,
     config: Path | None = ConfigOption,
     cache: Path | None = CacheOption,
+    threads: int | None = ThreadsOption,
 ) -> None:
     """ssp after your pose estimator: refine its hypotheses on a BOP dataset into a BOP19 CSV
     (OUT/METHOD-ssp_DATASET-SPLIT.csv) and per-frame JSON (OUT/scenes/SCENE/)."""
     from ssp.refine import refine
 
     lib, models_dir = _dataset_library(dataset, models, config, cache)
+    cfg = _config(config)
+    if threads is not None:
+        cfg.search.threads = threads
     with _bar() as progress:
         task = progress.add_task("refining", total=None)
         summary = refine(
@@ -1597,7 +1613,7 @@ def refine_cmd(
             hypotheses,
             lib,
             out,
-            _config(config),
+            cfg,
             fmt=fmt,
             split=split,
             scene_ids=_scene_ids(scenes),
