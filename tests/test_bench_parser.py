@@ -60,3 +60,30 @@ def test_targets_are_checked_against_the_rows_measured():
     assert not checks["changed frame, N = 20 / N = 10"]["met"]  # 2.5 > 2.1
     assert checks["link/node structure, added frame (s)"]["met"]
     assert _checks([row(5, 0.1)]) == []
+
+
+def test_compare_times_another_checkout_beside_this_code(tmp_path):
+    from pathlib import Path
+
+    import ssp
+    from ssp.eval.bench_parser import compare_parser, write_compare
+
+    root = Path(ssp.__file__).resolve().parents[2]  # this checkout, as "another" one
+    result = compare_parser(str(root), sizes=(2,), k=2, repeats=1, rounds=1)
+    assert [r["frame"] for r in result["rows"]] == list(FRAMES)
+    for r in result["rows"]:
+        assert r["rev_s"] > 0 and r["this_s"] > 0 and r["speedup"] > 0
+        assert r["rev_tested"] == r["this_tested"]  # the same code decides the same
+        assert r["rev_error"] == r["this_error"]
+    _, m = write_compare(result, tmp_path)
+    assert "| 2 | changed |" in m.read_text()
+
+
+def test_compare_with_an_unknown_revision_says_so():
+    import pytest
+
+    from ssp.errors import ArgumentError
+    from ssp.eval.bench_parser import compare_parser
+
+    with pytest.raises(ArgumentError, match="no-such-revision"):
+        compare_parser("no-such-revision", sizes=(2,), k=2, repeats=1, rounds=1)

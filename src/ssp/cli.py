@@ -451,12 +451,25 @@ def bench_parser_cmd(
     threads: int = typer.Option(
         1, "--threads", min=1, max=64, help="search.threads: candidates evaluated at once."
     ),
+    compare: str | None = typer.Option(
+        None,
+        "--compare",
+        help="A git revision (or another checkout's folder) timed beside this code, "
+        "alternately in fresh processes: the speed-up per frame kind (compare.md).",
+        show_default=False,
+        metavar="REV",
+    ),
+    rounds: int = typer.Option(2, min=1, help="With --compare: runs of each code."),
 ) -> None:
     """Seconds per frame of the scene parser (added, changed and unchanged frames) for stacks
     of N cubes and blocks on rendered depth, with the share of each stage, and whether
     issue 19's targets are met. Run it on as many cores as --threads."""
     from ssp.eval.bench_parser import FRAMES, STAGES, bench_parser, write_report
     from ssp.library import ObjectLibrary
+
+    if compare is not None:
+        _bench_parser_compare(compare, sizes, k, repeats, seed, threads, links, rounds, out)
+        return
 
     try:
         ns = tuple(int(x) for x in sizes.split(",") if x.strip())
@@ -499,6 +512,37 @@ def bench_parser_cmd(
     for c in result["checks"]:
         mark = "[green]met[/]" if c["met"] else "[red]not met[/]"
         console.print(f"{c['what']}: {c['value']:.3f} (target <= {c['limit']:g}) {mark}")
+    for f in files:
+        console.print(f"wrote [bold]{f}[/]")
+
+
+def _bench_parser_compare(rev, sizes, k, repeats, seed, threads, links, rounds, out) -> None:
+    """``ssp bench parser --compare REV``."""
+    from ssp.eval.bench_parser import compare_parser, write_compare
+
+    try:
+        ns = tuple(int(x) for x in sizes.split(",") if x.strip())
+    except ValueError as exc:
+        raise typer.BadParameter(f"--sizes must be integers separated by commas: {exc}") from exc
+    with console.status(f"timing {rev} beside this code") as status:
+        result = compare_parser(
+            rev, ns, k=k, repeats=repeats, seed=seed, threads=threads, links=links,
+            rounds=rounds, progress=status.update,
+        )  # fmt: skip
+    files = write_compare(result, out)
+    table = Table(title=f"scene parser: {rev} beside this code, {threads} thread(s)")
+    for col in ("N", "frame", f"{rev} s", "this s", "speed-up", "tested"):
+        table.add_column(col, justify="right")
+    for r in result["rows"]:
+        table.add_row(
+            f"{r['objects']}" + (" (links)" if r["scene"] == "links" else ""),
+            r["frame"],
+            f"{r['rev_s']:.3f}",
+            f"{r['this_s']:.3f}",
+            f"{r['speedup']:.2f}x",
+            f"{r['rev_tested']:.0f} -> {r['this_tested']:.0f}",
+        )
+    console.print(table)
     for f in files:
         console.print(f"wrote [bold]{f}[/]")
 

@@ -32,7 +32,14 @@ from ssp.parser import SceneEstimate, SceneParser
 from ssp.sim.frames import synthetic_frame
 from ssp.sim.render import look_at
 
-__all__ = ["bench_parser", "links_structure", "stacks", "write_report"]
+__all__ = [
+    "bench_parser",
+    "compare_parser",
+    "links_structure",
+    "stacks",
+    "write_compare",
+    "write_report",
+]
 
 STAGES = ("forces", "stepping", "contacts", "scoring")
 FRAMES = ("added", "changed", "unchanged")
@@ -248,7 +255,7 @@ def bench_parser(
         "machine": {
             "python": platform.python_version(),
             "cpu": platform.processor() or "?",
-            "threads": int(config.search.threads),
+            "threads": int(getattr(config.search, "threads", 1)),
         },
         "rows": rows,
         "linear_fit_vs_n_times_k": fits,
@@ -323,5 +330,159 @@ def write_report(result: dict, out: Path) -> tuple[Path, Path]:
             for c in result["checks"]
         ]
     m = out / "results.md"
+    m.write_text("\n".join(lines) + "\n")
+    return j, m
+
+
+# ------------------------------------------------------------------ side by side with a revision
+_DRIVER = """
+import json, sys, importlib.util
+src, here, args = sys.argv[1], sys.argv[2], json.loads(sys.argv[3])
+sys.path.insert(0, src)
+spec = importlib.util.spec_from_file_location("ssp_bench_parser_driver", here)
+mod = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(mod)
+from ssp.config import SSPConfig
+from ssp.library import ObjectLibrary
+cfg = SSPConfig()
+if hasattr(cfg.search, "threads"):
+    cfg.search.threads = args["threads"]
+links = ObjectLibrary.from_folder(args["links"], cfg) if args["links"] else None
+res = mod.bench_parser(args["sizes"], args["k"], args["repeats"], args["seed"], cfg, links=links)
+print("RESULT " + json.dumps(res["rows"]))
+"""
+
+
+def _tree_of(rev: str, tmp: Path) -> tuple[Path, Callable[[], None]]:
+    """``src`` folder of ``rev``: a checkout folder (with ``src/ssp``) as it is, else a git
+    revision of the repository ssp runs from, checked out into ``tmp`` (and the call that
+    removes it)."""
+    import subprocess
+
+    from ssp.errors import ArgumentError
+
+    given = Path(rev)
+    if (given / "src" / "ssp").is_dir():
+        return given / "src", lambda: None
+    here = Path(__file__).resolve().parent
+    try:
+        top = subprocess.run(
+            ["git", "-C", str(here), "rev-parse", "--show-toplevel"],
+            capture_output=True, text=True, check=True,
+        ).stdout.strip()  # fmt: skip
+        subprocess.run(
+            ["git", "-C", top, "worktree", "add", "--detach", str(tmp), rev],
+            capture_output=True, text=True, check=True,
+        )  # fmt: skip
+    except (OSError, subprocess.CalledProcessError) as exc:
+        err = getattr(exc, "stderr", "") or str(exc)
+        raise ArgumentError(
+            f"--compare {rev}: not a checkout folder, and no git revision of the repository "
+            f"ssp runs from ({err.strip()})"
+        ) from exc
+
+    def remove() -> None:
+        subprocess.run(["git", "-C", top, "worktree", "remove", "--force", str(tmp)], check=False)
+
+    return tmp / "src", remove
+
+
+def compare_parser(
+    rev: str,
+    sizes: Sequence[int] = (5, 10, 20),
+    k: int = 5,
+    repeats: int = 2,
+    seed: int = 0,
+    threads: int = 1,
+    links: Path | None = None,
+    rounds: int = 2,
+    progress: Callable[[str], None] | None = None,
+) -> dict:
+    """:func:`bench_parser` with this code and with the code of ``rev`` (a git revision or a
+    checkout folder), alternately in fresh processes (``rounds`` each), on the same scenes:
+    the means, their ratio (``rev`` / this code: the speed-up) and this code's stage shares.
+    Side by side in one run, the ratio holds where a loaded machine's absolute times do not.
+    """
+    import subprocess
+    import sys
+    import tempfile
+
+    from ssp.errors import SSPError
+
+    args = {
+        "sizes": list(sizes), "k": k, "repeats": repeats, "seed": seed, "threads": threads,
+        "links": None if links is None else str(Path(links).resolve()),
+    }  # fmt: skip
+    here = str(Path(__file__).resolve())
+    current = str(Path(__file__).resolve().parents[2])
+    runs: dict[str, list] = {"rev": [], "this": []}
+    with tempfile.TemporaryDirectory(prefix="ssp-compare-") as tmp:
+        src, remove = _tree_of(rev, Path(tmp) / "tree")
+        try:
+            for r in range(rounds):
+                for tag, tree in (("rev", str(src)), ("this", current)):
+                    if progress:
+                        progress(f"round {r + 1}/{rounds}: {rev if tag == 'rev' else 'this code'}")
+                    p = subprocess.run(
+                        [sys.executable, "-c", _DRIVER, tree, here, json.dumps(args)],
+                        capture_output=True, text=True,
+                    )  # fmt: skip
+                    line = [x for x in p.stdout.splitlines() if x.startswith("RESULT ")]
+                    if p.returncode or not line:
+                        raise SSPError(
+                            f"the parser bench failed with {rev if tag == 'rev' else 'this code'}"
+                            f": {p.stderr.strip()[-2000:]}"
+                        )
+                    runs[tag].append(json.loads(line[-1][len("RESULT ") :]))
+        finally:
+            remove()
+    rows = []
+    for j, row in enumerate(runs["this"][0]):
+        for name in FRAMES:
+            old = float(np.mean([run[j][name]["sec_per_frame_mean"] for run in runs["rev"]]))
+            new = float(np.mean([run[j][name]["sec_per_frame_mean"] for run in runs["this"]]))
+            rows.append(
+                {
+                    "scene": row["scene"],
+                    "objects": row["objects"],
+                    "frame": name,
+                    "rev_s": old,
+                    "this_s": new,
+                    "speedup": old / new if new > 0 else float("inf"),
+                    "rev_tested": runs["rev"][0][j][name]["hypotheses_tested_mean"],
+                    "this_tested": row[name]["hypotheses_tested_mean"],
+                    "this_stage_share": row[name]["stage_share"],
+                    "rev_error": runs["rev"][0][j][name]["error"],
+                    "this_error": row[name]["error"],
+                }
+            )
+    return {"protocol": "parser-timing-compare", "rev": rev, "rounds": rounds, **args, "rows": rows}
+
+
+def write_compare(result: dict, out: Path) -> tuple[Path, Path]:
+    """``out/compare.json`` and ``out/compare.md``."""
+    out.mkdir(parents=True, exist_ok=True)
+    j = out / "compare.json"
+    j.write_text(json.dumps(result, indent=2))
+    lines = [
+        f"# Parser timing: {result['rev']} beside this code ({result['rounds']} rounds each, "
+        f"alternating; k = {result['k']}, {result['repeats']} scenes per size, "
+        f"{result['threads']} thread(s))",
+        "",
+        f"| N | frame | {result['rev']} s | this s | speed-up | tested | forces | stepping "
+        "| contacts | scoring | other | error (this) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in result["rows"]:
+        sh = r["this_stage_share"]
+        label = f"{r['objects']}" + (" (links)" if r["scene"] == "links" else "")
+        lines.append(
+            f"| {label} | {r['frame']} | {r['rev_s']:.3f} | {r['this_s']:.3f} | "
+            f"{r['speedup']:.2f}x | {r['rev_tested']:.0f} -> {r['this_tested']:.0f} | "
+            + " | ".join(f"{100 * sh[s]:.0f} %" for s in (*STAGES, "other"))
+            + f" | {r['this_error']['ssp_mm_mean']:.2f} mm / "
+            + f"{r['this_error']['ssp_deg_mean']:.2f} deg |"
+        )
+    m = out / "compare.md"
     m.write_text("\n".join(lines) + "\n")
     return j, m
