@@ -70,3 +70,18 @@ def test_a_change_tests_only_the_objects_near_it():
     assert ref.hypotheses_tested > est.hypotheses_tested
     for o in ref.objects:
         assert np.linalg.norm(o.T_world_obj[:3, 3] - by_id[o.id].T_world_obj[:3, 3]) < 5e-4
+
+
+def test_a_settled_object_that_the_settle_moves_is_searched_after_all():
+    from ssp.static import settle_moved
+
+    T = on_table(0.0)
+    sunk = T.copy()
+    sunk[2, 3] -= 0.002  # 2 mm: what held it up is gone
+    turned = T @ make_pose(
+        np.array([[1.0, 0.0, 0.0], [0.0, 0.999, -0.0447], [0.0, 0.0447, 0.999]])
+    )  # about 2.6 deg about x
+    crept = T.copy()
+    crept[0, 3] += 0.0002
+    objects = {"sunk": (T, sunk, CUBE), "turned": (T, turned, CUBE), "crept": (T, crept, CUBE)}
+    assert settle_moved(objects) == {"sunk", "turned"}

@@ -69,7 +69,7 @@ from ssp.scene import Frame, FrameError, Hypothesis, TransitionMode
 from ssp.scoring import SceneScore, SceneScorer
 from ssp.search import Candidate, Simulator, layered_search
 from ssp.segments import explained_fraction, object_segments
-from ssp.static import is_unchanged, settled_objects
+from ssp.static import is_unchanged, settle_moved, settled_objects
 from ssp.support import GROUND
 from ssp.temporal import (
     associate,
@@ -691,6 +691,11 @@ class SceneParser:
             except PhysicsError as exc:
                 log.warning("first-guess settle failed (%s); using the unsettled guess", exc)
                 world.restore_state(base)
+            # an object the first-guess settle moved is not where it was any more (what held
+            # it is gone or moved): it is searched after all
+            settled -= settle_moved(
+                {oid: (prev_pose[oid], world.get_pose(oid), models[oid]) for oid in settled}
+            )
             score0 = scorer.evaluate(world, timer)
             graph0 = score0.graph
             retained = support_retained(

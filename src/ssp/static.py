@@ -7,7 +7,9 @@ skips the search altogether (``search.unchanged_shortcut``). Otherwise an unchan
 whose **neighbourhood is unchanged** too (:func:`settled_objects`: no object that changed
 comes within ``search.reach`` of it, at any of that object's candidate poses) keeps its
 previous pose without tests (``search.skip_settled``): testing its candidates again would
-only repeat the previous frame's search on the same evidence. Objects near a change, and the
+only repeat the previous frame's search on the same evidence. One that the first-guess settle
+moves anyway (:func:`settle_moved`: what held it up is gone, e.g. an undetected block it
+leaned on) is searched after all. Objects near a change, and the
 objects that hold those up, are searched as usual, so the cost of a frame grows with what
 changed in it, not with the size of the scene.
 """
@@ -20,10 +22,16 @@ import numpy as np
 
 from ssp.config import SSPConfig
 from ssp.library.model import ObjectModel
+from ssp.probability import pose_change
 from ssp.scene import Hypothesis
 from ssp.scoring import SceneScorer
 
-__all__ = ["is_unchanged", "settled_objects"]
+__all__ = ["SETTLE_MOVED_DEG", "SETTLE_MOVED_M", "is_unchanged", "settle_moved", "settled_objects"]
+
+#: A settled object that the first-guess settle moved more than this (m, deg at the centre of
+#: mass) is searched after all.
+SETTLE_MOVED_M = 0.001
+SETTLE_MOVED_DEG = 1.0
 
 
 def is_unchanged(
@@ -82,5 +90,17 @@ def settled_objects(
         lo, hi = _box(models[oid], poses[oid][:1])
         near = np.all((lo[None] <= hi_m) & (hi[None] >= lo_m), axis=1)
         if not near.any():
+            out.add(oid)
+    return out
+
+
+def settle_moved(objects: Mapping[str, tuple[np.ndarray, np.ndarray, ObjectModel]]) -> set[str]:
+    """The objects (``id -> (previous pose, pose after the first-guess settle, model)``, 4x4,
+    m) that the settle moved more than :data:`SETTLE_MOVED_M` or :data:`SETTLE_MOVED_DEG`
+    (symmetry-aware, at the centre of mass)."""
+    out = set()
+    for oid, (T_prev, T_now, model) in objects.items():
+        dt, dth = pose_change(T_prev, T_now, model.symmetry, model.center_of_mass)
+        if dt > SETTLE_MOVED_M or np.degrees(dth) > SETTLE_MOVED_DEG:
             out.add(oid)
     return out
