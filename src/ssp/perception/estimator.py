@@ -38,14 +38,14 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
+from pykdtree.kdtree import KDTree
 from scipy import ndimage
-from scipy.spatial import cKDTree
 
 from ssp.config import PerceptionConfig
 from ssp.errors import PerceptionError, UnknownObjectError
 from ssp.library.model import ObjectModel
 from ssp.perception.cleaning import robust_extent
-from ssp.registration import even_rows, facing_mask, icp_refine
+from ssp.registration import even_rows, facing_mask
 from ssp.scene import Hypothesis
 
 __all__ = ["HypothesisEstimator", "ModelPairs", "SegmentResult", "voxel_thin"]
@@ -136,6 +136,27 @@ class ModelPairs:
     angle_step: float
     min_dist: float
     max_dist: float
+    #: ``n_samples`` -> evenly spaced ``(points, normals)`` of the full surface samples (ICP).
+    icp_samples: dict = field(default_factory=dict, repr=False)
+    #: KD-tree of ``dense_points`` (model frame), built on first use.
+    _dense_tree: KDTree | None = field(default=None, repr=False)
+
+    def dense_tree(self) -> KDTree:
+        """KD-tree of the dense samples in the model frame (built once)."""
+        if self._dense_tree is None:
+            self._dense_tree = KDTree(np.ascontiguousarray(self.dense_points))
+        return self._dense_tree
+
+    def samples(self, model: ObjectModel, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """At most ``n`` evenly spaced surface samples and normals ``(n, 3)`` of ``model``
+        (as :func:`ssp.registration.icp_refine` takes them), cached."""
+        if n not in self.icp_samples:
+            self.icp_samples[n] = even_rows(
+                n,
+                np.asarray(model.surface_points, dtype=float),
+                np.asarray(model.surface_normals, dtype=float),
+            )
+        return self.icp_samples[n]
 
     @classmethod
     def build(cls, model: ObjectModel, cfg: PerceptionConfig) -> ModelPairs:
@@ -201,6 +222,43 @@ class _Occupancy:
             for a, n in enumerate(self.shape)
         )
         return self.grid.ravel()[(ix * int(self.shape[1]) + iy) * int(self.shape[2]) + iz]
+
+    def posed(self, R: np.ndarray, t: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Bool ``(M, P)``: the voxel of ``R_m v_p + t_m`` is occupied, for poses ``R (M, 3,
+        3)``, ``t (M, 3)`` and points ``v (P, 3)``: ``self(_rotate_all(R, v) + t[:, None])``
+        as one homogeneous matrix product in voxel units, with 32-bit indices."""
+        M, P = len(R), len(v)
+        A = np.empty((M, 3, 4))
+        A[:, :, :3] = R * (1.0 / self.voxel)
+        A[:, :, 3] = (t - self.lo) * (1.0 / self.voxel)
+        w = (A.reshape(-1, 4) @ np.hstack([v, np.ones((P, 1))]).T).reshape(M, 3, P)
+        # negative indices wrap to huge unsigned ones and are clipped onto the far border
+        # voxels, which are empty like the near ones
+        big = int(np.prod(self.shape)) >= 2**31
+        i = w.astype(np.int64 if big else np.int32).view(np.uint64 if big else np.uint32)
+        np.minimum(i, (self.shape - 1).astype(i.dtype)[None, :, None], out=i)
+        s1, s2 = (i.dtype.type(n) for n in self.shape[1:])
+        flat = i[:, 0] * s1
+        flat += i[:, 1]
+        flat *= s2
+        flat += i[:, 2]
+        return self.grid.ravel()[flat]
+
+
+def _coarse_hits(R, t, cp, cn, cam, occ: _Occupancy) -> tuple[np.ndarray, np.ndarray]:
+    """Coarse score of candidate poses ``R (M, 3, 3)``, ``t (M, 3)`` on model samples ``cp,
+    cn (P, 3)``: ``(hits (M,), facing (M,))``, the numbers of camera-facing samples (all when
+    ``cam`` is None) that fall in an occupied voxel of ``occ``, and of facing samples."""
+    if len(R) == 0 or len(cp) == 0:
+        return np.zeros(len(R), dtype=np.int64), np.zeros(len(R), dtype=np.int64)
+    hit = occ.posed(R, t, cp)
+    if cam is None:
+        return hit.sum(1), np.full(len(R), len(cp), dtype=np.int64)
+    # (R n).(cam - R p - t) = n.(R^T (cam - t)) - n.p
+    local_cam = np.einsum("nji,nj->ni", R, cam - t)
+    facing = local_cam @ cn.T > (cn * cp).sum(1)[None, :]
+    hit &= facing
+    return hit.sum(1), facing.sum(1)
 
 
 @dataclass
@@ -406,22 +464,23 @@ class HypothesisEstimator:
         F_m = _pair_frames(table.points[mi], table.normals[mi], table.points[mj])
         R = F_s[:, :3, :3] @ np.swapaxes(F_m[:, :3, :3], 1, 2)
         t = F_s[:, :3, 3] - np.einsum("nij,nj->ni", R, F_m[:, :3, 3])
-        # coarse score: facing samples in occupied voxels of the segment
+        # coarse score: facing samples in occupied voxels of the segment, first on a subset
+        # of the samples; only the candidates near the best on it are scored on the rest
         step = max(1, len(table.points) // 96)
         cp, cn = table.points[::step], table.normals[::step]
-        wp = _rotate_all(R, cp) + t[:, None, :]
-        hit = occ(wp)
-        facing = np.ones_like(hit)
-        if cam is not None:  # (R n).(cam - R p - t) = n.(R^T (cam - t)) - n.p
-            local_cam = np.einsum("nji,nj->ni", R, cam - t)
-            facing = local_cam @ cn.T > (cn * cp).sum(1)[None, :]
-            hit &= facing
-        coarse = hit.sum(1)
+        first = np.zeros(len(cp), dtype=bool)
+        first[:: max(1, len(cp) // cfg.coarse_screen_samples)] = True
+        coarse, facing = _coarse_hits(R, t, cp[first], cn[first], cam, occ)
+        keep = np.flatnonzero(coarse >= cfg.coarse_screen * coarse.max())
+        rest = _coarse_hits(R[keep], t[keep], cp[~first], cn[~first], cam, occ)
+        coarse[keep] += rest[0]
+        facing[keep] += rest[1]
+        coarse[np.setdiff1d(np.arange(len(R)), keep)] = 0
         # quality for class screening: F1 of the fraction of facing samples explained and an
         # estimate of the fraction of the segment's surface explained (hit samples x area per
         # sample / segment area); the second keeps small classes from winning inside large
         # segments
-        fit = coarse / np.maximum(facing.sum(1), 8)
+        fit = coarse / np.maximum(facing, 8)
         cover = np.minimum(1.0, coarse * (table.area / len(cp)) / max(seg_area, 1e-12))
         f1 = 2 * fit * cover / np.maximum(fit + cover, 1e-12)
         return _Pool(table, R, t, coarse, float(f1.max()))
@@ -466,37 +525,21 @@ class HypothesisEstimator:
                 extra += 1
                 far &= _rotation_distances(R[rest], R[idx], sym) > apart
         model = self.library[table.name]
+        coarse_pts = table.samples(model, 400)
+        fine_pts = table.samples(model, 800)
         poses: list[np.ndarray] = []
         for idx in chosen:  # coarse ICP, then drop the candidates that met
             T = np.eye(4)
             T[:3, :3], T[:3, 3] = R[idx], t[idx]
             near = self._near(table, T, p, 0.012)
-            T = icp_refine(
-                model,
-                T,
-                p[near],
-                cam,
-                max_distance=0.012,
-                iterations=8,
-                n_samples=400,
-                n_points=500,
-            )
+            T = _icp(*coarse_pts, T, p[near], cam, max_distance=0.012, iterations=8, n_points=500)
             if not any(_same_pose(T, U, table.symmetries) for U in poses):
                 poses.append(T)
-        tree = cKDTree(p)
+        tree = KDTree(p)
         refined = []
         for T in poses:  # fine ICP
             near = self._near(table, T, p, 0.008)
-            T = icp_refine(
-                model,
-                T,
-                p[near],
-                cam,
-                max_distance=0.005,
-                iterations=10,
-                n_samples=800,
-                n_points=1000,
-            )
+            T = _icp(*fine_pts, T, p[near], cam, max_distance=0.005, iterations=10, n_points=1000)
             refined.append((*self._score(table, T, p, tree, cam), T))
         refined.sort(key=lambda r: -r[0])
         out: list[tuple[float, np.ndarray, float]] = []
@@ -506,30 +549,104 @@ class HypothesisEstimator:
         return out
 
     def _near(self, table: ModelPairs, T, p, radius: float) -> np.ndarray:
-        """Mask of segment points within ``radius`` of the model samples at ``T``."""
-        wp = table.dense_points @ T[:3, :3].T + T[:3, 3]
-        d, _ = cKDTree(wp).query(p, distance_upper_bound=radius)
-        return np.isfinite(d)
+        """Mask of segment points ``p (N, 3)`` within ``radius`` (m) of the dense model
+        samples at ``T`` (the points are moved into the model frame, whose tree is cached)."""
+        return _within(table.dense_tree(), (p - T[:3, 3]) @ T[:3, :3], radius)
 
-    def _score(self, table: ModelPairs, T, p, tree: cKDTree, cam) -> tuple[float, float]:
+    def _score(self, table: ModelPairs, T, p, tree: KDTree, cam) -> tuple[float, float]:
         """``(score, coverage)``: the score is the F1 of fit (facing samples with a segment
         point within ``inlier_distance``) and coverage (segment points within that distance of
-        the model surface)."""
+        the model surface). ``tree``: KD-tree of ``p``."""
         r = self.cfg.inlier_distance
         wp = table.dense_points @ T[:3, :3].T + T[:3, 3]
         face = facing_mask(wp, table.dense_normals @ T[:3, :3].T, cam)
         if not face.any():
             return 0.0, 0.0
-        d, _ = tree.query(wp[face], distance_upper_bound=r)
-        fit = float(np.mean(np.isfinite(d)))
+        fit = float(np.mean(_within(tree, wp[face], r)))
         cover = float(self._explained(table, T, p).mean())
         return (0.0 if fit + cover == 0 else 2 * fit * cover / (fit + cover)), cover
 
     def _explained(self, table: ModelPairs, T, p) -> np.ndarray:
         """Mask of points ``p`` within ``inlier_distance`` of the model surface at ``T``."""
-        wp = table.dense_points @ T[:3, :3].T + T[:3, 3]
-        d, _ = cKDTree(wp).query(p, distance_upper_bound=self.cfg.inlier_distance)
-        return np.isfinite(d)
+        return self._near(table, T, p, self.cfg.inlier_distance)
+
+
+def _within(tree: KDTree, q: np.ndarray, radius: float) -> np.ndarray:
+    """Mask of the queries ``q (N, 3)`` with a point of ``tree`` within ``radius`` (m)."""
+    if len(q) == 0:
+        return np.zeros(0, dtype=bool)
+    d, _ = tree.query(np.ascontiguousarray(q, dtype=float), k=1, distance_upper_bound=radius)
+    return np.isfinite(d)
+
+
+def _rotvec_matrix(w: np.ndarray) -> np.ndarray:
+    """Rotation matrix ``(3, 3)`` of the rotation vector ``w (3,)`` (rad; Rodrigues)."""
+    theta = float(np.sqrt(w @ w))
+    if theta < 1e-12:
+        return np.eye(3)
+    k = w / theta
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(theta) * K + (1.0 - np.cos(theta)) * (K @ K)
+
+
+def _icp(
+    pts: np.ndarray,
+    nrm: np.ndarray,
+    T_init: np.ndarray,
+    segment: np.ndarray,
+    camera: np.ndarray | None,
+    *,
+    max_distance: float,
+    iterations: int,
+    n_points: int,
+    min_pairs: int = 10,
+) -> np.ndarray:
+    """Point-to-plane ICP of model samples ``pts, nrm (S, 3)`` (model frame) onto ``segment
+    (K, 3)`` (world, m): :func:`ssp.registration.icp_refine`'s algorithm (correspondences from
+    at most ``n_points`` segment points to the camera-facing samples within ``max_distance``,
+    damped Gauss-Newton steps about the pairs' centroid). Returns ``T_world_obj (4, 4)``.
+
+    Solved in the model frame, so the samples never move: a pair's Jacobian row
+    ``((p - c) x n, n)`` is ``G M`` with the per-sample constants ``G = (p x n, n)`` and a
+    ``6 x 6`` matrix ``M`` of the centroid ``c``, so each step gathers ``G`` and forms ``G^T G``.
+    """
+    T = np.array(T_init, dtype=float)
+    seg = np.asarray(segment, dtype=float).reshape(-1, 3)
+    if len(seg) < min_pairs:
+        return T
+    (seg,) = even_rows(n_points, seg)
+    keep = facing_mask(pts @ T[:3, :3].T + T[:3, 3], nrm @ T[:3, :3].T, camera)
+    pts, nrm = pts[keep], nrm[keep]
+    if len(pts) < 3:
+        return T
+    tree = KDTree(np.ascontiguousarray(pts))
+    # per sample: p x n, n, p, p.n
+    Z = np.hstack([np.cross(pts, nrm), nrm, pts, (pts * nrm).sum(1, keepdims=True)])
+    M = np.eye(6)
+    for _ in range(int(iterations)):
+        R, t = T[:3, :3], T[:3, 3]
+        q = (seg - t) @ R  # the segment in the model frame
+        dist, idx = tree.query(q, k=1, distance_upper_bound=max_distance)
+        ok = np.isfinite(dist)
+        if np.count_nonzero(ok) < min_pairs:
+            break
+        z = Z[idx[ok]]
+        G, n = z[:, :6], z[:, 3:6]
+        c = z[:, 6:9].mean(axis=0)
+        b = np.einsum("ij,ij->i", q[ok], n) - z[:, 9]  # n . (q - p)
+        # (p - c) x n = p x n - c x n = p x n + n [c]_x:  M = [[I, 0], [[c]_x, I]]
+        M[3:, :3] = [[0.0, -c[2], c[1]], [c[2], 0.0, -c[0]], [-c[1], c[0], 0.0]]
+        H = M.T @ (G.T @ G) @ M
+        H += np.eye(6) * (1e-6 * np.trace(H) / 6.0 + 1e-12)
+        x = np.linalg.solve(H, M.T @ (G.T @ b))
+        omega, v = x[:3], x[3:]
+        D = np.eye(4)
+        D[:3, :3] = _rotvec_matrix(omega)
+        D[:3, 3] = c - D[:3, :3] @ c + v  # about the pairs' centroid, then shifted (model frame)
+        T = T @ D
+        if np.linalg.norm(v) < 1e-6 and np.linalg.norm(omega) < 1e-6:
+            break
+    return T
 
 
 def _diverse(found: list, k: int, cfg: PerceptionConfig, sym: np.ndarray) -> list:
