@@ -546,23 +546,6 @@ class PerceptionConfig(_Section):
     score_voxel: float = Field(
         0.004, gt=0, description="Occupancy grid voxel of the coarse pose scoring, m."
     )
-    coarse_screen_samples: int = Field(
-        24,
-        ge=1,
-        description=(
-            "Model samples of the first coarse score: every candidate pose is scored on these "
-            "few, and only those that pass coarse_screen on the rest."
-        ),
-    )
-    coarse_screen: float = Field(
-        0.3,
-        ge=0,
-        le=1,
-        description=(
-            "Candidates whose first coarse score is below this fraction of the best's are "
-            "dropped (score 0) without the full coarse score; 0 scores all in full."
-        ),
-    )
     inlier_distance: float = Field(
         0.005, gt=0, description="A model sample within this of the segment is explained, m."
     )

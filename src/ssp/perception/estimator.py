@@ -33,6 +33,7 @@ FPFH + RANSAC registration aligns one object and brings a large binary dependenc
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -52,6 +53,15 @@ __all__ = ["HypothesisEstimator", "ModelPairs", "SegmentResult", "voxel_thin"]
 
 log = logging.getLogger(__name__)
 
+
+#: The two ICP stages of the refinement (step 4): segment points within ``near`` (m) of the
+#: model are matched to ``n_samples`` model samples within ``max_distance`` (m), at most
+#: ``n_points`` of them, for at most ``iterations`` Gauss-Newton steps.
+_COARSE_ICP = dict(near=0.012, max_distance=0.012, iterations=8, n_samples=400, n_points=500)
+_FINE_ICP = dict(near=0.008, max_distance=0.005, iterations=10, n_samples=800, n_points=1000)
+
+#: About this many model samples score each candidate pose (step 3).
+_COARSE_SAMPLES = 96
 
 #: Occupied voxels of side v per v^2 of surface, averaged over orientations (about 1.3).
 _VOXEL_AREA_FACTOR = 1.3
@@ -138,8 +148,27 @@ class ModelPairs:
     max_dist: float
     #: ``n_samples`` -> evenly spaced ``(points, normals)`` of the full surface samples (ICP).
     icp_samples: dict = field(default_factory=dict, repr=False)
+    #: The distinct ``keys``, the index of each one's first pair and its number of pairs.
+    unique_keys: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)
+    unique_first: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)
+    unique_count: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)
     #: KD-tree of ``dense_points`` (model frame), built on first use.
     _dense_tree: KDTree | None = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        if len(self.keys) and not len(self.unique_keys):
+            self.unique_keys, self.unique_first, self.unique_count = np.unique(
+                self.keys, return_index=True, return_counts=True
+            )
+
+    def lookup(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(first (M,), count (M,))``: where the pairs with each of ``keys (M,)`` start in
+        the sorted table and how many there are (count 0: none; first is then meaningless)."""
+        if len(self.unique_keys) == 0:
+            return np.zeros(len(keys), np.int64), np.zeros(len(keys), np.int64)
+        pos = np.minimum(np.searchsorted(self.unique_keys, keys), len(self.unique_keys) - 1)
+        found = self.unique_keys[pos] == keys
+        return self.unique_first[pos], np.where(found, self.unique_count[pos], 0)
 
     def dense_tree(self) -> KDTree:
         """KD-tree of the dense samples in the model frame (built once)."""
@@ -443,8 +472,7 @@ class HypothesisEstimator:
             sp[a], sn[a], sp[b], sn[b], table.dist_step, table.angle_step
         )
         ok = np.flatnonzero((dist >= table.min_dist) & (dist <= table.max_dist))
-        lo = np.searchsorted(table.keys, keys[ok], side="left")
-        count = np.searchsorted(table.keys, keys[ok], side="right") - lo
+        lo, count = table.lookup(keys[ok])
         # matched pairs only; non-coplanar first (they fix a pose), coplanar ones fill up (a
         # single visible face)
         has = np.flatnonzero(count > 0)
@@ -458,24 +486,16 @@ class HypothesisEstimator:
         )
         use = (np.arange(c)[None, :] < count[:, None]).ravel()  # no repeats in small bins
         mp = (lo[:, None] + draw).ravel()[use]
-        sa, sb = np.repeat(a, c)[use], np.repeat(b, c)[use]
+        pair = np.repeat(np.arange(len(a)), c)[use]  # the scene pair of each match
         mi, mj = table.first[mp], table.second[mp]
-        F_s = _pair_frames(sp[sa], sn[sa], sp[sb])
+        F_s = _pair_frames(sp[a], sn[a], sp[b])[pair]
         F_m = _pair_frames(table.points[mi], table.normals[mi], table.points[mj])
         R = F_s[:, :3, :3] @ np.swapaxes(F_m[:, :3, :3], 1, 2)
         t = F_s[:, :3, 3] - np.einsum("nij,nj->ni", R, F_m[:, :3, 3])
-        # coarse score: facing samples in occupied voxels of the segment, first on a subset
-        # of the samples; only the candidates near the best on it are scored on the rest
-        step = max(1, len(table.points) // 96)
+        # coarse score: facing samples in occupied voxels of the segment
+        step = max(1, len(table.points) // _COARSE_SAMPLES)
         cp, cn = table.points[::step], table.normals[::step]
-        first = np.zeros(len(cp), dtype=bool)
-        first[:: max(1, len(cp) // cfg.coarse_screen_samples)] = True
-        coarse, facing = _coarse_hits(R, t, cp[first], cn[first], cam, occ)
-        keep = np.flatnonzero(coarse >= cfg.coarse_screen * coarse.max())
-        rest = _coarse_hits(R[keep], t[keep], cp[~first], cn[~first], cam, occ)
-        coarse[keep] += rest[0]
-        facing[keep] += rest[1]
-        coarse[np.setdiff1d(np.arange(len(R)), keep)] = 0
+        coarse, facing = _coarse_hits(R, t, cp, cn, cam, occ)
         # quality for class screening: F1 of the fraction of facing samples explained and an
         # estimate of the fraction of the segment's surface explained (hit samples x area per
         # sample / segment area); the second keeps small classes from winning inside large
@@ -525,21 +545,19 @@ class HypothesisEstimator:
                 extra += 1
                 far &= _rotation_distances(R[rest], R[idx], sym) > apart
         model = self.library[table.name]
-        coarse_pts = table.samples(model, 400)
-        fine_pts = table.samples(model, 800)
+        coarse_pts = table.samples(model, _COARSE_ICP["n_samples"])
+        fine_pts = table.samples(model, _FINE_ICP["n_samples"])
         poses: list[np.ndarray] = []
         for idx in chosen:  # coarse ICP, then drop the candidates that met
             T = np.eye(4)
             T[:3, :3], T[:3, 3] = R[idx], t[idx]
-            near = self._near(table, T, p, 0.012)
-            T = _icp(*coarse_pts, T, p[near], cam, max_distance=0.012, iterations=8, n_points=500)
+            T = self._icp_stage(table, coarse_pts, T, p, cam, _COARSE_ICP)
             if not any(_same_pose(T, U, table.symmetries) for U in poses):
                 poses.append(T)
         tree = KDTree(p)
         refined = []
         for T in poses:  # fine ICP
-            near = self._near(table, T, p, 0.008)
-            T = _icp(*fine_pts, T, p[near], cam, max_distance=0.005, iterations=10, n_points=1000)
+            T = self._icp_stage(table, fine_pts, T, p, cam, _FINE_ICP)
             refined.append((*self._score(table, T, p, tree, cam), T))
         refined.sort(key=lambda r: -r[0])
         out: list[tuple[float, np.ndarray, float]] = []
@@ -547,6 +565,20 @@ class HypothesisEstimator:
             if not any(_same_pose(T, U, table.symmetries) for _, U, _ in out):
                 out.append((s, T, cover))
         return out
+
+    def _icp_stage(self, table: ModelPairs, samples, T, p, cam, stage: dict) -> np.ndarray:
+        """``T`` refined by :func:`_icp` with the settings ``stage`` (:data:`_COARSE_ICP`) on
+        the points of ``p`` within ``stage["near"]`` of the model at ``T``."""
+        near = self._near(table, T, p, stage["near"])
+        return _icp(
+            *samples,
+            T,
+            p[near],
+            cam,
+            max_distance=stage["max_distance"],
+            iterations=stage["iterations"],
+            n_points=stage["n_points"],
+        )
 
     def _near(self, table: ModelPairs, T, p, radius: float) -> np.ndarray:
         """Mask of segment points ``p (N, 3)`` within ``radius`` (m) of the dense model
@@ -580,13 +612,22 @@ def _within(tree: KDTree, q: np.ndarray, radius: float) -> np.ndarray:
 
 
 def _rotvec_matrix(w: np.ndarray) -> np.ndarray:
-    """Rotation matrix ``(3, 3)`` of the rotation vector ``w (3,)`` (rad; Rodrigues)."""
-    theta = float(np.sqrt(w @ w))
+    """Rotation matrix ``(3, 3)`` of the rotation vector ``w (3,)`` (rad; Rodrigues, in
+    scalars: it runs once per ICP step)."""
+    x, y, z = float(w[0]), float(w[1]), float(w[2])
+    theta = math.sqrt(x * x + y * y + z * z)
     if theta < 1e-12:
         return np.eye(3)
-    k = w / theta
-    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + np.sin(theta) * K + (1.0 - np.cos(theta)) * (K @ K)
+    x, y, z = x / theta, y / theta, z / theta
+    s, c = math.sin(theta), math.cos(theta)
+    C = 1.0 - c
+    return np.array(
+        [
+            [c + x * x * C, x * y * C - z * s, x * z * C + y * s],
+            [y * x * C + z * s, c + y * y * C, y * z * C - x * s],
+            [z * x * C - y * s, z * y * C + x * s, c + z * z * C],
+        ]
+    )
 
 
 def _icp(
@@ -620,31 +661,33 @@ def _icp(
     if len(pts) < 3:
         return T
     tree = KDTree(np.ascontiguousarray(pts))
-    # per sample: p x n, n, p, p.n
-    Z = np.hstack([np.cross(pts, nrm), nrm, pts, (pts * nrm).sum(1, keepdims=True)])
+    # per sample: p x n, n, p, p.n; then a zero row, which the misses (index len(pts)) gather
+    Z = np.zeros((len(pts) + 1, 10))
+    Z[:-1, :3], Z[:-1, 3:6], Z[:-1, 6:9] = np.cross(pts, nrm), nrm, pts
+    Z[:-1, 9] = (pts * nrm).sum(1)
     M = np.eye(6)
     for _ in range(int(iterations)):
         R, t = T[:3, :3], T[:3, 3]
         q = (seg - t) @ R  # the segment in the model frame
-        dist, idx = tree.query(q, k=1, distance_upper_bound=max_distance)
-        ok = np.isfinite(dist)
-        if np.count_nonzero(ok) < min_pairs:
+        _, idx = tree.query(q, k=1, distance_upper_bound=max_distance)
+        m = int(np.count_nonzero(idx < len(pts)))
+        if m < min_pairs:
             break
-        z = Z[idx[ok]]
+        z = Z[idx]  # misses are zero rows: they add nothing below
         G, n = z[:, :6], z[:, 3:6]
-        c = z[:, 6:9].mean(axis=0)
-        b = np.einsum("ij,ij->i", q[ok], n) - z[:, 9]  # n . (q - p)
+        c = (np.ones(len(z)) @ z[:, 6:9]) / m  # centroid of the matched samples
+        b = np.einsum("ij,ij->i", q, n) - z[:, 9]  # n . (q - p)
         # (p - c) x n = p x n - c x n = p x n + n [c]_x:  M = [[I, 0], [[c]_x, I]]
         M[3:, :3] = [[0.0, -c[2], c[1]], [c[2], 0.0, -c[0]], [-c[1], c[0], 0.0]]
         H = M.T @ (G.T @ G) @ M
-        H += np.eye(6) * (1e-6 * np.trace(H) / 6.0 + 1e-12)
+        H.flat[::7] += 1e-6 * np.trace(H) / 6.0 + 1e-12
         x = np.linalg.solve(H, M.T @ (G.T @ b))
         omega, v = x[:3], x[3:]
-        D = np.eye(4)
-        D[:3, :3] = _rotvec_matrix(omega)
-        D[:3, 3] = c - D[:3, :3] @ c + v  # about the pairs' centroid, then shifted (model frame)
-        T = T @ D
-        if np.linalg.norm(v) < 1e-6 and np.linalg.norm(omega) < 1e-6:
+        Rd = _rotvec_matrix(omega)
+        # about the pairs' centroid, then shifted (model frame): T <- T [Rd, c - Rd c + v]
+        T[:3, 3] += R @ (c - Rd @ c + v)
+        T[:3, :3] = R @ Rd
+        if v @ v < 1e-12 and omega @ omega < 1e-12:  # moved less than 1 um and 1 urad
             break
     return T
 
