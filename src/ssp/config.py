@@ -540,14 +540,7 @@ class PerceptionConfig(_Section):
     max_model_points: int = Field(
         450, ge=50, description="Cap of model samples in the pair table (coarser voxel)."
     )
-    pair_samples: int = Field(
-        400,
-        ge=10,
-        description=(
-            "Scene point pairs drawn per model (600 gave the same recall with half again as "
-            "many candidate poses to score)."
-        ),
-    )
+    pair_samples: int = Field(600, ge=10, description="Scene point pairs drawn per model.")
     matches_per_pair: int = Field(6, ge=1, description="Model pairs tried per scene pair.")
     angle_step_deg: float = Field(12.0, gt=0, le=90, description="Feature angle bin, deg.")
     score_voxel: float = Field(
@@ -566,14 +559,7 @@ class PerceptionConfig(_Section):
         ),
     )
     max_classes: int = Field(2, ge=1, description="Classes refined per object at most.")
-    refine: int = Field(
-        3,
-        ge=1,
-        description=(
-            "Distinct candidates refined by ICP per object, best coarse score first (the "
-            "alternatives come on top)."
-        ),
-    )
+    refine: int = Field(5, ge=1, description="Distinct candidates refined by ICP per object.")
     alternatives: int = Field(
         4,
         ge=0,
