@@ -14,12 +14,15 @@ The paper's pipeline gets several poses per object from ObjRecRANSAC (Papazov & 
    (the frame of ``(p1, n1, p2)`` of the model pair mapped onto the scene pair's).
 3. **Scoring** every candidate on a dilated occupancy grid of the segment (voxel
    ``score_voxel``): the number of camera-facing model samples in occupied voxels. This is
-   ObjRecRANSAC's acceptance test and costs a gather per sample.
+   ObjRecRANSAC's acceptance test and costs a gather per sample (:meth:`_Occupancy.posed`: one
+   matrix product gives every candidate's voxel coordinates).
 4. **Refinement**: the best candidates that differ (symmetry-aware), and the best candidate of
-   each other orientation (``alternatives``), are refined by point-to-plane ICP
-   (:func:`ssp.registration.icp_refine`) on the segment points near them and scored by the F1
-   of *fit* (facing samples with a segment point within ``inlier_distance``) and *coverage*
-   (segment points within that distance of the model). The class with the best score wins;
+   each other orientation (``alternatives``), are refined by point-to-plane ICP (:func:`_icp`,
+   :func:`ssp.registration.icp_refine`'s algorithm solved in the model frame) on the segment
+   points near them and scored by the F1 of *fit* (facing samples with a segment point within
+   ``inlier_distance``) and *coverage* (segment points within that distance of the model,
+   tested in the model frame against a cached tree of its samples). The class with the best
+   score wins;
    its ``k`` hypotheses are the best pose, the other orientations that explain the segment
    nearly as well (:func:`_diverse`), then the rest by score.
 5. **Several objects per segment**: the points the winner explains are removed and the rest is
