@@ -64,6 +64,55 @@ def test_model_pair_table(lib):
     assert len(table.symmetries) > 1  # the cube is symmetric
 
 
+def test_table_lookup_matches_a_search_of_the_sorted_keys(lib):
+    from ssp.config import PerceptionConfig
+
+    table = ModelPairs.build(lib["block"], PerceptionConfig())
+    rng = np.random.default_rng(0)
+    keys = np.concatenate([rng.choice(table.keys, 300), rng.integers(0, table.keys.max() + 9, 300)])
+    first, count = table.lookup(keys)
+    lo = np.searchsorted(table.keys, keys, side="left")
+    hi = np.searchsorted(table.keys, keys, side="right")
+    np.testing.assert_array_equal(count, hi - lo)
+    np.testing.assert_array_equal(first[count > 0], lo[count > 0])
+    assert (count == 0).any() and (count > 0).any()
+
+
+def test_posed_occupancy_equals_the_pointwise_test():
+    from ssp.perception.estimator import _Occupancy, _rotate_all
+
+    rng = np.random.default_rng(1)
+    occ = _Occupancy(rng.random((800, 3)) * 0.1, 0.004)
+    R = Rotation.random(50, random_state=2).as_matrix()
+    t = rng.normal(0.05, 0.08, (50, 3))  # many samples land outside the grid, on all sides
+    v = rng.normal(0.0, 0.04, (40, 3))
+    hit = occ.posed(R, t, v)
+    np.testing.assert_array_equal(hit, occ(_rotate_all(R, v) + t[:, None, :]))
+    assert hit.any() and not hit.all()
+
+
+def test_estimator_icp_matches_registration_icp(lib, scene):
+    """The estimator's ICP is ssp.registration.icp_refine's algorithm, solved in the model
+    frame: the same pose from the same start."""
+    from ssp.perception.estimator import _icp
+    from ssp.registration import even_rows, icp_refine
+
+    model = lib["block"]
+    T_gt = scene[0]["block_b"][1]
+    seg = _segment(scene, 1)
+    T0 = T_gt.copy()
+    T0[:3, :3] = Rotation.from_rotvec([0.05, -0.04, 0.08]).as_matrix() @ T0[:3, :3]
+    T0[:3, 3] += [0.004, -0.003, 0.002]
+    cam = T_WC[:3, 3]
+    pts, nrm = even_rows(400, np.asarray(model.surface_points), np.asarray(model.surface_normals))
+    ours = _icp(pts, nrm, T0, seg, cam, max_distance=0.012, iterations=8, n_points=500)
+    ref = icp_refine(
+        model, T0, seg, cam, max_distance=0.012, iterations=8, n_samples=400, n_points=500
+    )
+    np.testing.assert_allclose(ours, ref, atol=1e-9)
+    assert np.abs(ours - T0).max() > 1e-3  # it moved
+
+
 @pytest.mark.parametrize("k, cls", [(0, "cube"), (1, "block")])
 def test_single_object_pose_and_class(lib, scene, k, cls):
     gt = scene[0]

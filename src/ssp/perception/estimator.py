@@ -14,12 +14,15 @@ The paper's pipeline gets several poses per object from ObjRecRANSAC (Papazov & 
    (the frame of ``(p1, n1, p2)`` of the model pair mapped onto the scene pair's).
 3. **Scoring** every candidate on a dilated occupancy grid of the segment (voxel
    ``score_voxel``): the number of camera-facing model samples in occupied voxels. This is
-   ObjRecRANSAC's acceptance test and costs a gather per sample.
+   ObjRecRANSAC's acceptance test and costs a gather per sample (:meth:`_Occupancy.posed`: one
+   matrix product gives every candidate's voxel coordinates).
 4. **Refinement**: the best candidates that differ (symmetry-aware), and the best candidate of
-   each other orientation (``alternatives``), are refined by point-to-plane ICP
-   (:func:`ssp.registration.icp_refine`) on the segment points near them and scored by the F1
-   of *fit* (facing samples with a segment point within ``inlier_distance``) and *coverage*
-   (segment points within that distance of the model). The class with the best score wins;
+   each other orientation (``alternatives``), are refined by point-to-plane ICP (:func:`_icp`,
+   :func:`ssp.registration.icp_refine`'s algorithm solved in the model frame) on the segment
+   points near them and scored by the F1 of *fit* (facing samples with a segment point within
+   ``inlier_distance``) and *coverage* (segment points within that distance of the model,
+   tested in the model frame against a cached tree of its samples). The class with the best
+   score wins;
    its ``k`` hypotheses are the best pose, the other orientations that explain the segment
    nearly as well (:func:`_diverse`), then the rest by score.
 5. **Several objects per segment**: the points the winner explains are removed and the rest is
@@ -33,25 +36,35 @@ FPFH + RANSAC registration aligns one object and brings a large binary dependenc
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
+from pykdtree.kdtree import KDTree
 from scipy import ndimage
-from scipy.spatial import cKDTree
 
 from ssp.config import PerceptionConfig
 from ssp.errors import PerceptionError, UnknownObjectError
 from ssp.library.model import ObjectModel
 from ssp.perception.cleaning import robust_extent
-from ssp.registration import even_rows, facing_mask, icp_refine
+from ssp.registration import even_rows, facing_mask
 from ssp.scene import Hypothesis
 
 __all__ = ["HypothesisEstimator", "ModelPairs", "SegmentResult", "voxel_thin"]
 
 log = logging.getLogger(__name__)
 
+
+#: The two ICP stages of the refinement (step 4): segment points within ``near`` (m) of the
+#: model are matched to ``n_samples`` model samples within ``max_distance`` (m), at most
+#: ``n_points`` of them, for at most ``iterations`` Gauss-Newton steps.
+_COARSE_ICP = dict(near=0.012, max_distance=0.012, iterations=8, n_samples=400, n_points=500)
+_FINE_ICP = dict(near=0.008, max_distance=0.005, iterations=10, n_samples=800, n_points=1000)
+
+#: About this many model samples score each candidate pose (step 3).
+_COARSE_SAMPLES = 96
 
 #: Occupied voxels of side v per v^2 of surface, averaged over orientations (about 1.3).
 _VOXEL_AREA_FACTOR = 1.3
@@ -136,6 +149,46 @@ class ModelPairs:
     angle_step: float
     min_dist: float
     max_dist: float
+    #: ``n_samples`` -> evenly spaced ``(points, normals)`` of the full surface samples (ICP).
+    icp_samples: dict = field(default_factory=dict, repr=False)
+    #: The distinct ``keys``, the index of each one's first pair and its number of pairs.
+    unique_keys: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)
+    unique_first: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)
+    unique_count: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)
+    #: KD-tree of ``dense_points`` (model frame), built on first use.
+    _dense_tree: KDTree | None = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        if len(self.keys) and not len(self.unique_keys):
+            self.unique_keys, self.unique_first, self.unique_count = np.unique(
+                self.keys, return_index=True, return_counts=True
+            )
+
+    def lookup(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(first (M,), count (M,))``: where the pairs with each of ``keys (M,)`` start in
+        the sorted table and how many there are (count 0: none; first is then meaningless)."""
+        if len(self.unique_keys) == 0:
+            return np.zeros(len(keys), np.int64), np.zeros(len(keys), np.int64)
+        pos = np.minimum(np.searchsorted(self.unique_keys, keys), len(self.unique_keys) - 1)
+        found = self.unique_keys[pos] == keys
+        return self.unique_first[pos], np.where(found, self.unique_count[pos], 0)
+
+    def dense_tree(self) -> KDTree:
+        """KD-tree of the dense samples in the model frame (built once)."""
+        if self._dense_tree is None:
+            self._dense_tree = KDTree(np.ascontiguousarray(self.dense_points))
+        return self._dense_tree
+
+    def samples(self, model: ObjectModel, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """At most ``n`` evenly spaced surface samples and normals ``(n, 3)`` of ``model``
+        (as :func:`ssp.registration.icp_refine` takes them), cached."""
+        if n not in self.icp_samples:
+            self.icp_samples[n] = even_rows(
+                n,
+                np.asarray(model.surface_points, dtype=float),
+                np.asarray(model.surface_normals, dtype=float),
+            )
+        return self.icp_samples[n]
 
     @classmethod
     def build(cls, model: ObjectModel, cfg: PerceptionConfig) -> ModelPairs:
@@ -201,6 +254,43 @@ class _Occupancy:
             for a, n in enumerate(self.shape)
         )
         return self.grid.ravel()[(ix * int(self.shape[1]) + iy) * int(self.shape[2]) + iz]
+
+    def posed(self, R: np.ndarray, t: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Bool ``(M, P)``: the voxel of ``R_m v_p + t_m`` is occupied, for poses ``R (M, 3,
+        3)``, ``t (M, 3)`` and points ``v (P, 3)``: ``self(_rotate_all(R, v) + t[:, None])``
+        as one homogeneous matrix product in voxel units, with 32-bit indices."""
+        M, P = len(R), len(v)
+        A = np.empty((M, 3, 4))
+        A[:, :, :3] = R * (1.0 / self.voxel)
+        A[:, :, 3] = (t - self.lo) * (1.0 / self.voxel)
+        w = (A.reshape(-1, 4) @ np.hstack([v, np.ones((P, 1))]).T).reshape(M, 3, P)
+        # negative indices wrap to huge unsigned ones and are clipped onto the far border
+        # voxels, which are empty like the near ones
+        big = int(np.prod(self.shape)) >= 2**31
+        i = w.astype(np.int64 if big else np.int32).view(np.uint64 if big else np.uint32)
+        np.minimum(i, (self.shape - 1).astype(i.dtype)[None, :, None], out=i)
+        s1, s2 = (i.dtype.type(n) for n in self.shape[1:])
+        flat = i[:, 0] * s1
+        flat += i[:, 1]
+        flat *= s2
+        flat += i[:, 2]
+        return self.grid.ravel()[flat]
+
+
+def _coarse_hits(R, t, cp, cn, cam, occ: _Occupancy) -> tuple[np.ndarray, np.ndarray]:
+    """Coarse score of candidate poses ``R (M, 3, 3)``, ``t (M, 3)`` on model samples ``cp,
+    cn (P, 3)``: ``(hits (M,), facing (M,))``, the numbers of camera-facing samples (all when
+    ``cam`` is None) that fall in an occupied voxel of ``occ``, and of facing samples."""
+    if len(R) == 0 or len(cp) == 0:
+        return np.zeros(len(R), dtype=np.int64), np.zeros(len(R), dtype=np.int64)
+    hit = occ.posed(R, t, cp)
+    if cam is None:
+        return hit.sum(1), np.full(len(R), len(cp), dtype=np.int64)
+    # (R n).(cam - R p - t) = n.(R^T (cam - t)) - n.p
+    local_cam = np.einsum("nji,nj->ni", R, cam - t)
+    facing = local_cam @ cn.T > (cn * cp).sum(1)[None, :]
+    hit &= facing
+    return hit.sum(1), facing.sum(1)
 
 
 @dataclass
@@ -385,8 +475,7 @@ class HypothesisEstimator:
             sp[a], sn[a], sp[b], sn[b], table.dist_step, table.angle_step
         )
         ok = np.flatnonzero((dist >= table.min_dist) & (dist <= table.max_dist))
-        lo = np.searchsorted(table.keys, keys[ok], side="left")
-        count = np.searchsorted(table.keys, keys[ok], side="right") - lo
+        lo, count = table.lookup(keys[ok])
         # matched pairs only; non-coplanar first (they fix a pose), coplanar ones fill up (a
         # single visible face)
         has = np.flatnonzero(count > 0)
@@ -400,28 +489,21 @@ class HypothesisEstimator:
         )
         use = (np.arange(c)[None, :] < count[:, None]).ravel()  # no repeats in small bins
         mp = (lo[:, None] + draw).ravel()[use]
-        sa, sb = np.repeat(a, c)[use], np.repeat(b, c)[use]
+        pair = np.repeat(np.arange(len(a)), c)[use]  # the scene pair of each match
         mi, mj = table.first[mp], table.second[mp]
-        F_s = _pair_frames(sp[sa], sn[sa], sp[sb])
+        F_s = _pair_frames(sp[a], sn[a], sp[b])[pair]
         F_m = _pair_frames(table.points[mi], table.normals[mi], table.points[mj])
         R = F_s[:, :3, :3] @ np.swapaxes(F_m[:, :3, :3], 1, 2)
         t = F_s[:, :3, 3] - np.einsum("nij,nj->ni", R, F_m[:, :3, 3])
         # coarse score: facing samples in occupied voxels of the segment
-        step = max(1, len(table.points) // 96)
+        step = max(1, len(table.points) // _COARSE_SAMPLES)
         cp, cn = table.points[::step], table.normals[::step]
-        wp = _rotate_all(R, cp) + t[:, None, :]
-        hit = occ(wp)
-        facing = np.ones_like(hit)
-        if cam is not None:  # (R n).(cam - R p - t) = n.(R^T (cam - t)) - n.p
-            local_cam = np.einsum("nji,nj->ni", R, cam - t)
-            facing = local_cam @ cn.T > (cn * cp).sum(1)[None, :]
-            hit &= facing
-        coarse = hit.sum(1)
+        coarse, facing = _coarse_hits(R, t, cp, cn, cam, occ)
         # quality for class screening: F1 of the fraction of facing samples explained and an
         # estimate of the fraction of the segment's surface explained (hit samples x area per
         # sample / segment area); the second keeps small classes from winning inside large
         # segments
-        fit = coarse / np.maximum(facing.sum(1), 8)
+        fit = coarse / np.maximum(facing, 8)
         cover = np.minimum(1.0, coarse * (table.area / len(cp)) / max(seg_area, 1e-12))
         f1 = 2 * fit * cover / np.maximum(fit + cover, 1e-12)
         return _Pool(table, R, t, coarse, float(f1.max()))
@@ -466,37 +548,19 @@ class HypothesisEstimator:
                 extra += 1
                 far &= _rotation_distances(R[rest], R[idx], sym) > apart
         model = self.library[table.name]
+        coarse_pts = table.samples(model, _COARSE_ICP["n_samples"])
+        fine_pts = table.samples(model, _FINE_ICP["n_samples"])
         poses: list[np.ndarray] = []
         for idx in chosen:  # coarse ICP, then drop the candidates that met
             T = np.eye(4)
             T[:3, :3], T[:3, 3] = R[idx], t[idx]
-            near = self._near(table, T, p, 0.012)
-            T = icp_refine(
-                model,
-                T,
-                p[near],
-                cam,
-                max_distance=0.012,
-                iterations=8,
-                n_samples=400,
-                n_points=500,
-            )
+            T = self._icp_stage(table, coarse_pts, T, p, cam, _COARSE_ICP)
             if not any(_same_pose(T, U, table.symmetries) for U in poses):
                 poses.append(T)
-        tree = cKDTree(p)
+        tree = KDTree(p)
         refined = []
         for T in poses:  # fine ICP
-            near = self._near(table, T, p, 0.008)
-            T = icp_refine(
-                model,
-                T,
-                p[near],
-                cam,
-                max_distance=0.005,
-                iterations=10,
-                n_samples=800,
-                n_points=1000,
-            )
+            T = self._icp_stage(table, fine_pts, T, p, cam, _FINE_ICP)
             refined.append((*self._score(table, T, p, tree, cam), T))
         refined.sort(key=lambda r: -r[0])
         out: list[tuple[float, np.ndarray, float]] = []
@@ -505,31 +569,130 @@ class HypothesisEstimator:
                 out.append((s, T, cover))
         return out
 
-    def _near(self, table: ModelPairs, T, p, radius: float) -> np.ndarray:
-        """Mask of segment points within ``radius`` of the model samples at ``T``."""
-        wp = table.dense_points @ T[:3, :3].T + T[:3, 3]
-        d, _ = cKDTree(wp).query(p, distance_upper_bound=radius)
-        return np.isfinite(d)
+    def _icp_stage(self, table: ModelPairs, samples, T, p, cam, stage: dict) -> np.ndarray:
+        """``T`` refined by :func:`_icp` with the settings ``stage`` (:data:`_COARSE_ICP`) on
+        the points of ``p`` within ``stage["near"]`` of the model at ``T``."""
+        near = self._near(table, T, p, stage["near"])
+        return _icp(
+            *samples,
+            T,
+            p[near],
+            cam,
+            max_distance=stage["max_distance"],
+            iterations=stage["iterations"],
+            n_points=stage["n_points"],
+        )
 
-    def _score(self, table: ModelPairs, T, p, tree: cKDTree, cam) -> tuple[float, float]:
+    def _near(self, table: ModelPairs, T, p, radius: float) -> np.ndarray:
+        """Mask of segment points ``p (N, 3)`` within ``radius`` (m) of the dense model
+        samples at ``T`` (the points are moved into the model frame, whose tree is cached)."""
+        return _within(table.dense_tree(), (p - T[:3, 3]) @ T[:3, :3], radius)
+
+    def _score(self, table: ModelPairs, T, p, tree: KDTree, cam) -> tuple[float, float]:
         """``(score, coverage)``: the score is the F1 of fit (facing samples with a segment
         point within ``inlier_distance``) and coverage (segment points within that distance of
-        the model surface)."""
+        the model surface). ``tree``: KD-tree of ``p``."""
         r = self.cfg.inlier_distance
         wp = table.dense_points @ T[:3, :3].T + T[:3, 3]
         face = facing_mask(wp, table.dense_normals @ T[:3, :3].T, cam)
         if not face.any():
             return 0.0, 0.0
-        d, _ = tree.query(wp[face], distance_upper_bound=r)
-        fit = float(np.mean(np.isfinite(d)))
+        fit = float(np.mean(_within(tree, wp[face], r)))
         cover = float(self._explained(table, T, p).mean())
         return (0.0 if fit + cover == 0 else 2 * fit * cover / (fit + cover)), cover
 
     def _explained(self, table: ModelPairs, T, p) -> np.ndarray:
         """Mask of points ``p`` within ``inlier_distance`` of the model surface at ``T``."""
-        wp = table.dense_points @ T[:3, :3].T + T[:3, 3]
-        d, _ = cKDTree(wp).query(p, distance_upper_bound=self.cfg.inlier_distance)
-        return np.isfinite(d)
+        return self._near(table, T, p, self.cfg.inlier_distance)
+
+
+def _within(tree: KDTree, q: np.ndarray, radius: float) -> np.ndarray:
+    """Mask of the queries ``q (N, 3)`` with a point of ``tree`` within ``radius`` (m)."""
+    if len(q) == 0:
+        return np.zeros(0, dtype=bool)
+    d, _ = tree.query(np.ascontiguousarray(q, dtype=float), k=1, distance_upper_bound=radius)
+    return np.isfinite(d)
+
+
+def _rotvec_matrix(w: np.ndarray) -> np.ndarray:
+    """Rotation matrix ``(3, 3)`` of the rotation vector ``w (3,)`` (rad; Rodrigues, in
+    scalars: it runs once per ICP step)."""
+    x, y, z = float(w[0]), float(w[1]), float(w[2])
+    theta = math.sqrt(x * x + y * y + z * z)
+    if theta < 1e-12:
+        return np.eye(3)
+    x, y, z = x / theta, y / theta, z / theta
+    s, c = math.sin(theta), math.cos(theta)
+    C = 1.0 - c
+    return np.array(
+        [
+            [c + x * x * C, x * y * C - z * s, x * z * C + y * s],
+            [y * x * C + z * s, c + y * y * C, y * z * C - x * s],
+            [z * x * C - y * s, z * y * C + x * s, c + z * z * C],
+        ]
+    )
+
+
+def _icp(
+    pts: np.ndarray,
+    nrm: np.ndarray,
+    T_init: np.ndarray,
+    segment: np.ndarray,
+    camera: np.ndarray | None,
+    *,
+    max_distance: float,
+    iterations: int,
+    n_points: int,
+    min_pairs: int = 10,
+) -> np.ndarray:
+    """Point-to-plane ICP of model samples ``pts, nrm (S, 3)`` (model frame) onto ``segment
+    (K, 3)`` (world, m): :func:`ssp.registration.icp_refine`'s algorithm (correspondences from
+    at most ``n_points`` segment points to the camera-facing samples within ``max_distance``,
+    damped Gauss-Newton steps about the pairs' centroid). Returns ``T_world_obj (4, 4)``.
+
+    Solved in the model frame, so the samples never move: a pair's Jacobian row
+    ``((p - c) x n, n)`` is ``G M`` with the per-sample constants ``G = (p x n, n)`` and a
+    ``6 x 6`` matrix ``M`` of the centroid ``c``, so each step gathers ``G`` and forms ``G^T G``.
+    """
+    T = np.array(T_init, dtype=float)
+    seg = np.asarray(segment, dtype=float).reshape(-1, 3)
+    if len(seg) < min_pairs:
+        return T
+    (seg,) = even_rows(n_points, seg)
+    keep = facing_mask(pts @ T[:3, :3].T + T[:3, 3], nrm @ T[:3, :3].T, camera)
+    pts, nrm = pts[keep], nrm[keep]
+    if len(pts) < 3:
+        return T
+    tree = KDTree(np.ascontiguousarray(pts))
+    # per sample: p x n, n, p, p.n; then a zero row, which the misses (index len(pts)) gather
+    Z = np.zeros((len(pts) + 1, 10))
+    Z[:-1, :3], Z[:-1, 3:6], Z[:-1, 6:9] = np.cross(pts, nrm), nrm, pts
+    Z[:-1, 9] = (pts * nrm).sum(1)
+    M = np.eye(6)
+    for _ in range(int(iterations)):
+        R, t = T[:3, :3], T[:3, 3]
+        q = (seg - t) @ R  # the segment in the model frame
+        _, idx = tree.query(q, k=1, distance_upper_bound=max_distance)
+        m = int(np.count_nonzero(idx < len(pts)))
+        if m < min_pairs:
+            break
+        z = Z[idx]  # misses are zero rows: they add nothing below
+        G, n = z[:, :6], z[:, 3:6]
+        c = (np.ones(len(z)) @ z[:, 6:9]) / m  # centroid of the matched samples
+        b = np.einsum("ij,ij->i", q, n) - z[:, 9]  # n . (q - p)
+        # (p - c) x n = p x n - c x n = p x n + n [c]_x:  M = [[I, 0], [[c]_x, I]]
+        M[3:, :3] = [[0.0, -c[2], c[1]], [c[2], 0.0, -c[0]], [-c[1], c[0], 0.0]]
+        H = M.T @ (G.T @ G) @ M
+        H.flat[::7] += 1e-6 * np.trace(H) / 6.0 + 1e-12
+        x = np.linalg.solve(H, M.T @ (G.T @ b))
+        omega, v = x[:3], x[3:]
+        Rd = _rotvec_matrix(omega)
+        # about the pairs' centroid, then shifted (model frame): T <- T [Rd, c - Rd c + v]
+        T[:3, 3] += R @ (c - Rd @ c + v)
+        T[:3, :3] = R @ Rd
+        if v @ v < 1e-12 and omega @ omega < 1e-12:  # moved less than 1 um and 1 urad
+            break
+    return T
 
 
 def _diverse(found: list, k: int, cfg: PerceptionConfig, sym: np.ndarray) -> list:
