@@ -448,9 +448,6 @@ def bench_parser_cmd(
         help="Folder with the paper's link_uniform and node_uniform meshes (e.g. "
         "../shared/data/costar-links): adds a 6-object link/node structure.",
     ),
-    threads: int = typer.Option(
-        1, "--threads", min=1, max=64, help="search.threads: candidates evaluated at once."
-    ),
     compare: str | None = typer.Option(
         None,
         "--compare",
@@ -463,12 +460,12 @@ def bench_parser_cmd(
 ) -> None:
     """Seconds per frame of the scene parser (added, changed and unchanged frames) for stacks
     of N cubes and blocks on rendered depth, with the share of each stage, and whether
-    issue 19's targets are met. Run it on as many cores as --threads."""
+    issue 19's targets are met. One core."""
     from ssp.eval.bench_parser import FRAMES, STAGES, bench_parser, write_report
     from ssp.library import ObjectLibrary
 
     if compare is not None:
-        _bench_parser_compare(compare, sizes, k, repeats, seed, threads, links, rounds, out)
+        _bench_parser_compare(compare, sizes, k, repeats, seed, links, rounds, out)
         return
 
     try:
@@ -476,7 +473,6 @@ def bench_parser_cmd(
     except ValueError as exc:
         raise typer.BadParameter(f"--sizes must be integers separated by commas: {exc}") from exc
     cfg = _config(config)
-    cfg.search.threads = threads
     link_lib = None
     if links is not None:
         with console.status(f"loading the models of {links}") as status:
@@ -493,7 +489,7 @@ def bench_parser_cmd(
             links=link_lib,
         )  # fmt: skip
     files = write_report(result, out)
-    table = Table(title=f"scene parser, k = {k}, {repeats} scenes per size, {threads} thread(s)")
+    table = Table(title=f"scene parser, k = {k}, {repeats} scenes per size, one core")
     for col in ("N", "frame", "s/frame", "max", "tested", *STAGES, "other"):
         table.add_column(col, justify="right")
     for r in result["rows"]:
@@ -516,7 +512,7 @@ def bench_parser_cmd(
         console.print(f"wrote [bold]{f}[/]")
 
 
-def _bench_parser_compare(rev, sizes, k, repeats, seed, threads, links, rounds, out) -> None:
+def _bench_parser_compare(rev, sizes, k, repeats, seed, links, rounds, out) -> None:
     """``ssp bench parser --compare REV``."""
     from ssp.eval.bench_parser import compare_parser, write_compare
 
@@ -526,11 +522,11 @@ def _bench_parser_compare(rev, sizes, k, repeats, seed, threads, links, rounds, 
         raise typer.BadParameter(f"--sizes must be integers separated by commas: {exc}") from exc
     with console.status(f"timing {rev} beside this code") as status:
         result = compare_parser(
-            rev, ns, k=k, repeats=repeats, seed=seed, threads=threads, links=links,
-            rounds=rounds, progress=status.update,
+            rev, ns, k=k, repeats=repeats, seed=seed, links=links, rounds=rounds,
+            progress=status.update,
         )  # fmt: skip
     files = write_compare(result, out)
-    table = Table(title=f"scene parser: {rev} beside this code, {threads} thread(s)")
+    table = Table(title=f"scene parser: {rev} beside this code, one core")
     for col in ("N", "frame", f"{rev} s", "this s", "speed-up", "tested"):
         table.add_column(col, justify="right")
     for r in result["rows"]:
@@ -622,15 +618,6 @@ ExecutorOption = typer.Option(
 )
 WorkersOption = typer.Option(
     1, "--workers", "-j", min=1, help="Worker processes (or CPUs of a local Ray), one core each."
-)
-ThreadsOption = typer.Option(
-    None,
-    "--threads",
-    min=1,
-    max=64,
-    help="Threads per frame (search.threads): an object's candidates simulated at once; the "
-    "results are the same for any number.",
-    show_default=False,
 )
 RayAddressOption = typer.Option(
     None,
@@ -1190,7 +1177,6 @@ def run_cmd(
     executor: str | None = ExecutorOption,
     workers: int = WorkersOption,
     ray_address: str | None = RayAddressOption,
-    threads: int | None = ThreadsOption,
 ) -> None:
     """Perception and scene parsing over recorded frames: per-frame JSON, a BOP19 CSV and a
     summary, kept current after every frame (formats: docs/formats.md). A stopped run
@@ -1259,8 +1245,6 @@ def run_cmd(
         method = method or "ssp"
         masks = masks or "auto"
         cfg = _config(config)
-    if threads is not None:
-        cfg.search.threads = threads
     if hypotheses not in HYPOTHESES_MODES:
         raise typer.BadParameter(f"--hypotheses must be one of {', '.join(HYPOTHESES_MODES)}")
     from ssp.io.rosbag import BagOptions, is_bag
@@ -1640,7 +1624,6 @@ def refine_cmd(
     models: Path | None = ModelsOption,
     config: Path | None = ConfigOption,
     cache: Path | None = CacheOption,
-    threads: int | None = ThreadsOption,
 ) -> None:
     """ssp after your pose estimator: refine its hypotheses on a BOP dataset into a BOP19 CSV
     (OUT/METHOD-ssp_DATASET-SPLIT.csv) and per-frame JSON (OUT/scenes/SCENE/)."""
@@ -1648,8 +1631,6 @@ def refine_cmd(
 
     lib, models_dir = _dataset_library(dataset, models, config, cache)
     cfg = _config(config)
-    if threads is not None:
-        cfg.search.threads = threads
     with _bar() as progress:
         task = progress.add_task("refining", total=None)
         summary = refine(

@@ -489,15 +489,6 @@ class SearchConfig(_Section):
             "the tested object are left out of its tests (cost independent of scene size)."
         ),
     )
-    threads: int = Field(
-        1,
-        ge=1,
-        le=64,
-        description=(
-            "Threads evaluating an object's candidates at once, each on its own copy of the "
-            "world (ssp.lanes); the results are identical for any number."
-        ),
-    )
     previous_candidates: bool = Field(
         True, description="Add the previous frame's pose of an object as a candidate (V-C)."
     )

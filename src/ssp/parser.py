@@ -57,7 +57,6 @@ from ssp.errors import InvalidPoseError, PhysicsError, SSPError, UnknownObjectEr
 from ssp.estimate import ObjectEstimate, Rejected, SceneEstimate, SupportEdge
 from ssp.forces import SegmentField
 from ssp.geometry import validate_pose
-from ssp.lanes import Lanes, in_lanes, thread_pool
 from ssp.library.library import ObjectLibrary
 from ssp.library.model import ObjectInstance, ObjectModel
 from ssp.library.symmetry import Symmetry
@@ -214,9 +213,6 @@ class SceneParser:
         self._last_stamp: float | None = None
         self._world: World | None = None
         self._world_key: tuple[tuple[str, str], ...] | None = None
-        self._replicas: list[World] = []  # of _world, for search.threads > 1
-        self._replica_of: World | None = None
-        self._pool = None  # their worker threads, made when first needed
 
     def __repr__(self) -> str:
         return f"SceneParser({len(self._known)} objects, {self._frame_index} frames)"
@@ -313,48 +309,6 @@ class SceneParser:
             self._world = World(instances, table=self.table, config=self.config.physics)
             self._world_key = key
         return self._world
-
-    def _threads(self):
-        """The worker threads of ``search.threads`` (None for one), made when first needed."""
-        if self._pool is None and int(self.config.search.threads) > 1:
-            self._pool = thread_pool(int(self.config.search.threads))
-        return self._pool
-
-    def _map(self, fn: Callable[[Any], Any], items: Sequence[Any]) -> list:
-        """``[fn(x) for x in items]``, spread over ``search.threads`` threads (``fn`` must
-        not change shared state; the results are the same for any number of threads)."""
-        return in_lanes(self._threads(), self.config.search.threads, lambda _, x: fn(x), items)
-
-    def _background(self, fn: Callable[[], Any]) -> Callable[[], Any]:
-        """Start ``fn()`` on a worker thread (here and now with one thread); returns the
-        call that waits for its result."""
-        pool = self._threads()
-        if pool is None:
-            result = fn()
-            return lambda: result
-        return pool.submit(fn).result
-
-    def _lanes(self, world: World, fields, sim: Simulator, cam, sample_filter) -> Lanes | None:
-        """``search.threads`` lanes for the layered search (:mod:`ssp.lanes`): lane 0 is
-        ``sim``, the others replicas of ``world`` with the same data forces; None for one."""
-        n = int(self.config.search.threads)
-        if n <= 1:
-            return None
-        if len(self._replicas) != n - 1 or self._replica_of is not world:
-            self._replicas = [world.replica() for _ in range(n - 1)]
-            self._replica_of = world
-        sims = [sim] + [
-            Simulator.for_world(
-                r,
-                fields,
-                self.config,
-                StageTimer(),
-                camera_position=cam,
-                sample_filter=sample_filter,
-            )  # fmt: skip
-            for r in self._replicas
-        ]
-        return Lanes(sims, self._threads())
 
     def _id_factory(self, counters: dict[str, int], taken: set[str]):
         def new_id(class_name: str) -> str:
@@ -512,7 +466,7 @@ class SceneParser:
             )  # fmt: skip
 
         out: dict[str, Rejected] = {}
-        for oid, r in zip(new, self._map(verdict, list(new)), strict=True):
+        for oid, r in zip(new, map(verdict, new), strict=True):
             if r is not None:
                 out[oid] = r
                 log.info("%s (%s) rejected: %s", oid, r.class_name, r.reason)
@@ -552,19 +506,14 @@ class SceneParser:
             segment_labels = {oid: s for oid, s in segment_labels.items() if s is not None}
             segment_labels.update(claimed)
             members: dict[str, int] = {}
-            # the camera's view is indexed while the segments are cut (another thread)
-            view = self._background(
-                lambda: (
-                    None
-                    if frame.T_world_cam is None
-                    else CameraView(
-                        frame.points,
-                        frame.T_world_cam,
-                        labels=frame.labels,
-                        depth_tolerance=cfg.temporal.depth_tolerance,
-                    )
+            view = None
+            if frame.T_world_cam is not None:
+                view = CameraView(
+                    frame.points,
+                    frame.T_world_cam,
+                    labels=frame.labels,
+                    depth_tolerance=cfg.temporal.depth_tolerance,
                 )
-            )
             segments, owner = object_segments(
                 frame,
                 {oid: (models[oid], cand_poses[oid]) for oid in cand_poses},
@@ -573,7 +522,6 @@ class SceneParser:
                 labels=segment_labels,
                 members=members,
             )
-            view = view()
         with timer("verification"):
             rejected = self._verify_new(
                 [oid for oid in groups if oid not in self._known],
@@ -721,13 +669,10 @@ class SceneParser:
                 if oid in prev_pose and (cfg.search.previous_candidates or oid not in groups):
                     cands.append(Candidate(prev_pose[oid], "previous"))
                 candidates[oid] = cands
-            lanes = self._lanes(world, fields, sim, cam, sample_filter)
             result = layered_search(
                 world, sim, scorer, candidates, layers, children, timer,
-                settled={index[oid] for oid in settled}, lanes=lanes,
+                settled={index[oid] for oid in settled},
             )  # fmt: skip
-            if lanes is not None:
-                lanes.merge_timers(timer)
             score, chosen, tested = result.score, result.chosen, result.tested
             for oid in removed:
                 if oid in index:
@@ -763,24 +708,18 @@ class SceneParser:
             )  # fmt: skip
             if placed:
                 score = scorer.evaluate(world, timer)
-            kept = [oid for oid in ids if oid not in removed]
-            final = dict(
-                zip(
-                    kept,
-                    self._map(
-                        lambda oid: evidence(
-                            models[oid],
-                            score.poses[world.index(oid)],
-                            segments.get(oid),
-                            view,
-                            cfg,
-                            own_label=owner.get(oid),
-                        ),  # fmt: skip
-                        kept,
-                    ),
-                    strict=True,
-                )
-            )
+            final = {
+                oid: evidence(
+                    models[oid],
+                    score.poses[world.index(oid)],
+                    segments.get(oid),
+                    view,
+                    cfg,
+                    own_label=owner.get(oid),
+                )  # fmt: skip
+                for oid in ids
+                if oid not in removed
+            }
         return self._finish(
             frame,
             _Outcome(
@@ -827,22 +766,17 @@ class SceneParser:
         cfg = self.config
         forces = sim.forces
         with timer("icp"):
-            todo = [
-                (oid, world.get_pose(oid), seg)
-                for oid, seg in segments.items()
-                if world.is_enabled(oid) and len(seg) >= 30
-            ]
-            found = self._map(
-                lambda job: icp_refine(
-                    world.model_of(job[0]),
-                    job[1],
-                    job[2],
+            for oid, seg in segments.items():
+                if not world.is_enabled(oid) or len(seg) < 30:
+                    continue
+                T = world.get_pose(oid)
+                T_icp = icp_refine(
+                    world.model_of(oid),
+                    T,
+                    seg,
                     camera_position,
                     max_distance=cfg.forces.icp_max_distance,
-                ),  # fmt: skip
-                todo,
-            )
-            for (oid, T, _), T_icp in zip(todo, found, strict=True):
+                )
                 dt, dth = pose_change(T, T_icp, None, world.model_of(oid).center_of_mass)
                 if dt < 0.02 and dth < math.radians(20.0):
                     forces.set_pose_target(world.index(oid), T_icp)

@@ -26,7 +26,6 @@ import numpy as np
 from ssp.config import SSPConfig
 from ssp.errors import PhysicsError
 from ssp.forces import DataForces
-from ssp.lanes import Lanes
 from ssp.physics import World
 from ssp.scoring import SceneScore, SceneScorer
 from ssp.timing import StageTimer
@@ -229,7 +228,6 @@ def layered_search(
     children: Mapping[int, Sequence[int]],
     timer: StageTimer,
     settled: Collection[int] = (),
-    lanes: Lanes | None = None,
 ) -> SearchResult:
     """Alg. 3 on ``world``, whose objects sit at their settled first guesses.
 
@@ -243,8 +241,6 @@ def layered_search(
         timer: stage timer.
         settled: object indices that keep their current pose untested, in their layer
             (:func:`ssp.static.settled_objects`; ``chosen`` says ``"previous (settled)"``).
-        lanes: run each object's candidates in parallel on these (:mod:`ssp.lanes`; lane 0
-            is ``sim``); the choices are the same as without.
 
     Returns:
         The final scene (all objects in ``layers`` enabled, settled ``config.search.final_settle``
@@ -282,34 +278,25 @@ def layered_search(
             base = world.save_state()
             kid_poses = {ids[c]: world.get_pose(ids[c]) for c in kids}
 
-            def test(lane: Simulator, cand: Candidate, start, oid=oid, kids=kids):
-                """One candidate from ``start``: its window, then the score (Alg. 3)."""
-                w = lane.world
-                w.restore_state(start)
-                for c in kids:
-                    w.set_enabled(ids[c], True)
-                w.set_pose(oid, cand.T_world_obj)
-                lane.forces.reset()
-                try:
-                    lane.window()
-                except PhysicsError as exc:
-                    return None, None, str(exc)
-                return scorer.evaluate(w, lane.timer).total, w.save_state(), None
-
-            results = lanes.run(base, tests, test) if lanes is not None else [
-                test(sim, cand, base) for cand in tests
-            ]  # fmt: skip
             best_total, best_state, best_source = -np.inf, None, "current"
-            for cand, (total, state, error) in zip(tests, results, strict=True):
+            for cand in tests:
+                world.restore_state(base)
+                for c in kids:
+                    world.set_enabled(ids[c], True)
+                world.set_pose(oid, cand.T_world_obj)
+                sim.forces.reset()
                 tested += 1
-                if total is None:
+                try:
+                    sim.window()
+                except PhysicsError as exc:
                     log.warning(
-                        "candidate %s of %s failed in simulation: %s", cand.source, oid, error
+                        "candidate %s of %s failed in simulation: %s", cand.source, oid, exc
                     )
                     failed.append((oid, cand.source))
                     continue
+                total = scorer.evaluate(world, timer).total
                 if total > best_total:  # ties keep the earlier candidate
-                    best_total, best_state, best_source = total, state, cand.source
+                    best_total, best_state, best_source = total, world.save_state(), cand.source
             world.restore_state(best_state if best_state is not None else base)
             for kid, T in kid_poses.items():  # children are tested in their own layer
                 world.set_pose(kid, T)

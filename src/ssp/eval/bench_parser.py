@@ -255,7 +255,7 @@ def bench_parser(
         "machine": {
             "python": platform.python_version(),
             "cpu": platform.processor() or "?",
-            "threads": int(getattr(config.search, "threads", 1)),
+            "threads": 1,
         },
         "rows": rows,
         "linear_fit_vs_n_times_k": fits,
@@ -297,8 +297,7 @@ def write_report(result: dict, out: Path) -> tuple[Path, Path]:
     j = out / "results.json"
     j.write_text(json.dumps(result, indent=2))
     lines = [
-        f"# Parser timing (k = {result['k']}, {result['repeats']} scenes per size, "
-        f"{result['machine']['threads']} thread(s))",
+        f"# Parser timing (k = {result['k']}, {result['repeats']} scenes per size, one core)",
         "",
         "| N | frame | s/frame mean | s/frame max | tested | forces | stepping | contacts "
         "| scoring | other | ssp error | hypotheses error |",
@@ -345,8 +344,6 @@ spec.loader.exec_module(mod)
 from ssp.config import SSPConfig
 from ssp.library import ObjectLibrary
 cfg = SSPConfig()
-if hasattr(cfg.search, "threads"):
-    cfg.search.threads = args["threads"]
 links = ObjectLibrary.from_folder(args["links"], cfg) if args["links"] else None
 res = mod.bench_parser(args["sizes"], args["k"], args["repeats"], args["seed"], cfg, links=links)
 print("RESULT " + json.dumps(res["rows"]))
@@ -393,7 +390,6 @@ def compare_parser(
     k: int = 5,
     repeats: int = 2,
     seed: int = 0,
-    threads: int = 1,
     links: Path | None = None,
     rounds: int = 2,
     progress: Callable[[str], None] | None = None,
@@ -410,7 +406,7 @@ def compare_parser(
     from ssp.errors import SSPError
 
     args = {
-        "sizes": list(sizes), "k": k, "repeats": repeats, "seed": seed, "threads": threads,
+        "sizes": list(sizes), "k": k, "repeats": repeats, "seed": seed,
         "links": None if links is None else str(Path(links).resolve()),
     }  # fmt: skip
     here = str(Path(__file__).resolve())
@@ -466,8 +462,7 @@ def write_compare(result: dict, out: Path) -> tuple[Path, Path]:
     j.write_text(json.dumps(result, indent=2))
     lines = [
         f"# Parser timing: {result['rev']} beside this code ({result['rounds']} rounds each, "
-        f"alternating; k = {result['k']}, {result['repeats']} scenes per size, "
-        f"{result['threads']} thread(s))",
+        f"alternating; k = {result['k']}, {result['repeats']} scenes per size, one core)",
         "",
         f"| N | frame | {result['rev']} s | this s | speed-up | tested | forces | stepping "
         "| contacts | scoring | other | error (this) |",

@@ -360,15 +360,6 @@ class World:
         T[:, 3, 3] = 1.0
         return T
 
-    def replica(self) -> World:
-        """A new world of the same objects, table and settings whose states are
-        interchangeable with this one's (:meth:`save_state` in one, :meth:`restore_state` in
-        the other; stepping then repeats bit for bit): for evaluating candidates in parallel
-        (:mod:`ssp.lanes`). It starts in the freshly built state."""
-        twin = World(self._instances, table=self._has_table, config=self._config)
-        twin._serial = self._serial
-        return twin
-
     def configuration(self) -> np.ndarray:
         """(n, 7) copy of every object's ``[x, y, z, qw, qx, qy, qz]`` (m; unit quaternion),
         id order: a cheap snapshot to measure motion between steps."""
