@@ -25,7 +25,9 @@
    objects which would fall without it (:func:`ssp.retention.support_retained`) is
    **support-retained**; it and the objects seen empty are otherwise removed.
 7. **Layered search** (Alg. 3, :func:`ssp.search.layered_search`) over the candidates: the
-   frame's hypotheses, the previous pose, the current pose; then the ICP polish.
+   frame's hypotheses, the previous pose, the current pose; then the ICP polish. An object
+   unchanged since the previous frame that no change comes near keeps its previous pose
+   untested (:func:`ssp.static.settled_objects`).
 8. **Verify** the new objects again at their final poses (:func:`ssp.verification.check_new`);
    an object rejected there is left out unless it holds others up (then kept, with a warning).
 9. **Transition modes**, symmetric snapping (the output orientation is the symmetric
@@ -35,9 +37,9 @@
    instance segment gets its reason; scene-level doubts become warnings. The state is
    committed.
 
-When nothing changed (every known object has a hypothesis within the static thresholds of its
-previous pose, no object appeared or vanished) step 7 is replaced by a settle of the previous
-scene (``search.unchanged_shortcut``).
+When nothing changed (every known object is unchanged, :func:`ssp.static.is_unchanged`, and no
+object appeared or vanished) step 7 is replaced by a settle of the previous scene
+(``search.unchanged_shortcut``).
 """
 
 from __future__ import annotations
