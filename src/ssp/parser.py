@@ -446,7 +446,8 @@ class SceneParser:
         (:func:`ssp.verification.check_new` with ``loose``: the raw hypotheses may be a few
         millimetres off)."""
 
-        def verdict(oid: str) -> Rejected | None:
+        out: dict[str, Rejected] = {}
+        for oid in new:
             best: tuple[tuple, Evidence, Hypothesis] | None = None
             seg = segments.get(oid)
             tree = cKDTree(np.asarray(seg, dtype=float)) if seg is not None and len(seg) else None
@@ -460,18 +461,15 @@ class SceneParser:
                 if best is None or key > best[0]:
                     best = (key, ev, h)
                 if key[0]:  # one hypothesis the data supports keeps the object
-                    return None
+                    break
             _, ev, h = best
-            return Rejected(
-                oid, h.class_name, np.array(h.T_world_obj),
-                check_new(ev, self.config, loose=True).reason, ev.as_dict(), h.segment,
-            )  # fmt: skip
-
-        out: dict[str, Rejected] = {}
-        for oid, r in zip(new, map(verdict, new), strict=True):
-            if r is not None:
-                out[oid] = r
-                log.info("%s (%s) rejected: %s", oid, r.class_name, r.reason)
+            verdict = check_new(ev, self.config, loose=True)
+            if not verdict.keep:
+                out[oid] = Rejected(
+                    oid, h.class_name, np.array(h.T_world_obj), verdict.reason, ev.as_dict(),
+                    h.segment,
+                )  # fmt: skip
+                log.info("%s (%s) rejected: %s", oid, h.class_name, verdict.reason)
         return out
 
     def _update(self, frame: Frame, timer: StageTimer):
@@ -508,14 +506,6 @@ class SceneParser:
             segment_labels = {oid: s for oid, s in segment_labels.items() if s is not None}
             segment_labels.update(claimed)
             members: dict[str, int] = {}
-            view = None
-            if frame.T_world_cam is not None:
-                view = CameraView(
-                    frame.points,
-                    frame.T_world_cam,
-                    labels=frame.labels,
-                    depth_tolerance=cfg.temporal.depth_tolerance,
-                )
             segments, owner = object_segments(
                 frame,
                 {oid: (models[oid], cand_poses[oid]) for oid in cand_poses},
@@ -524,6 +514,14 @@ class SceneParser:
                 labels=segment_labels,
                 members=members,
             )
+            view = None
+            if frame.T_world_cam is not None:
+                view = CameraView(
+                    frame.points,
+                    frame.T_world_cam,
+                    labels=frame.labels,
+                    depth_tolerance=cfg.temporal.depth_tolerance,
+                )
         with timer("verification"):
             rejected = self._verify_new(
                 [oid for oid in groups if oid not in self._known],
@@ -664,8 +662,9 @@ class SceneParser:
             }
             candidates: dict[str, list[Candidate]] = {}
             for oid in ids:
-                # an unchanged object near a change: where it was, or where its first guess
-                # put it (the best of that and its hypotheses by data fit and transition)
+                # without retest_static, an unchanged object near a change tests only where
+                # it was and its first guess (the best of that and its hypotheses by data fit
+                # and transition)
                 hyps = [] if oid in static and not cfg.search.retest_static else groups.get(oid, [])
                 cands = [Candidate(h.T_world_obj, "hypothesis", h.score) for h in hyps]
                 if oid in prev_pose and (cfg.search.previous_candidates or oid not in groups):
