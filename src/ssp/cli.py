@@ -461,17 +461,14 @@ def bench_parser_cmd(
     """Seconds per frame of the scene parser (added, changed and unchanged frames) for stacks
     of N cubes and blocks on rendered depth, with the share of each stage, and whether
     issue 19's targets are met. One core."""
-    from ssp.eval.bench_parser import FRAMES, STAGES, bench_parser, write_report
+    from ssp.eval.bench_parser import FRAMES, STAGES, bench_parser, row_label, write_report
     from ssp.library import ObjectLibrary
 
     if compare is not None:
         _bench_parser_compare(compare, sizes, k, repeats, seed, links, rounds, out)
         return
 
-    try:
-        ns = tuple(int(x) for x in sizes.split(",") if x.strip())
-    except ValueError as exc:
-        raise typer.BadParameter(f"--sizes must be integers separated by commas: {exc}") from exc
+    ns = _sizes(sizes)
     cfg = _config(config)
     link_lib = None
     if links is not None:
@@ -493,7 +490,7 @@ def bench_parser_cmd(
     for col in ("N", "frame", "s/frame", "max", "tested", *STAGES, "other"):
         table.add_column(col, justify="right")
     for r in result["rows"]:
-        label = f"{r['objects']}" + (" (links)" if r["scene"] == "links" else "")
+        label = row_label(r)
         for name in FRAMES:
             d = r[name]
             table.add_row(
@@ -512,14 +509,19 @@ def bench_parser_cmd(
         console.print(f"wrote [bold]{f}[/]")
 
 
-def _bench_parser_compare(rev, sizes, k, repeats, seed, links, rounds, out) -> None:
-    """``ssp bench parser --compare REV``."""
-    from ssp.eval.bench_parser import compare_parser, write_compare
-
+def _sizes(text: str) -> tuple[int, ...]:
+    """The scene sizes of ``--sizes`` (integers separated by commas)."""
     try:
-        ns = tuple(int(x) for x in sizes.split(",") if x.strip())
+        return tuple(int(x) for x in text.split(",") if x.strip())
     except ValueError as exc:
         raise typer.BadParameter(f"--sizes must be integers separated by commas: {exc}") from exc
+
+
+def _bench_parser_compare(rev, sizes, k, repeats, seed, links, rounds, out) -> None:
+    """``ssp bench parser --compare REV``."""
+    from ssp.eval.bench_parser import compare_parser, row_label, write_compare
+
+    ns = _sizes(sizes)
     with console.status(f"timing {rev} beside this code") as status:
         result = compare_parser(
             rev, ns, k=k, repeats=repeats, seed=seed, links=links, rounds=rounds,
@@ -531,7 +533,7 @@ def _bench_parser_compare(rev, sizes, k, repeats, seed, links, rounds, out) -> N
         table.add_column(col, justify="right")
     for r in result["rows"]:
         table.add_row(
-            f"{r['objects']}" + (" (links)" if r["scene"] == "links" else ""),
+            row_label(r),
             r["frame"],
             f"{r['rev_s']:.3f}",
             f"{r['this_s']:.3f}",

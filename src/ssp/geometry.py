@@ -68,6 +68,14 @@ def quat_xyzw(T: np.ndarray) -> np.ndarray:
     return q if q[3] >= 0 else -q
 
 
+def hull_box(vertices: np.ndarray, poses) -> tuple[np.ndarray, np.ndarray]:
+    """World axis-aligned box ``(lo (3,), hi (3,))``, m, of model-frame ``vertices`` (V, 3)
+    placed at every pose of ``poses`` (4x4 each)."""
+    v = np.asarray(vertices, dtype=float)
+    w = np.concatenate([v @ T[:3, :3].T + T[:3, 3] for T in poses])
+    return w.min(axis=0), w.max(axis=0)
+
+
 def rotation_angle(R: np.ndarray) -> float | np.ndarray:
     """Angle (rad, in [0, pi]) of a rotation matrix (3, 3) or stack (n, 3, 3)."""
     c = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0

@@ -26,6 +26,7 @@ import numpy as np
 from ssp.config import SSPConfig
 from ssp.errors import PhysicsError
 from ssp.forces import DataForces
+from ssp.geometry import hull_box
 from ssp.physics import World
 from ssp.scoring import SceneScore, SceneScorer
 from ssp.timing import StageTimer
@@ -180,11 +181,10 @@ def _boxes(world: World, indices, poses=None) -> tuple[np.ndarray, np.ndarray]:
     ids = world.ids
     lo, hi = [], []
     for j, k in enumerate(indices):
-        v = world.model_of(ids[k]).hull_vertices
         T = world.get_pose(ids[k]) if poses is None else poses[j]
-        w = v @ T[:3, :3].T + T[:3, 3]
-        lo.append(w.min(axis=0))
-        hi.append(w.max(axis=0))
+        b_lo, b_hi = hull_box(world.model_of(ids[k]).hull_vertices, [T])
+        lo.append(b_lo)
+        hi.append(b_hi)
     return np.array(lo).reshape(-1, 3), np.array(hi).reshape(-1, 3)
 
 
@@ -277,7 +277,6 @@ def layered_search(
                 world.set_enabled(ids[k], False)
             base = world.save_state()
             kid_poses = {ids[c]: world.get_pose(ids[c]) for c in kids}
-
             best_total, best_state, best_source = -np.inf, None, "current"
             for cand in tests:
                 world.restore_state(base)

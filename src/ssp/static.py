@@ -21,6 +21,7 @@ from collections.abc import Iterable, Mapping, Sequence
 import numpy as np
 
 from ssp.config import SSPConfig
+from ssp.geometry import hull_box
 from ssp.library.model import ObjectModel
 from ssp.probability import pose_change
 from ssp.scene import Hypothesis
@@ -59,13 +60,6 @@ def is_unchanged(
     return c_now >= s.unchanged_fit_ratio * fit_prev - s.unchanged_fit_tolerance
 
 
-def _box(model: ObjectModel, poses: Iterable[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """World axis-aligned box ``(lo (3,), hi (3,))`` of the model's convex hull over ``poses``."""
-    v = np.asarray(model.hull_vertices, dtype=float)
-    w = np.concatenate([v @ T[:3, :3].T + T[:3, 3] for T in poses])
-    return w.min(axis=0), w.max(axis=0)
-
-
 def settled_objects(
     unchanged: Iterable[str],
     poses: Mapping[str, Sequence[np.ndarray]],
@@ -83,11 +77,11 @@ def settled_objects(
         return set()
     if not moving:
         return still
-    lo_m, hi_m = zip(*(_box(models[o], poses[o]) for o in moving), strict=True)
+    lo_m, hi_m = zip(*(hull_box(models[o].hull_vertices, poses[o]) for o in moving), strict=True)
     lo_m, hi_m = np.array(lo_m) - reach, np.array(hi_m) + reach
     out = set()
     for oid in still:
-        lo, hi = _box(models[oid], poses[oid][:1])
+        lo, hi = hull_box(models[oid].hull_vertices, poses[oid][:1])
         near = np.all((lo[None] <= hi_m) & (hi[None] >= lo_m), axis=1)
         if not near.any():
             out.add(oid)

@@ -23,6 +23,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from ssp.config import SSPConfig
 from ssp.eval.metrics import hypothesis_errors, match_frame
@@ -70,12 +71,12 @@ def stacks(library: ObjectLibrary, n: int, seed: int = 0, spacing: float = 0.09)
 
 
 def _rot(axis: str, angle: float) -> np.ndarray:
-    c, s = np.cos(angle), np.sin(angle)
-    if axis == "x":
-        return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
-    if axis == "y":
-        return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return Rotation.from_euler(axis, angle).as_matrix()
+
+
+def row_label(row: dict) -> str:
+    """A row's scene size as the tables print it (``6 (links)`` for the link/node structure)."""
+    return f"{row['objects']}" + (" (links)" if row.get("scene") == "links" else "")
 
 
 def links_structure(library, link: str = "link_uniform", node: str = "node_uniform") -> dict:
@@ -304,7 +305,7 @@ def write_report(result: dict, out: Path) -> tuple[Path, Path]:
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in result["rows"]:
-        label = f"{r['objects']}" + (" (links)" if r.get("scene") == "links" else "")
+        label = row_label(r)
         for name in FRAMES:
             d = r[name]
             sh = d["stage_share"]
@@ -470,7 +471,7 @@ def write_compare(result: dict, out: Path) -> tuple[Path, Path]:
     ]
     for r in result["rows"]:
         sh = r["this_stage_share"]
-        label = f"{r['objects']}" + (" (links)" if r["scene"] == "links" else "")
+        label = row_label(r)
         lines.append(
             f"| {label} | {r['frame']} | {r['rev_s']:.3f} | {r['this_s']:.3f} | "
             f"{r['speedup']:.2f}x | {r['rev_tested']:.0f} -> {r['this_tested']:.0f} | "
