@@ -257,3 +257,15 @@ def test_summary_written_during_the_run_is_the_summary(reference):
     assert _strip(json.loads(s.to_json())) == _strip(
         {**_load(reference / "summary.json"), "input": "in", "status": "running"}
     )
+
+
+def test_a_run_resumes_with_another_process_count_to_the_same_result(lib, scene, reference,
+                                                                      tmp_path):  # fmt: skip
+    """search.processes changes no result, so a resume may use another count."""
+    out = tmp_path / "out"
+    with pytest.raises(KeyboardInterrupt):
+        _stop_after(lib, scene, out, 3)
+    cfg = SSPConfig()
+    cfg.search.processes = 2
+    assert run(scene, lib, out, cfg, resume=True).status == "finished"
+    assert_same_results(out, reference)

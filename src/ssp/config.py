@@ -507,6 +507,16 @@ class SearchConfig(_Section):
             "within reach of keeps its previous pose without tests (ssp.static)."
         ),
     )
+    processes: int = Field(
+        1,
+        ge=1,
+        le=64,
+        description=(
+            "Processes testing an object's candidates at once (forked from the parser's "
+            "process when a frame's search starts, Linux only; ssp.lanes); the results are "
+            "identical for any number. 2 on a 2-core machine."
+        ),
+    )
     retest_static: bool = Field(
         True,
         description=(

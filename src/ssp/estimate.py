@@ -126,7 +126,9 @@ class SceneEstimate:
         support: support edges with the fraction of the supported object's weight.
         log_prob: ``log Pr(s | C, D)``, the sum of every object's terms.
         timings: wall seconds per stage (``association``, ``segments``, ``world``,
-            ``forces``, ``stepping``, ``contacts``, ``scoring``, ``total``).
+            ``forces``, ``stepping``, ``contacts``, ``scoring``, ``total``); with
+            ``search.processes`` > 1 the stages include the lane processes' seconds, and
+            ``lanes`` is what those processes worked in all (``total + lanes``: CPU seconds).
         hypotheses_tested: candidate simulations run by the search.
         unchanged: the frame took the unchanged-scene shortcut.
     """

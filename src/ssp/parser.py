@@ -672,7 +672,7 @@ class SceneParser:
                 candidates[oid] = cands
             result = layered_search(
                 world, sim, scorer, candidates, layers, children, timer,
-                settled={index[oid] for oid in settled},
+                settled={index[oid] for oid in settled}, processes=cfg.search.processes,
             )  # fmt: skip
             score, chosen, tested = result.score, result.chosen, result.tested
             for oid in removed:

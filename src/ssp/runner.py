@@ -483,6 +483,10 @@ def _flat(d: Any, prefix: str = "") -> dict[str, Any]:
     return out
 
 
+#: Settings that do not change the results (a resume may use other values).
+NO_EFFECT = frozenset({"search.processes"})
+
+
 def _differences(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
     """What differs between the recorded and the current manifest, one phrase each."""
     diffs = []
@@ -493,7 +497,7 @@ def _differences(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
         if old.get("options", {}).get(k) != v:
             diffs.append(f"option {k} {old.get('options', {}).get(k)!r} -> {v!r}")
     a, b = _flat(old.get("config", {})), _flat(new["config"])
-    changed = sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k))
+    changed = sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k) and k not in NO_EFFECT)
     if changed:
         shown = ", ".join(f"{k} {a.get(k)!r} -> {b.get(k)!r}" for k in changed[:4])
         diffs.append("config " + shown + (" ..." if len(changed) > 4 else ""))

@@ -27,13 +27,18 @@ from ssp.config import SSPConfig
 from ssp.errors import PhysicsError
 from ssp.forces import DataForces
 from ssp.geometry import hull_box
-from ssp.physics import World
+from ssp.lanes import ForkLanes
+from ssp.physics import World, WorldState
 from ssp.scoring import SceneScore, SceneScorer
 from ssp.timing import StageTimer
 
-__all__ = ["Candidate", "SearchResult", "Simulator", "layered_search"]
+__all__ = ["Candidate", "SearchResult", "Simulator", "TestResult", "layered_search"]
 
 log = logging.getLogger(__name__)
+
+#: A candidate test's outcome: ``(total log-probability, or None when the simulation failed;
+#: the state it ended in, or None; the error message, or None)``
+TestResult = tuple[float | None, WorldState | None, str | None]
 
 
 @dataclass(frozen=True, eq=False)
@@ -228,6 +233,7 @@ def layered_search(
     children: Mapping[int, Sequence[int]],
     timer: StageTimer,
     settled: Collection[int] = (),
+    processes: int = 1,
 ) -> SearchResult:
     """Alg. 3 on ``world``, whose objects sit at their settled first guesses.
 
@@ -241,6 +247,8 @@ def layered_search(
         timer: stage timer.
         settled: object indices that keep their current pose untested, in their layer
             (:func:`ssp.static.settled_objects`; ``chosen`` says ``"previous (settled)"``).
+        processes: test an object's candidates in this many processes at once
+            (:class:`ssp.lanes.ForkLanes`); the choices are the same for any number.
 
     Returns:
         The final scene (all objects in ``layers`` enabled, settled ``config.search.final_settle``
@@ -258,51 +266,61 @@ def layered_search(
     chosen: dict[str, str] = {}
     tested = 0
     failed: list[tuple[str, str]] = []
-    for layer in layers:
-        for i in layer:
-            world.set_enabled(ids[i], True)
-        for i in sorted(layer, key=lambda k: ids[k]):
-            oid = ids[i]
-            if i in settled:
-                chosen[oid] = "previous (settled)"
-                continue
-            kids = [c for c in children.get(i, ()) if not world.is_enabled(ids[c])]
-            tests = [Candidate(world.get_pose(oid), "current"), *candidates.get(oid, ())]
-            # Objects out of reach of every candidate (and of the children) that hold up none
-            # of the others are set aside for this object's tests, so a test costs about the
-            # same in a scene of 5 or 50 objects; the candidates are compared on the same set
-            # of objects, as the scores require.
-            far = _out_of_reach(world, i, [c.T_world_obj for c in tests], kids, reach, parents)
-            for k in far:
-                world.set_enabled(ids[k], False)
-            base = world.save_state()
-            kid_poses = {ids[c]: world.get_pose(ids[c]) for c in kids}
-            best_total, best_state, best_source = -np.inf, None, "current"
-            for cand in tests:
-                world.restore_state(base)
-                for c in kids:
-                    world.set_enabled(ids[c], True)
-                world.set_pose(oid, cand.T_world_obj)
-                sim.forces.reset()
-                tested += 1
-                try:
-                    sim.window()
-                except PhysicsError as exc:
-                    log.warning(
-                        "candidate %s of %s failed in simulation: %s", cand.source, oid, exc
-                    )
-                    failed.append((oid, cand.source))
+
+    def test(job: tuple[str, tuple[int, ...], np.ndarray], base: WorldState) -> TestResult:
+        """One candidate ``(object id, children to add back, T_world_obj)`` from ``base``:
+        its window, then the score (Alg. 3)."""
+        oid, kids, T = job
+        world.restore_state(base)
+        for c in kids:
+            world.set_enabled(ids[c], True)
+        world.set_pose(oid, T)
+        sim.forces.reset()
+        try:
+            sim.window()
+        except PhysicsError as exc:
+            return None, None, str(exc)
+        return scorer.evaluate(world, timer).total, world.save_state(), None
+
+    with ForkLanes(test, processes, timer) as lanes:
+        for layer in layers:
+            for i in layer:
+                world.set_enabled(ids[i], True)
+            for i in sorted(layer, key=lambda k: ids[k]):
+                oid = ids[i]
+                if i in settled:
+                    chosen[oid] = "previous (settled)"
                     continue
-                total = scorer.evaluate(world, timer).total
-                if total > best_total:  # ties keep the earlier candidate
-                    best_total, best_state, best_source = total, world.save_state(), cand.source
-            world.restore_state(best_state if best_state is not None else base)
-            for kid, T in kid_poses.items():  # children are tested in their own layer
-                world.set_pose(kid, T)
-                world.set_enabled(kid, False)
-            for k in far:
-                world.set_enabled(ids[k], True)
-            chosen[oid] = best_source
+                kids = [c for c in children.get(i, ()) if not world.is_enabled(ids[c])]
+                tests = [Candidate(world.get_pose(oid), "current"), *candidates.get(oid, ())]
+                # Objects out of reach of every candidate (and of the children) that hold up
+                # none of the others are set aside for this object's tests, so a test costs
+                # about the same in a scene of 5 or 50 objects; the candidates are compared on
+                # the same set of objects, as the scores require.
+                far = _out_of_reach(world, i, [c.T_world_obj for c in tests], kids, reach, parents)
+                for k in far:
+                    world.set_enabled(ids[k], False)
+                base = world.save_state()
+                kid_poses = {ids[c]: world.get_pose(ids[c]) for c in kids}
+                results = lanes.run(base, [(oid, tuple(kids), c.T_world_obj) for c in tests])
+                best_total, best_state, best_source = -np.inf, None, "current"
+                for cand, (total, state, error) in zip(tests, results, strict=True):
+                    tested += 1
+                    if total is None:
+                        log.warning(
+                            "candidate %s of %s failed in simulation: %s", cand.source, oid, error
+                        )
+                        failed.append((oid, cand.source))
+                        continue
+                    if total > best_total:  # ties keep the earlier candidate
+                        best_total, best_state, best_source = total, state, cand.source
+                world.restore_state(best_state if best_state is not None else base)
+                for kid, T in kid_poses.items():  # children are tested in their own layer
+                    world.set_pose(kid, T)
+                    world.set_enabled(kid, False)
+                for k in far:
+                    world.set_enabled(ids[k], True)
+                chosen[oid] = best_source
     for i in in_search:
         world.set_enabled(ids[i], True)
     sim.forces.reset()

@@ -33,11 +33,17 @@ from ssp.parser import SceneEstimate, SceneParser
 from ssp.sim.frames import synthetic_frame
 from ssp.sim.render import look_at
 
+try:
+    from ssp.lanes import LANES_STAGE
+except ImportError:  # an older ssp timed by --compare (this file runs on its code)
+    LANES_STAGE = "lanes"
+
 __all__ = [
     "bench_parser",
     "compare_parser",
     "links_structure",
     "stacks",
+    "setting",
     "write_compare",
     "write_report",
 ]
@@ -143,7 +149,9 @@ def _errors(est: SceneEstimate, frame, gt: dict, library) -> tuple[list, list]:
 
 
 def _shares(est: SceneEstimate) -> dict[str, float]:
-    total = est.timings.get("total", 0.0)
+    """Stage shares of the frame's CPU seconds (its wall time plus what lane processes
+    worked, ``search.processes``)."""
+    total = est.timings.get("total", 0.0) + est.timings.get(LANES_STAGE, 0.0)
     out = {s: est.timings.get(s, 0.0) / total if total else 0.0 for s in STAGES}
     out["other"] = max(0.0, 1.0 - sum(out.values()))
     return out
@@ -189,6 +197,23 @@ def _row(runs: Sequence[dict]) -> dict:
             },
         }
     return row
+
+
+def _cores() -> int:
+    """Cores this process may run on (``taskset`` limits them)."""
+    import os
+
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+def setting(result: dict) -> str:
+    """``one process on 1 core`` etc., for the reports' headings."""
+    m = result.get("machine", {})
+    p, c = int(m.get("processes", 1)), m.get("cores_available", "?")
+    return f"{p} process{'es' if p > 1 else ''} on {c} core{'s' if c != 1 else ''}"
 
 
 def bench_parser(
@@ -256,7 +281,8 @@ def bench_parser(
         "machine": {
             "python": platform.python_version(),
             "cpu": platform.processor() or "?",
-            "threads": 1,
+            "cores_available": _cores(),
+            "processes": int(getattr(config.search, "processes", 1)),
         },
         "rows": rows,
         "linear_fit_vs_n_times_k": fits,
@@ -298,7 +324,8 @@ def write_report(result: dict, out: Path) -> tuple[Path, Path]:
     j = out / "results.json"
     j.write_text(json.dumps(result, indent=2))
     lines = [
-        f"# Parser timing (k = {result['k']}, {result['repeats']} scenes per size, one core)",
+        f"# Parser timing (k = {result['k']}, {result['repeats']} scenes per size, "
+        f"{setting(result)})",
         "",
         "| N | frame | s/frame mean | s/frame max | tested | forces | stepping | contacts "
         "| scoring | other | ssp error | hypotheses error |",
@@ -345,9 +372,11 @@ spec.loader.exec_module(mod)
 from ssp.config import SSPConfig
 from ssp.library import ObjectLibrary
 cfg = SSPConfig()
+if args.get("processes", 1) > 1:
+    cfg.search.processes = args["processes"]
 links = ObjectLibrary.from_folder(args["links"], cfg) if args["links"] else None
 res = mod.bench_parser(args["sizes"], args["k"], args["repeats"], args["seed"], cfg, links=links)
-print("RESULT " + json.dumps(res["rows"]))
+print("RESULT " + json.dumps({"rows": res["rows"], "machine": res["machine"]}))
 """
 
 
@@ -394,11 +423,15 @@ def compare_parser(
     links: Path | None = None,
     rounds: int = 2,
     progress: Callable[[str], None] | None = None,
+    processes: int = 1,
+    rev_processes: int = 1,
 ) -> dict:
     """:func:`bench_parser` with this code and with the code of ``rev`` (a git revision or a
     checkout folder), alternately in fresh processes (``rounds`` each), on the same scenes:
     the means, their ratio (``rev`` / this code: the speed-up) and this code's stage shares.
     Side by side in one run, the ratio holds where a loaded machine's absolute times do not.
+    ``processes`` / ``rev_processes``: ``search.processes`` of each side (``rev`` may predate
+    it: then only 1 works).
     """
     import subprocess
     import sys
@@ -413,6 +446,7 @@ def compare_parser(
     here = str(Path(__file__).resolve())
     current = str(Path(__file__).resolve().parents[2])
     runs: dict[str, list] = {"rev": [], "this": []}
+    machines: dict[str, dict] = {}
     with tempfile.TemporaryDirectory(prefix="ssp-compare-") as tmp:
         src, remove = _tree_of(rev, Path(tmp) / "tree")
         try:
@@ -420,8 +454,9 @@ def compare_parser(
                 for tag, tree in (("rev", str(src)), ("this", current)):
                     if progress:
                         progress(f"round {r + 1}/{rounds}: {rev if tag == 'rev' else 'this code'}")
+                    side = {**args, "processes": processes if tag == "this" else rev_processes}
                     p = subprocess.run(
-                        [sys.executable, "-c", _DRIVER, tree, here, json.dumps(args)],
+                        [sys.executable, "-c", _DRIVER, tree, here, json.dumps(side)],
                         capture_output=True, text=True,
                     )  # fmt: skip
                     line = [x for x in p.stdout.splitlines() if x.startswith("RESULT ")]
@@ -430,7 +465,9 @@ def compare_parser(
                             f"the parser bench failed with {rev if tag == 'rev' else 'this code'}"
                             f": {p.stderr.strip()[-2000:]}"
                         )
-                    runs[tag].append(json.loads(line[-1][len("RESULT ") :]))
+                    got = json.loads(line[-1][len("RESULT ") :])
+                    runs[tag].append(got["rows"])
+                    machines[tag] = got["machine"]
         finally:
             remove()
     rows = []
@@ -453,7 +490,11 @@ def compare_parser(
                     "this_error": row[name]["error"],
                 }
             )
-    return {"protocol": "parser-timing-compare", "rev": rev, "rounds": rounds, **args, "rows": rows}
+    return {
+        "protocol": "parser-timing-compare", "rev": rev, "rounds": rounds, **args,
+        "machine": machines.get("this", {}), "rev_machine": machines.get("rev", {}),
+        "rows": rows,
+    }  # fmt: skip
 
 
 def write_compare(result: dict, out: Path) -> tuple[Path, Path]:
@@ -463,7 +504,9 @@ def write_compare(result: dict, out: Path) -> tuple[Path, Path]:
     j.write_text(json.dumps(result, indent=2))
     lines = [
         f"# Parser timing: {result['rev']} beside this code ({result['rounds']} rounds each, "
-        f"alternating; k = {result['k']}, {result['repeats']} scenes per size, one core)",
+        f"alternating; k = {result['k']}, {result['repeats']} scenes per size; "
+        f"{result['rev']}: {setting({'machine': result.get('rev_machine', {})})}, "
+        f"this code: {setting(result)})",
         "",
         f"| N | frame | {result['rev']} s | this s | speed-up | tested | forces | stepping "
         "| contacts | scoring | other | error (this) |",

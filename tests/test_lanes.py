@@ -1,0 +1,131 @@
+"""Candidate tests in forked processes (ssp.lanes, ``search.processes``): the same results."""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+
+import numpy as np
+import pytest
+
+import ssp.lanes as lanes_mod
+from ssp.config import SSPConfig
+from ssp.eval.bench_parser import _slide, stacks
+from ssp.lanes import LANES_STAGE, ForkLanes
+from ssp.library import ObjectLibrary
+from ssp.parser import SceneParser
+from ssp.sim.frames import synthetic_frame
+from ssp.sim.render import look_at
+from ssp.timing import StageTimer
+
+LIB = ObjectLibrary.builtin()
+
+pytestmark = pytest.mark.skipif(not lanes_mod.fork_available(), reason="os.fork is Linux-only")
+
+
+def _square(job, base):
+    """A test function: its result depends only on the job and the base, as the search's does;
+    it says which process ran it."""
+    return job * job + base, os.getpid()
+
+
+def test_jobs_run_in_two_processes_and_come_back_in_order():
+    timer = StageTimer()
+    with ForkLanes(_square, 2, timer) as lanes:
+        out = lanes.run(10, list(range(7)))
+        assert lanes.lanes == 2
+        again = lanes.run(1, [3, 4])
+        children = [pid for pid, _ in lanes._children]
+    assert [v for v, _ in out] == [j * j + 10 for j in range(7)]
+    assert [v for v, _ in again] == [10, 17]
+    pids = {p for _, p in out}
+    assert pids == {os.getpid(), children[0]}  # lane 0 here, lane 1 in the child
+    assert [p for _, p in out[1::2]] == [children[0]] * 3
+    assert timer.seconds[LANES_STAGE] > 0.0  # the child's working time is reported
+    assert lanes._children == []
+
+
+def test_one_process_or_one_job_forks_nothing():
+    with ForkLanes(_square, 1, StageTimer()) as lanes:
+        assert [v for v, _ in lanes.run(0, [1, 2, 3])] == [1, 4, 9]
+        assert lanes._children == []
+    with ForkLanes(_square, 4, StageTimer()) as lanes:
+        assert [v for v, _ in lanes.run(0, [5])] == [25]  # a single job: no fork yet
+        assert lanes._children == []
+
+
+def test_a_child_that_dies_has_its_jobs_run_here(caplog):
+    with ForkLanes(_square, 2, StageTimer()) as lanes:
+        lanes.run(0, [1, 2])
+        (pid, _), = lanes._children
+        os.kill(pid, signal.SIGKILL)
+        os.waitpid(pid, 0)
+        with caplog.at_level(logging.WARNING, logger="ssp.lanes"):
+            out = lanes.run(0, list(range(5)))
+        assert [v for v, _ in out] == [j * j for j in range(5)]
+        assert {p for _, p in out} == {os.getpid()}
+        assert lanes.lanes == 1  # the lanes go on with one process
+    assert f"lane process {pid}" in caplog.text
+
+
+def test_a_child_that_stops_answering_is_dropped(caplog):
+    with ForkLanes(_square, 2, StageTimer(), timeout=0.5) as lanes:
+        lanes.run(0, [1, 2])
+        (pid, _), = lanes._children
+        os.kill(pid, signal.SIGSTOP)
+        with caplog.at_level(logging.WARNING, logger="ssp.lanes"):
+            out = lanes.run(0, [3, 4])
+        assert [v for v, _ in out] == [9, 16]
+        assert lanes.lanes == 1
+    assert "did not answer within 0.5 s" in caplog.text
+
+
+def _fails_on_three(job, base):
+    if job == 3:
+        raise ValueError(f"job {job} is bad")
+    return job
+
+
+def test_an_error_in_a_child_is_raised_here_with_its_own_traceback():
+    with ForkLanes(_fails_on_three, 2, StageTimer()) as lanes:
+        assert lanes.run(0, [0, 1]) == [0, 1]
+        with pytest.raises(ValueError, match="job 3 is bad"):
+            lanes.run(0, [2, 3])  # job 3 runs in the child first, then here
+
+
+def test_without_fork_it_says_so_once_and_runs_here(monkeypatch, caplog):
+    monkeypatch.setattr(lanes_mod, "fork_available", lambda: False)
+    monkeypatch.setattr(lanes_mod, "_warned_no_fork", False)
+    with caplog.at_level(logging.WARNING, logger="ssp.lanes"):
+        a = ForkLanes(_square, 2, StageTimer())
+        b = ForkLanes(_square, 2, StageTimer())
+    assert [v for v, _ in a.run(0, [1, 2])] == [1, 4] and a._children == []
+    assert b.wanted == 1
+    assert caplog.text.count("needs os.fork") == 1
+
+
+def _parse(processes: int, frames) -> list:
+    cfg = SSPConfig()
+    cfg.search.processes = processes
+    parser = SceneParser(LIB, cfg)
+    return [parser.update(f) for f in frames]
+
+
+def test_two_processes_give_the_same_scenes_as_one():
+    rng = np.random.default_rng(5)
+    gt = stacks(LIB, 5, seed=2)
+    cam = look_at([-0.5, -0.6, 0.65], [0.0, 0.0, 0.03])
+    frames = [
+        synthetic_frame(LIB, g, T_world_cam=cam, rng=rng, k=3, stamp=float(t))
+        for t, g in enumerate([gt, _slide(gt, 0.015)])
+    ]
+    one, two = _parse(1, frames), _parse(2, frames)
+    for a, b in zip(one, two, strict=True):
+        assert a.hypotheses_tested == b.hypotheses_tested > 0
+        assert [o.id for o in a.objects] == [o.id for o in b.objects]
+        for oa, ob in zip(a.objects, b.objects, strict=True):
+            np.testing.assert_array_equal(oa.T_world_obj, ob.T_world_obj)
+            assert oa.source == ob.source and oa.terms == ob.terms
+        assert a.log_prob == b.log_prob
+        assert LANES_STAGE not in a.timings and b.timings[LANES_STAGE] > 0.0
