@@ -58,7 +58,7 @@ def test_one_process_or_one_job_forks_nothing():
 def test_a_child_that_dies_has_its_jobs_run_here(caplog):
     with ForkLanes(_square, 2, StageTimer()) as lanes:
         lanes.run(0, [1, 2])
-        (pid, _), = lanes._children
+        ((pid, _),) = lanes._children
         os.kill(pid, signal.SIGKILL)
         os.waitpid(pid, 0)
         with caplog.at_level(logging.WARNING, logger="ssp.lanes"):
@@ -72,7 +72,7 @@ def test_a_child_that_dies_has_its_jobs_run_here(caplog):
 def test_a_child_that_stops_answering_is_dropped(caplog):
     with ForkLanes(_square, 2, StageTimer(), timeout=0.5) as lanes:
         lanes.run(0, [1, 2])
-        (pid, _), = lanes._children
+        ((pid, _),) = lanes._children
         os.kill(pid, signal.SIGSTOP)
         with caplog.at_level(logging.WARNING, logger="ssp.lanes"):
             out = lanes.run(0, [3, 4])
