@@ -68,31 +68,47 @@ def object_segments(
         table: the world has a table at z = 0; crops leave out points below ``table_clearance``.
     """
     points = frame.points
-    tree = cKDTree(points) if len(points) else None
+    trees: list[cKDTree] = []
+
+    def tree() -> cKDTree:  # built only when an object has no known label
+        if not trees:  # sliding-midpoint splits: built in about half the time, exact queries
+            trees.append(cKDTree(points, balanced_tree=False, compact_nodes=False))
+        return trees[0]
+
+    by_label = _indices_by_label(frame.labels) if frame.labels is not None else {}
     out: dict[str, np.ndarray] = {}
     owner: dict[str, int] = {}
     for oid, (model, poses) in objects.items():
         if frame.segments is not None and oid in frame.segments:
             out[oid] = frame.segments[oid]
             continue
-        if tree is None or not len(poses):
+        if not len(points) or not len(poses):
             out[oid] = np.zeros((0, 3))
             continue
         if frame.labels is not None:
             label = (labels or {}).get(oid)
-            if label is not None and not np.any(np.asarray(frame.labels) == label):
+            if label is not None and label not in by_label:
                 log.warning("object %s: its segment label %d is not in the cloud", oid, label)
                 label = None
             if label is None:
-                label = _vote_label(frame, tree, model, poses[0], radius)
+                label = _vote_label(frame, tree(), model, poses[0], radius)
             if label is not None and members is not None:
                 members[oid] = label
             if label is not None and frame.label_kind == "instance":
-                out[oid] = frame.points[np.asarray(frame.labels) == label]
+                out[oid] = points[by_label[label]]
                 owner[oid] = label
                 continue
-        out[oid] = _crop(points, tree, model, poses, radius, table, table_clearance)
+        out[oid] = _crop(points, tree(), model, poses, radius, table, table_clearance)
     return out, owner
+
+
+def _indices_by_label(labels: np.ndarray) -> dict[int, np.ndarray]:
+    """``label -> indices (ascending)`` of the points that carry it."""
+    labels = np.asarray(labels).reshape(-1)
+    order = np.argsort(labels, kind="stable")
+    values, starts = np.unique(labels[order], return_index=True)
+    ends = np.append(starts[1:], len(order))
+    return {int(v): order[a:b] for v, a, b in zip(values, starts, ends, strict=True)}
 
 
 def _vote_label(

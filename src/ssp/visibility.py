@@ -218,7 +218,9 @@ class CameraView:
         self._labels = None if labels is None else labels[front]
         self._depths = p_cam[:, 2].copy()
         rays = p_cam[:, :2] / p_cam[:, 2:3]
-        self._tree = cKDTree(rays) if len(rays) else None
+        # unbalanced (sliding-midpoint) splits build in about half the time; the queries are
+        # exact nearest neighbours either way
+        self._tree = cKDTree(rays, balanced_tree=False) if len(rays) else None
 
         if angular_resolution is None:
             self._resolution = estimate_angular_resolution(rays, self._tree)
