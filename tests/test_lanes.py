@@ -105,6 +105,11 @@ def test_without_fork_it_says_so_once_and_runs_here(monkeypatch, caplog):
     assert caplog.text.count("needs os.fork") == 1
 
 
+def test_openmp_threads_keep_the_search_in_one_process(monkeypatch):
+    monkeypatch.setenv("OMP_NUM_THREADS", "4")
+    assert not lanes_mod.fork_available()
+
+
 def _parse(processes: int, frames) -> list:
     cfg = SSPConfig()
     cfg.search.processes = processes
@@ -129,3 +134,28 @@ def test_two_processes_give_the_same_scenes_as_one():
             assert oa.source == ob.source and oa.terms == ob.terms
         assert a.log_prob == b.log_prob
         assert LANES_STAGE not in a.timings and b.timings[LANES_STAGE] > 0.0
+
+
+def test_two_processes_estimate_the_same_hypotheses_as_one():
+    """perception.processes: the segments' hypotheses are estimated in two processes, the
+    same as in one (the estimator's caches built before the fork)."""
+    from ssp.perception.pipeline import Perception
+
+    rng = np.random.default_rng(3)
+    gt = stacks(LIB, 4, seed=1)
+    cam = look_at([-0.5, -0.6, 0.65], [0.0, 0.0, 0.03])
+    frame = synthetic_frame(LIB, gt, T_world_cam=cam, rng=rng, k=3)
+    out = []
+    for processes in (1, 2):
+        cfg = SSPConfig()
+        cfg.perception.processes = processes
+        per = Perception(LIB, cfg, classes=["cube", "block"])
+        res = per.from_points(frame.points, frame="world", T_world_cam=cam, labels=frame.labels)
+        out.append(res)
+    one, two = out
+    assert len(one.segments) >= 3
+    assert one.verdicts == two.verdicts
+    for a, b in zip(one.frame.hypotheses, two.frame.hypotheses, strict=True):
+        assert a.class_name == b.class_name and a.segment == b.segment and a.score == b.score
+        np.testing.assert_array_equal(a.T_world_obj, b.T_world_obj)
+    assert LANES_STAGE not in one.timings and two.timings[LANES_STAGE] > 0.0

@@ -14,11 +14,12 @@ lane ``j`` takes jobs ``j, j + n, ...``, lane 0 is the calling process. The chil
 the search (:meth:`ForkLanes.close`).
 
 Threads (the GIL) gave nothing here: a test is a Python loop of short MuJoCo steps and small
-numpy operations. Processes need ``os.fork`` (Linux; elsewhere the search runs serially and
-says so once). A child only computes and writes to its pipe, which is why forking a process
-that has other threads (a progress bar's, a recorder's) is safe here. If a child fails or stops
-answering (``timeout``), its jobs run in the calling process instead and the lanes go on with
-one process: the results are the same either way.
+numpy operations. Processes need ``os.fork`` (Linux) and ``OMP_NUM_THREADS=1`` (ssp's default:
+an OpenMP runtime that has started threads hangs in a forked child); otherwise the search runs
+serially and says so once. A child only computes and writes to its pipe, which is why forking
+a process that has other threads (a progress bar's, a recorder's) is safe here. If a child
+fails or stops answering (``timeout``), its jobs run in the calling process instead and the
+lanes go on with one process: the results are the same either way.
 """
 
 from __future__ import annotations
@@ -48,8 +49,13 @@ _zombies: list[int] = []  # children that had not exited yet when closed, reaped
 
 
 def fork_available() -> bool:
-    """True where :class:`ForkLanes` can fork (Linux)."""
-    return hasattr(os, "fork") and sys.platform.startswith("linux")
+    """True where :class:`ForkLanes` can fork: Linux, and OpenMP single-threaded (pykdtree's
+    OpenMP runtime does not survive a fork once it has started threads)."""
+    return (
+        hasattr(os, "fork")
+        and sys.platform.startswith("linux")
+        and os.environ.get("OMP_NUM_THREADS", "1").strip() == "1"
+    )
 
 
 def _reap() -> None:
@@ -112,9 +118,10 @@ class ForkLanes:
             global _warned_no_fork
             if not _warned_no_fork:
                 log.warning(
-                    "search.processes = %d needs os.fork (Linux); candidates are tested in "
-                    "this process",
+                    "search.processes = %d needs os.fork (Linux) and OMP_NUM_THREADS=1 (it is "
+                    "%s); candidates are tested in this process",
                     self.wanted,
+                    os.environ.get("OMP_NUM_THREADS", "unset"),
                 )
                 _warned_no_fork = True
             self.wanted = 1

@@ -6,13 +6,17 @@ pose, as the reference code's cached-ICP force mode did) and by the ``icp`` base
 
 from __future__ import annotations
 
+import math
+import os
+
 import numpy as np
-from scipy.spatial import cKDTree
-from scipy.spatial.transform import Rotation
 
 from ssp.library.model import ObjectModel
 
-__all__ = ["even_rows", "facing_mask", "icp_refine"]
+os.environ.setdefault("OMP_NUM_THREADS", "1")  # before pykdtree loads its OpenMP runtime
+from pykdtree.kdtree import KDTree  # noqa: E402
+
+__all__ = ["even_rows", "facing_mask", "icp_refine", "point_to_plane_icp"]
 
 
 def even_rows(n_max: int, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -61,42 +65,102 @@ def icp_refine(
     Searching from the observed points keeps only what the camera saw, and the plane of each
     sample interpolates between samples.
     """
-    T = np.array(T_init, dtype=float)
-    seg = np.asarray(segment, dtype=float).reshape(-1, 3)
-    if len(seg) < min_pairs:
-        return T
-    (seg,) = even_rows(n_points, seg)
     pts, nrm = even_rows(
         n_samples,
         np.asarray(model.surface_points, dtype=float),
         np.asarray(model.surface_normals, dtype=float),
     )
-    keep = facing_mask(pts @ T[:3, :3].T + T[:3, 3], nrm @ T[:3, :3].T, camera_position)
+    return point_to_plane_icp(
+        pts,
+        nrm,
+        T_init,
+        segment,
+        camera_position,
+        max_distance=max_distance,
+        iterations=iterations,
+        n_points=n_points,
+        min_pairs=min_pairs,
+    )
+
+
+def _rotvec_matrix(w: np.ndarray) -> np.ndarray:
+    """Rotation matrix ``(3, 3)`` of the rotation vector ``w (3,)`` (rad; Rodrigues, in
+    scalars: it runs once per ICP step)."""
+    x, y, z = float(w[0]), float(w[1]), float(w[2])
+    theta = math.sqrt(x * x + y * y + z * z)
+    if theta < 1e-12:
+        return np.eye(3)
+    x, y, z = x / theta, y / theta, z / theta
+    s, c = math.sin(theta), math.cos(theta)
+    C = 1.0 - c
+    return np.array(
+        [
+            [c + x * x * C, x * y * C - z * s, x * z * C + y * s],
+            [y * x * C + z * s, c + y * y * C, y * z * C - x * s],
+            [z * x * C - y * s, z * y * C + x * s, c + z * z * C],
+        ]
+    )
+
+
+def point_to_plane_icp(
+    pts: np.ndarray,
+    nrm: np.ndarray,
+    T_init: np.ndarray,
+    segment: np.ndarray,
+    camera: np.ndarray | None,
+    *,
+    max_distance: float,
+    iterations: int,
+    n_points: int,
+    min_pairs: int = 10,
+) -> np.ndarray:
+    """Point-to-plane ICP of model samples ``pts, nrm (S, 3)`` (model frame) onto ``segment
+    (K, 3)`` (world, m), from ``T_init`` (4, 4): correspondences from at most ``n_points``
+    segment points to the samples facing the camera at ``T_init`` within ``max_distance``
+    (m), damped Gauss-Newton steps about the pairs' centroid, at most ``iterations``, until a
+    step moves less than 1 um and 1 urad. Returns ``T_world_obj (4, 4)`` (``T_init`` when
+    there are fewer than ``min_pairs`` pairs).
+
+    Solved in the model frame, so the samples never move: a pair's Jacobian row
+    ``((p - c) x n, n)`` is ``G M`` with the per-sample constants ``G = (p x n, n)`` and a
+    ``6 x 6`` matrix ``M`` of the centroid ``c``, so each step gathers ``G`` and forms ``G^T G``.
+    """
+    T = np.array(T_init, dtype=float)
+    seg = np.asarray(segment, dtype=float).reshape(-1, 3)
+    if len(seg) < min_pairs:
+        return T
+    (seg,) = even_rows(n_points, seg)
+    keep = facing_mask(pts @ T[:3, :3].T + T[:3, 3], nrm @ T[:3, :3].T, camera)
     pts, nrm = pts[keep], nrm[keep]
     if len(pts) < 3:
         return T
-    tree = cKDTree(pts)  # model frame: the segment is moved into it instead
+    tree = KDTree(np.ascontiguousarray(pts))
+    # per sample: p x n, n, p, p.n; then a zero row, which the misses (index len(pts)) gather
+    Z = np.zeros((len(pts) + 1, 10))
+    Z[:-1, :3], Z[:-1, 3:6], Z[:-1, 6:9] = np.cross(pts, nrm), nrm, pts
+    Z[:-1, 9] = (pts * nrm).sum(1)
+    M = np.eye(6)
     for _ in range(int(iterations)):
         R, t = T[:3, :3], T[:3, 3]
-        q_model = (seg - t) @ R  # R^T (q - t)
-        dist, idx = tree.query(q_model, k=1, distance_upper_bound=max_distance)
-        ok = np.isfinite(dist)
-        if ok.sum() < min_pairs:
+        q = (seg - t) @ R  # the segment in the model frame
+        _, idx = tree.query(q, k=1, distance_upper_bound=max_distance)
+        m = int(np.count_nonzero(idx < len(pts)))
+        if m < min_pairs:
             break
-        q = seg[ok]
-        p = pts[idx[ok]] @ R.T + t
-        n = nrm[idx[ok]] @ R.T
-        c = p.mean(axis=0)
-        A = np.hstack([np.cross(p - c, n), n])  # d/d(omega, v) of n . (p' - q)
-        b = -((p - q) * n).sum(axis=1)
-        H = A.T @ A
-        H += np.eye(6) * (1e-6 * np.trace(H) / 6.0 + 1e-12)
-        x = np.linalg.solve(H, A.T @ b)
+        z = Z[idx]  # misses are zero rows: they add nothing below
+        G, n = z[:, :6], z[:, 3:6]
+        c = (np.ones(len(z)) @ z[:, 6:9]) / m  # centroid of the matched samples
+        b = np.einsum("ij,ij->i", q, n) - z[:, 9]  # n . (q - p)
+        # (p - c) x n = p x n - c x n = p x n + n [c]_x:  M = [[I, 0], [[c]_x, I]]
+        M[3:, :3] = [[0.0, -c[2], c[1]], [c[2], 0.0, -c[0]], [-c[1], c[0], 0.0]]
+        H = M.T @ (G.T @ G) @ M
+        H.flat[::7] += 1e-6 * np.trace(H) / 6.0 + 1e-12
+        x = np.linalg.solve(H, M.T @ (G.T @ b))
         omega, v = x[:3], x[3:]
-        D = np.eye(4)
-        D[:3, :3] = Rotation.from_rotvec(omega).as_matrix()
-        D[:3, 3] = c - D[:3, :3] @ c + v  # rotate about the centroid of the pairs, then shift
-        T = D @ T
-        if np.linalg.norm(v) < 1e-6 and np.linalg.norm(omega) < 1e-6:
+        Rd = _rotvec_matrix(omega)
+        # about the pairs' centroid, then shifted (model frame): T <- T [Rd, c - Rd c + v]
+        T[:3, 3] += R @ (c - Rd @ c + v)
+        T[:3, :3] = R @ Rd
+        if v @ v < 1e-12 and omega @ omega < 1e-12:  # moved less than 1 um and 1 urad
             break
     return T

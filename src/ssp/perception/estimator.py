@@ -36,7 +36,6 @@ FPFH + RANSAC registration aligns one object and brings a large binary dependenc
 from __future__ import annotations
 
 import logging
-import math
 import time
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -49,7 +48,7 @@ from ssp.config import PerceptionConfig
 from ssp.errors import PerceptionError, UnknownObjectError
 from ssp.library.model import ObjectModel
 from ssp.perception.cleaning import robust_extent
-from ssp.registration import even_rows, facing_mask
+from ssp.registration import even_rows, facing_mask, point_to_plane_icp
 from ssp.scene import Hypothesis
 
 __all__ = ["HypothesisEstimator", "ModelPairs", "SegmentResult", "voxel_thin"]
@@ -361,6 +360,16 @@ class HypothesisEstimator:
             self._tables[name] = ModelPairs.build(self.library[name], self.cfg)
         return self._tables[name]
 
+    def prepare(self, classes: Iterable[str]) -> None:
+        """Build everything :meth:`estimate` caches for ``classes`` now (pair tables, their
+        trees and ICP samples), so that processes forked afterwards share it instead of each
+        building its own (:mod:`ssp.lanes`)."""
+        for name in dict.fromkeys(classes):
+            table = self.table(name)
+            table.dense_tree()
+            for stage in (_COARSE_ICP, _FINE_ICP):
+                table.samples(self.library[name], stage["n_samples"])
+
     # ------------------------------------------------------------------ one segment
     def estimate(
         self,
@@ -573,7 +582,7 @@ class HypothesisEstimator:
         """``T`` refined by :func:`_icp` with the settings ``stage`` (:data:`_COARSE_ICP`) on
         the points of ``p`` within ``stage["near"]`` of the model at ``T``."""
         near = self._near(table, T, p, stage["near"])
-        return _icp(
+        return point_to_plane_icp(
             *samples,
             T,
             p[near],
@@ -612,87 +621,6 @@ def _within(tree: KDTree, q: np.ndarray, radius: float) -> np.ndarray:
         return np.zeros(0, dtype=bool)
     d, _ = tree.query(np.ascontiguousarray(q, dtype=float), k=1, distance_upper_bound=radius)
     return np.isfinite(d)
-
-
-def _rotvec_matrix(w: np.ndarray) -> np.ndarray:
-    """Rotation matrix ``(3, 3)`` of the rotation vector ``w (3,)`` (rad; Rodrigues, in
-    scalars: it runs once per ICP step)."""
-    x, y, z = float(w[0]), float(w[1]), float(w[2])
-    theta = math.sqrt(x * x + y * y + z * z)
-    if theta < 1e-12:
-        return np.eye(3)
-    x, y, z = x / theta, y / theta, z / theta
-    s, c = math.sin(theta), math.cos(theta)
-    C = 1.0 - c
-    return np.array(
-        [
-            [c + x * x * C, x * y * C - z * s, x * z * C + y * s],
-            [y * x * C + z * s, c + y * y * C, y * z * C - x * s],
-            [z * x * C - y * s, z * y * C + x * s, c + z * z * C],
-        ]
-    )
-
-
-def _icp(
-    pts: np.ndarray,
-    nrm: np.ndarray,
-    T_init: np.ndarray,
-    segment: np.ndarray,
-    camera: np.ndarray | None,
-    *,
-    max_distance: float,
-    iterations: int,
-    n_points: int,
-    min_pairs: int = 10,
-) -> np.ndarray:
-    """Point-to-plane ICP of model samples ``pts, nrm (S, 3)`` (model frame) onto ``segment
-    (K, 3)`` (world, m): :func:`ssp.registration.icp_refine`'s algorithm (correspondences from
-    at most ``n_points`` segment points to the camera-facing samples within ``max_distance``,
-    damped Gauss-Newton steps about the pairs' centroid). Returns ``T_world_obj (4, 4)``.
-
-    Solved in the model frame, so the samples never move: a pair's Jacobian row
-    ``((p - c) x n, n)`` is ``G M`` with the per-sample constants ``G = (p x n, n)`` and a
-    ``6 x 6`` matrix ``M`` of the centroid ``c``, so each step gathers ``G`` and forms ``G^T G``.
-    """
-    T = np.array(T_init, dtype=float)
-    seg = np.asarray(segment, dtype=float).reshape(-1, 3)
-    if len(seg) < min_pairs:
-        return T
-    (seg,) = even_rows(n_points, seg)
-    keep = facing_mask(pts @ T[:3, :3].T + T[:3, 3], nrm @ T[:3, :3].T, camera)
-    pts, nrm = pts[keep], nrm[keep]
-    if len(pts) < 3:
-        return T
-    tree = KDTree(np.ascontiguousarray(pts))
-    # per sample: p x n, n, p, p.n; then a zero row, which the misses (index len(pts)) gather
-    Z = np.zeros((len(pts) + 1, 10))
-    Z[:-1, :3], Z[:-1, 3:6], Z[:-1, 6:9] = np.cross(pts, nrm), nrm, pts
-    Z[:-1, 9] = (pts * nrm).sum(1)
-    M = np.eye(6)
-    for _ in range(int(iterations)):
-        R, t = T[:3, :3], T[:3, 3]
-        q = (seg - t) @ R  # the segment in the model frame
-        _, idx = tree.query(q, k=1, distance_upper_bound=max_distance)
-        m = int(np.count_nonzero(idx < len(pts)))
-        if m < min_pairs:
-            break
-        z = Z[idx]  # misses are zero rows: they add nothing below
-        G, n = z[:, :6], z[:, 3:6]
-        c = (np.ones(len(z)) @ z[:, 6:9]) / m  # centroid of the matched samples
-        b = np.einsum("ij,ij->i", q, n) - z[:, 9]  # n . (q - p)
-        # (p - c) x n = p x n - c x n = p x n + n [c]_x:  M = [[I, 0], [[c]_x, I]]
-        M[3:, :3] = [[0.0, -c[2], c[1]], [c[2], 0.0, -c[0]], [-c[1], c[0], 0.0]]
-        H = M.T @ (G.T @ G) @ M
-        H.flat[::7] += 1e-6 * np.trace(H) / 6.0 + 1e-12
-        x = np.linalg.solve(H, M.T @ (G.T @ b))
-        omega, v = x[:3], x[3:]
-        Rd = _rotvec_matrix(omega)
-        # about the pairs' centroid, then shifted (model frame): T <- T [Rd, c - Rd c + v]
-        T[:3, 3] += R @ (c - Rd @ c + v)
-        T[:3, :3] = R @ Rd
-        if v @ v < 1e-12 and omega @ omega < 1e-12:  # moved less than 1 um and 1 urad
-            break
-    return T
 
 
 def _diverse(found: list, k: int, cfg: PerceptionConfig, sym: np.ndarray) -> list:
