@@ -651,8 +651,9 @@ ProcessesOption = typer.Option(
     "--processes",
     min=1,
     max=64,
-    help="Processes per frame (search.processes, Linux): an object's candidates simulated at "
-    "once; the results are the same for any number. 2 on a 2-core machine.",
+    help="Processes per frame (search.processes and perception.processes, Linux): an object's "
+    "candidates simulated at once, and the segments' hypotheses estimated at once; the results "
+    "are the same for any number. 2 on a 2-core machine.",
     show_default=False,
 )
 RayAddressOption = typer.Option(
@@ -1283,7 +1284,7 @@ def run_cmd(
         masks = masks or "auto"
         cfg = _config(config)
     if processes is not None:
-        cfg.search.processes = processes
+        cfg.search.processes = cfg.perception.processes = processes
     if hypotheses not in HYPOTHESES_MODES:
         raise typer.BadParameter(f"--hypotheses must be one of {', '.join(HYPOTHESES_MODES)}")
     from ssp.io.rosbag import BagOptions, is_bag
@@ -1672,7 +1673,7 @@ def refine_cmd(
     lib, models_dir = _dataset_library(dataset, models, config, cache)
     cfg = _config(config)
     if processes is not None:
-        cfg.search.processes = processes
+        cfg.search.processes = cfg.perception.processes = processes
     with _bar() as progress:
         task = progress.add_task("refining", total=None)
         summary = refine(

@@ -635,6 +635,15 @@ class PerceptionConfig(_Section):
     max_objects_per_segment: int = Field(
         12, ge=1, description="Objects explained one after another in a single segment."
     )
+    processes: int = Field(
+        1,
+        ge=1,
+        le=64,
+        description=(
+            "Processes estimating the hypotheses of a frame's segments at once (forked per "
+            "frame, Linux only; ssp.lanes); the hypotheses are identical for any number."
+        ),
+    )
 
 
 class SSPConfig(_Section):

@@ -484,7 +484,7 @@ def _flat(d: Any, prefix: str = "") -> dict[str, Any]:
 
 
 #: Settings that do not change the results (a resume may use other values).
-NO_EFFECT = frozenset({"search.processes"})
+NO_EFFECT = frozenset({"search.processes", "perception.processes"})
 
 
 def _differences(old: dict[str, Any], new: dict[str, Any]) -> list[str]:

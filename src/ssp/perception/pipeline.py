@@ -30,6 +30,7 @@ from ssp.config import PerceptionConfig, SSPConfig
 from ssp.errors import PerceptionError, UnknownObjectError
 from ssp.geometry import transform_points
 from ssp.io.hypotheses import to_world
+from ssp.lanes import LANES_STAGE, ForkLanes
 from ssp.library.model import ObjectModel
 from ssp.perception.cleaning import clean_segment
 from ssp.perception.depth import cloud_from_depth
@@ -38,6 +39,7 @@ from ssp.perception.normals import estimate_normals
 from ssp.perception.segmentation import Segmentation, segment_cloud
 from ssp.perception.table import table_frame
 from ssp.scene import Frame, Hypothesis
+from ssp.timing import StageTimer
 
 __all__ = ["Perception", "PerceptionResult", "check_camera_axes"]
 
@@ -75,7 +77,9 @@ class PerceptionResult:
         verdicts: per segment label, what the front end made of it, in words: the points it
             removed (flying pixels, stray pieces) and the hypotheses it found, or why none.
         timings: wall seconds per stage (``table``, ``segmentation``, ``normals``,
-            ``hypotheses``, ``total``).
+            ``hypotheses``, ``total``); ``normals`` and ``hypotheses`` are summed over the
+            segments, and with ``perception.processes`` > 1 over the processes that ran them
+            (``lanes``: what the forked ones worked).
     """
 
     frame: Frame
@@ -237,26 +241,47 @@ class Perception:
         if hypotheses is None:
             hypotheses = []
             cam = None if T_world_cam is None else np.asarray(T_world_cam)[:3, 3]
-            t_normals = 0.0
-            for label in segmentation.segment_ids:
-                seg = pts[segmentation.labels == label]
-                t0 = time.perf_counter()
-                nrm = estimate_normals(seg, k=self.cfg.normal_neighbours, viewpoint=cam)
-                t_normals += time.perf_counter() - t0
+            labels_ = [int(label) for label in segmentation.segment_ids]
+            for label in labels_:
                 cls = segmentation.classes.get(label)
                 if cls is not None and cls not in self.library:
                     raise UnknownObjectError(f"segment {label}: class {cls!r} not in the library")
+
+            def one(label: int, _base=None) -> tuple[float, SegmentResult]:
+                """Normals and hypotheses of one segment: ``(normals seconds, result)``."""
+                seg = pts[segmentation.labels == label]
+                t0 = time.perf_counter()
+                nrm = estimate_normals(seg, k=self.cfg.normal_neighbours, viewpoint=cam)
+                t_nrm = time.perf_counter() - t0
+                cls = segmentation.classes.get(label)
                 res = self.estimator.estimate(
                     seg,
                     nrm,
                     [cls] if cls is not None else self.classes,
                     cam,
                     single_object=instance,
-                    seed=self.estimator.seed + int(label),
+                    seed=self.estimator.seed + label,
                 )
-                segments[int(label)] = res
+                return t_nrm, res
+
+            if self.cfg.processes > 1 and len(labels_) > 1:
+                # what estimate() caches is built here, before the fork, so every lane has it
+                named = [segmentation.classes.get(label) for label in labels_]
+                self.estimator.prepare(
+                    [c for c in named if c is not None]
+                    + (list(self.classes) if None in named else [])
+                )
+            lane_timer = StageTimer()
+            with ForkLanes(one, self.cfg.processes, lane_timer) as lanes:
+                results = lanes.run(None, labels_)
+            if LANES_STAGE in lane_timer.seconds:
+                timings[LANES_STAGE] = lane_timer.seconds[LANES_STAGE]
+            t_normals = 0.0
+            for label, (t_nrm, res) in zip(labels_, results, strict=True):
+                t_normals += t_nrm
+                segments[label] = res
                 if instance:  # one object per segment: never grouped with another segment's
-                    hypotheses.extend(replace(h, segment=int(label)) for h in res.hypotheses)
+                    hypotheses.extend(replace(h, segment=label) for h in res.hypotheses)
                 else:
                     hypotheses.extend(res.hypotheses)
                 found = (
@@ -264,9 +289,9 @@ class Perception:
                     if res.objects
                     else f"no hypothesis: {res.stopped}"
                 )
-                verdicts[int(label)] = "; ".join(v for v in (verdicts.get(int(label)), found) if v)
+                verdicts[label] = "; ".join(v for v in (verdicts.get(label), found) if v)
                 if not res.objects:
-                    log.info("segment %d: %s", label, verdicts[int(label)])
+                    log.info("segment %d: %s", label, verdicts[label])
             timings["normals"] = t_normals
             timings["hypotheses"] = sum(r.seconds for r in segments.values())
         timings["total"] = time.perf_counter() - t_start
