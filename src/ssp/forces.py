@@ -261,46 +261,52 @@ class DataForces:
         self._calls = 0
         self._filter_cache.clear()
 
-    def _world_samples(self, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        R = T[:, :3, :3]
-        r = R @ self._q  # (n, 3, M): sample offsets from the COM, world axes
-        cog = (R @ self._com[:, :, None])[:, :, 0] + T[:, :3, 3]
+    def _world_samples(self, T: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Sample offsets from the COM ``(len(idx), 3, M)`` and COMs ``(len(idx), 3)`` of the
+        objects ``idx`` at poses ``T`` (n, 4, 4), world axes."""
+        R = T[idx, :3, :3]
+        r = R @ self._q[idx]
+        cog = (R @ self._com[idx, :, None])[:, :, 0] + T[idx, :3, 3]
         return r, cog
+
+    def _enabled_indices(self, enabled: np.ndarray | None) -> np.ndarray:
+        if enabled is None:
+            return np.arange(self.n)
+        return np.flatnonzero(np.asarray(enabled, dtype=bool))
 
     def refresh(self, T_world_obj: np.ndarray, enabled: np.ndarray | None = None) -> None:
         """Query the segments at poses ``T_world_obj`` (n, 4, 4) and cache the targets
         (only for the ``enabled`` objects, (n,) bool, when given)."""
         T = self._check_poses(T_world_obj)
-        r, cog = self._world_samples(T)
-        self._refresh(r, cog, T, enabled)
+        idx = self._enabled_indices(enabled)
+        r, cog = self._world_samples(T, idx)
+        self._refresh(r, cog, T, idx)
 
-    def _refresh(
-        self, r: np.ndarray, cog: np.ndarray, T: np.ndarray, enabled: np.ndarray | None = None
-    ) -> None:
+    def _refresh(self, r: np.ndarray, cog: np.ndarray, T: np.ndarray, idx: np.ndarray) -> None:
+        """Targets of the objects ``idx`` (their samples ``r``, ``cog`` from
+        :meth:`_world_samples`); every other object's are dropped until the next refresh."""
         self._matched[:] = 0.0
-        active = self._active if enabled is None else self._active & np.asarray(enabled, bool)
         facing = None
         nw = (
-            T[:, :3, :3] @ self._normals
+            T[idx, :3, :3] @ self._normals[idx]
             if self.camera_position is not None or self.sample_filter
             else None
         )
         if self.camera_position is not None:
             to_cam = self.camera_position[None, :, None] - (r + cog[:, :, None])
             facing = (nw * to_cam).sum(axis=1) > 0.0
-        for k, targets in self._pose_targets.items():
-            if enabled is None or enabled[k]:
-                mk = self.counts[k]
-                self._targets[k, :, :mk] = targets
-                self._matched[k, :mk] = 1.0
         if len(self._by_pose) > 50 * max(self.n, 1):
             self._by_pose.clear()
-        for k in np.flatnonzero(active):
-            if k in self._pose_targets:
-                continue
+        for j, k in enumerate(idx.tolist()):
             mk = self.counts[k]
+            if k in self._pose_targets:
+                self._targets[k, :, :mk] = self._pose_targets[k]
+                self._matched[k, :mk] = 1.0
+                continue
+            if not self._active[k]:
+                continue
             pose = T[k].tobytes()
-            pts = np.ascontiguousarray((r[k, :, :mk] + cog[k, :, None]).T)
+            pts = np.ascontiguousarray((r[j, :, :mk] + cog[j, :, None]).T)
             hit = self._by_pose.get((k, "nearest", pose))
             if hit is None:
                 hit = self._by_pose[(k, "nearest", pose)] = self.fields[k]._nearest(pts)
@@ -308,13 +314,13 @@ class DataForces:
             self._targets[k, :, :mk] = tgt.T
             ok = np.isfinite(dist)
             if facing is not None:
-                ok &= facing[k, :mk]
+                ok &= facing[j, :mk]
             if self.sample_filter is not None and ok.any():
                 keep = self._filter_cache.get(k)
                 if keep is None:  # once per reset(): visibility changes little within a window
                     keep = self._by_pose.get((k, "filter", pose))
                     if keep is None:
-                        keep = np.asarray(self.sample_filter(k, pts, nw[k, :, :mk].T), dtype=bool)
+                        keep = np.asarray(self.sample_filter(k, pts, nw[j, :, :mk].T), dtype=bool)
                         self._by_pose[(k, "filter", pose)] = keep
                     self._filter_cache[k] = keep
                 ok &= keep
@@ -339,24 +345,28 @@ class DataForces:
         """
         T = self._check_poses(T_world_obj)
         n = self.n
+        forces, torques = np.zeros((n, 3)), np.zeros((n, 3))
         if n == 0:
-            return np.zeros((0, 3)), np.zeros((0, 3))
-        r, cog = self._world_samples(T)
+            return forces, torques
+        idx = self._enabled_indices(enabled)  # a disabled object is frozen: no wrench
+        r, cog = self._world_samples(T, idx)
         if self._calls % self.refresh_every == 0:
-            self._refresh(r, cog, T, enabled)
+            self._refresh(r, cog, T, idx)
         self._calls += 1
 
         dt = self.max_distance
-        diff = self._targets - r - cog[:, :, None]  # (n, 3, M): p_d - p_c
-        dist = np.sqrt((diff * diff).sum(axis=1))  # (n, M)
+        diff = self._targets[idx] - r - cog[:, :, None]  # (m, 3, M): p_d - p_c
+        dist = np.sqrt((diff * diff).sum(axis=1))  # (m, M)
         # Per-pair weight: kernel (d_t - r)/(d_t^2/4) times F_max / M, zero beyond d_t.
-        scale = self.gravity_fraction * float(g) * self.masses / np.maximum(self.counts, 1)
-        w = np.maximum(dt - dist, 0.0) * self._matched * (scale / (dt * dt / 4.0))[:, None]
-        f = diff * w[:, None, :]  # (n, 3, M)
-        forces = f.sum(axis=2)
+        scale = (
+            self.gravity_fraction * float(g) * self.masses[idx] / np.maximum(self.counts[idx], 1)
+        )
+        w = np.maximum(dt - dist, 0.0) * self._matched[idx] * (scale / (dt * dt / 4.0))[:, None]
+        f = diff * w[:, None, :]  # (m, 3, M)
+        forces[idx] = f.sum(axis=2)
         rx, ry, rz = r[:, 0], r[:, 1], r[:, 2]
         fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
-        torques = np.stack(
+        torques[idx] = np.stack(
             [
                 (ry * fz - rz * fy).sum(axis=1),
                 (rz * fx - rx * fz).sum(axis=1),
