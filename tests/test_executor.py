@@ -167,7 +167,8 @@ def test_run_many_inputs_in_parallel(scenes, tmp_path, ray_cluster):
     assert r.exit_code == 0, r.output
     ref = None
     for name, opts in (("serial", []), ("processes", ["--workers", "2"]),
-                       ("ray", ["--executor", "ray", "--workers", "2"])):  # fmt: skip
+                       ("ray", ["--executor", "ray", "--workers", "2"]),
+                       ("frame processes", ["--processes", "2"])):  # fmt: skip
         out = tmp_path / name
         r = runner.invoke(app, ["run", *map(str, scenes), "--out", str(out), *opts])
         assert r.exit_code == 0, r.output
