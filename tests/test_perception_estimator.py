@@ -91,11 +91,42 @@ def test_posed_occupancy_equals_the_pointwise_test():
     assert hit.any() and not hit.all()
 
 
-def test_estimator_icp_matches_registration_icp(lib, scene):
-    """The estimator's ICP is ssp.registration.icp_refine's algorithm, solved in the model
-    frame: the same pose from the same start."""
-    from ssp.perception.estimator import _icp
-    from ssp.registration import even_rows, icp_refine
+def _world_frame_icp(pts, nrm, T, seg, cam, max_distance, iterations, n_points):
+    """Reference: point-to-plane Gauss-Newton in the world frame, samples moved every step
+    (the algorithm as first written, before it was solved in the model frame)."""
+    from scipy.spatial import cKDTree
+
+    from ssp.registration import even_rows, facing_mask
+
+    T = T.copy()
+    (seg,) = even_rows(n_points, seg)
+    keep = facing_mask(pts @ T[:3, :3].T + T[:3, 3], nrm @ T[:3, :3].T, cam)
+    pts, nrm = pts[keep], nrm[keep]
+    tree = cKDTree(pts)
+    for _ in range(iterations):
+        R, t = T[:3, :3], T[:3, 3]
+        dist, idx = tree.query((seg - t) @ R, k=1, distance_upper_bound=max_distance)
+        ok = np.isfinite(dist)
+        q, p, n = seg[ok], pts[idx[ok]] @ R.T + t, nrm[idx[ok]] @ R.T
+        c = p.mean(axis=0)
+        A = np.hstack([np.cross(p - c, n), n])
+        H = A.T @ A
+        H += np.eye(6) * (1e-6 * np.trace(H) / 6.0 + 1e-12)
+        x = np.linalg.solve(H, A.T @ -((p - q) * n).sum(axis=1))
+        D = np.eye(4)
+        D[:3, :3] = Rotation.from_rotvec(x[:3]).as_matrix()
+        D[:3, 3] = c - D[:3, :3] @ c + x[3:]
+        T = D @ T
+        if np.linalg.norm(x[3:]) < 1e-6 and np.linalg.norm(x[:3]) < 1e-6:
+            break
+    return T
+
+
+def test_model_frame_icp_is_point_to_plane_gauss_newton(lib, scene):
+    """ssp.registration.point_to_plane_icp (the estimator's and the parser's polish's ICP)
+    solves in the model frame what a world-frame point-to-plane Gauss-Newton does: the same
+    pose from the same start."""
+    from ssp.registration import even_rows, icp_refine, point_to_plane_icp
 
     model = lib["block"]
     T_gt = scene[0]["block_b"][1]
@@ -105,12 +136,17 @@ def test_estimator_icp_matches_registration_icp(lib, scene):
     T0[:3, 3] += [0.004, -0.003, 0.002]
     cam = T_WC[:3, 3]
     pts, nrm = even_rows(400, np.asarray(model.surface_points), np.asarray(model.surface_normals))
-    ours = _icp(pts, nrm, T0, seg, cam, max_distance=0.012, iterations=8, n_points=500)
-    ref = icp_refine(
-        model, T0, seg, cam, max_distance=0.012, iterations=8, n_samples=400, n_points=500
+    ours = point_to_plane_icp(
+        pts, nrm, T0, seg, cam, max_distance=0.012, iterations=8, n_points=500
     )
+    ref = _world_frame_icp(pts, nrm, T0, seg, cam, 0.012, 8, 500)
     np.testing.assert_allclose(ours, ref, atol=1e-9)
     assert np.abs(ours - T0).max() > 1e-3  # it moved
+    np.testing.assert_array_equal(
+        icp_refine(model, T0, seg, cam, max_distance=0.012, iterations=8, n_samples=400,
+                   n_points=500),
+        ours,
+    )  # fmt: skip
 
 
 @pytest.mark.parametrize("k, cls", [(0, "cube"), (1, "block")])
