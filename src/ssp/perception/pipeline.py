@@ -241,8 +241,8 @@ class Perception:
         if hypotheses is None:
             hypotheses = []
             cam = None if T_world_cam is None else np.asarray(T_world_cam)[:3, 3]
-            labels_ = [int(label) for label in segmentation.segment_ids]
-            for label in labels_:
+            seg_labels = [int(label) for label in segmentation.segment_ids]
+            for label in seg_labels:
                 cls = segmentation.classes.get(label)
                 if cls is not None and cls not in self.library:
                     raise UnknownObjectError(f"segment {label}: class {cls!r} not in the library")
@@ -264,20 +264,20 @@ class Perception:
                 )
                 return t_nrm, res
 
-            if self.cfg.processes > 1 and len(labels_) > 1:
+            if self.cfg.processes > 1 and len(seg_labels) > 1:
                 # what estimate() caches is built here, before the fork, so every lane has it
-                named = [segmentation.classes.get(label) for label in labels_]
+                named = [segmentation.classes.get(label) for label in seg_labels]
                 self.estimator.prepare(
                     [c for c in named if c is not None]
                     + (list(self.classes) if None in named else [])
                 )
             lane_timer = StageTimer()
             with ForkLanes(one, self.cfg.processes, lane_timer) as lanes:
-                results = lanes.run(None, labels_)
+                results = lanes.run(None, seg_labels)
             if LANES_STAGE in lane_timer.seconds:
                 timings[LANES_STAGE] = lane_timer.seconds[LANES_STAGE]
             t_normals = 0.0
-            for label, (t_nrm, res) in zip(labels_, results, strict=True):
+            for label, (t_nrm, res) in zip(seg_labels, results, strict=True):
                 t_normals += t_nrm
                 segments[label] = res
                 if instance:  # one object per segment: never grouped with another segment's
