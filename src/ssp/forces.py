@@ -30,13 +30,12 @@ stepping of the simulation (about 0.1-0.3 mm per step) a cadence of a few steps 
 
 The KD-tree is pykdtree (measured 2-3x faster than scipy's cKDTree for 500 queries into 0.5k-20k
 points, and 3x faster to build); OpenMP threading makes small queries 10-20x slower on few cores,
-so ``OMP_NUM_THREADS`` is set to 1 (unless already set) before pykdtree is imported. If pykdtree is
-missing, scipy's cKDTree with ``workers=1`` is used.
+so it comes from :mod:`ssp.kdtree`, which sets ``OMP_NUM_THREADS`` to 1 unless already set. If
+pykdtree is missing, scipy's cKDTree with ``workers=1`` is used.
 """
 
 from __future__ import annotations
 
-import os
 from collections.abc import Sequence
 
 import numpy as np
@@ -44,10 +43,8 @@ import numpy as np
 from ssp.config import ForcesConfig
 from ssp.library.model import ObjectModel
 
-os.environ.setdefault("OMP_NUM_THREADS", "1")  # before pykdtree loads its OpenMP runtime
-
 try:  # pragma: no branch
-    from pykdtree.kdtree import KDTree as _PyKDTree
+    from ssp.kdtree import KDTree as _PyKDTree
 except ImportError:  # pragma: no cover - pykdtree is a dependency; scipy is the fallback
     _PyKDTree = None
 from scipy.spatial import cKDTree

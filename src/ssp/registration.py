@@ -7,14 +7,11 @@ pose, as the reference code's cached-ICP force mode did) and by the ``icp`` base
 from __future__ import annotations
 
 import math
-import os
 
 import numpy as np
 
+from ssp.kdtree import KDTree
 from ssp.library.model import ObjectModel
-
-os.environ.setdefault("OMP_NUM_THREADS", "1")  # before pykdtree loads its OpenMP runtime
-from pykdtree.kdtree import KDTree  # noqa: E402
 
 __all__ = ["even_rows", "facing_mask", "icp_refine", "point_to_plane_icp"]
 

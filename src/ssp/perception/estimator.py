@@ -41,11 +41,11 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
-from pykdtree.kdtree import KDTree
 from scipy import ndimage
 
 from ssp.config import PerceptionConfig
 from ssp.errors import PerceptionError, UnknownObjectError
+from ssp.kdtree import KDTree
 from ssp.library.model import ObjectModel
 from ssp.perception.cleaning import robust_extent
 from ssp.registration import even_rows, facing_mask, point_to_plane_icp

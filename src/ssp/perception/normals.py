@@ -1,7 +1,6 @@
 """Surface normals of a cloud by PCA of each point's k nearest neighbours.
 
-The neighbours come from one pykdtree query (``OMP_NUM_THREADS`` is set to 1 unless already
-set, before pykdtree loads OpenMP: threading makes queries slower on few cores); the 3x3
+The neighbours come from one pykdtree query (:mod:`ssp.kdtree`, single-threaded); the 3x3
 covariances are formed in one batched product and decomposed with one batched
 ``np.linalg.eigh``. About 20-35 ms for 5k points with k = 16 on the 2-core development VM
 (query ~10 ms, covariances ~7 ms, eigh ~12 ms).
@@ -10,15 +9,11 @@ covariances are formed in one batched product and decomposed with one batched
 from __future__ import annotations
 
 import logging
-import os
 
 import numpy as np
 
 from ssp.errors import PerceptionError
-
-os.environ.setdefault("OMP_NUM_THREADS", "1")  # before pykdtree loads its OpenMP runtime
-
-from pykdtree.kdtree import KDTree  # noqa: E402
+from ssp.kdtree import KDTree
 
 __all__ = ["estimate_normals"]
 

@@ -46,17 +46,13 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 from dataclasses import dataclass, replace
 
 import numpy as np
 
 from ssp.errors import PerceptionError, TableNotFoundError
 from ssp.geometry import invert, make_pose
-
-os.environ.setdefault("OMP_NUM_THREADS", "1")  # before pykdtree loads its OpenMP runtime
-
-from pykdtree.kdtree import KDTree  # noqa: E402
+from ssp.kdtree import KDTree
 
 __all__ = [
     "MAX_SUPPORT_STEP",
