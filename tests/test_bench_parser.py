@@ -26,6 +26,9 @@ def test_bench_parser_reports_every_frame_kind(tmp_path):
             assert d["sec_per_frame_mean"] > 0
             assert set(d["stage_share"]) == {*STAGES, "other"}
             assert abs(sum(d["stage_share"].values()) - 1.0) < 1e-6
+            sec = d["stage_seconds"]
+            assert {"total", "segments", "association"} <= set(sec)
+            assert 0 < sec["segments"] < sec["total"] <= d["sec_per_frame_max"] + 1e-9
         assert row["added"]["hypotheses_tested_mean"] >= row["objects"] * 2
         assert all(isinstance(u, bool) for u in row["unchanged"]["unchanged_shortcut"])
     j, m = write_report(result, tmp_path)

@@ -177,7 +177,8 @@ def _time_scene(parser: SceneParser, lib, gt: dict, T_world_cam, rng, k: int) ->
 
 
 def _row(runs: Sequence[dict]) -> dict:
-    """Per frame kind: mean/max seconds, hypotheses tested, stage shares, mean errors."""
+    """Per frame kind: mean/max seconds, hypotheses tested, stage shares, mean seconds of every
+    timer entry, mean errors."""
     row = {}
     for name in FRAMES:
         walls = [r[name][0] for r in runs]
@@ -191,6 +192,11 @@ def _row(runs: Sequence[dict]) -> dict:
             "hypotheses_tested_mean": float(np.mean([x.hypotheses_tested for x in ests])),
             "unchanged_shortcut": [bool(x.unchanged) for x in ests],
             "stage_share": {s: float(np.mean([sh[s] for sh in shares])) for s in shares[0]},
+            # every timer entry of the frame (association, segments, icp, verification, ...)
+            "stage_seconds": {
+                s: float(np.mean([x.timings.get(s, 0.0) for x in ests]))
+                for s in sorted({key for x in ests for key in x.timings})
+            },
             "error": {
                 "ssp_mm_mean": float(np.mean([x[0] for x in e])),
                 "ssp_deg_mean": float(np.mean([x[1] for x in e])),
@@ -488,6 +494,8 @@ def compare_parser(
                     "rev_tested": runs["rev"][0][j][name]["hypotheses_tested_mean"],
                     "this_tested": row[name]["hypotheses_tested_mean"],
                     "this_stage_share": row[name]["stage_share"],
+                    "rev_stage_seconds": runs["rev"][0][j][name].get("stage_seconds", {}),
+                    "this_stage_seconds": row[name].get("stage_seconds", {}),
                     "rev_error": runs["rev"][0][j][name]["error"],
                     "this_error": row[name]["error"],
                 }
