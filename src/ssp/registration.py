@@ -45,6 +45,7 @@ def icp_refine(
     n_samples: int = 1000,
     n_points: int = 2000,
     min_pairs: int = 10,
+    tolerance: float = 1e-6,
 ) -> np.ndarray:
     """Point-to-plane ICP of ``model`` onto its ``segment`` (K, 3), world frame; returns the
     refined pose (``T_init`` unchanged when fewer than ``min_pairs`` pairs are found).
@@ -77,6 +78,7 @@ def icp_refine(
         iterations=iterations,
         n_points=n_points,
         min_pairs=min_pairs,
+        tolerance=tolerance,
     )
 
 
@@ -110,6 +112,7 @@ def point_to_plane_icp(
     iterations: int,
     n_points: int,
     min_pairs: int = 10,
+    tolerance: float = 1e-6,
 ) -> np.ndarray:
     """Point-to-plane ICP of model samples ``pts, nrm (S, 3)`` (model frame) onto ``segment
     (K, 3)`` (world, m), from ``T_init`` (4, 4): correspondences from at most ``n_points``
@@ -137,6 +140,7 @@ def point_to_plane_icp(
     Z[:-1, :3], Z[:-1, 3:6], Z[:-1, 6:9] = np.cross(pts, nrm), nrm, pts
     Z[:-1, 9] = (pts * nrm).sum(1)
     M = np.eye(6)
+    tol2 = float(tolerance) ** 2
     for _ in range(int(iterations)):
         R, t = T[:3, :3], T[:3, 3]
         q = (seg - t) @ R  # the segment in the model frame
@@ -158,6 +162,6 @@ def point_to_plane_icp(
         # about the pairs' centroid, then shifted (model frame): T <- T [Rd, c - Rd c + v]
         T[:3, 3] += R @ (c - Rd @ c + v)
         T[:3, :3] = R @ Rd
-        if v @ v < 1e-12 and omega @ omega < 1e-12:  # moved less than 1 um and 1 urad
+        if v @ v < tol2 and omega @ omega < tol2:  # moved less than the tolerance
             break
     return T
