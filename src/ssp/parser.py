@@ -45,14 +45,12 @@ object appeared or vanished) step 7 is replaced by a settle of the previous scen
 from __future__ import annotations
 
 import logging
-import math
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, replace
 from functools import partial
 from typing import Any
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ssp.config import SSPConfig, TemporalConfig
 from ssp.errors import InvalidPoseError, PhysicsError, SSPError, UnknownObjectError
@@ -63,13 +61,13 @@ from ssp.library.library import ObjectLibrary
 from ssp.library.model import ObjectInstance, ObjectModel
 from ssp.library.symmetry import Symmetry
 from ssp.physics import World
+from ssp.polish import polish
 from ssp.probability import pose_change
-from ssp.registration import icp_refine
 from ssp.retention import REMOVABLE, Triage, support_retained, triage
 from ssp.scene import Frame, FrameError, Hypothesis, TransitionMode
 from ssp.scoring import SceneScore, SceneScorer
 from ssp.search import Candidate, Simulator, layered_search
-from ssp.segments import explained_fraction, object_segments
+from ssp.segments import SegmentTrees, explained_fraction, object_segments
 from ssp.static import is_unchanged, settle_moved, settled_objects
 from ssp.support import GROUND
 from ssp.temporal import (
@@ -91,7 +89,6 @@ from ssp.verification import (
     evidence,
     held_up,
     may_hold_up,
-    point_spacing,
     verify_and_place,
 )
 from ssp.visibility import CameraView
@@ -438,7 +435,7 @@ class SceneParser:
         new: Sequence[str],
         groups: Mapping[str, list[Hypothesis]],
         models: Mapping[str, ObjectModel],
-        segments: Mapping[str, np.ndarray],
+        segments: SegmentTrees,
         owner: Mapping[str, int],
         view: CameraView | None,
     ) -> dict[str, Rejected]:
@@ -449,9 +446,7 @@ class SceneParser:
         out: dict[str, Rejected] = {}
         for oid in new:
             best: tuple[tuple, Evidence, Hypothesis] | None = None
-            seg = segments.get(oid)
-            tree = cKDTree(np.asarray(seg, dtype=float)) if seg is not None and len(seg) else None
-            spacing = point_spacing(tree) if tree is not None else None
+            tree, spacing = segments.tree(oid), segments.spacing(oid)
             for h in groups[oid]:
                 ev = evidence(
                     models[oid], h.T_world_obj, tree, view, self.config,
@@ -522,10 +517,11 @@ class SceneParser:
                     labels=frame.labels,
                     depth_tolerance=cfg.temporal.depth_tolerance,
                 )
+        trees = SegmentTrees(segments)
         with timer("verification"):
             rejected = self._verify_new(
                 [oid for oid in groups if oid not in self._known],
-                groups, models, segments, owner, view,
+                groups, models, trees, owner, view,
             )  # fmt: skip
             for oid in rejected:
                 del groups[oid], first[oid], classes[oid]
@@ -575,6 +571,7 @@ class SceneParser:
                 {oid: segments[oid] for oid in ids if oid in with_data},
                 {oid: prev_pose.get(oid) for oid in ids},
                 camera_position=cam,
+                trees=trees,
             )
 
         static = {
@@ -679,7 +676,7 @@ class SceneParser:
                 if oid in index:
                     world.set_enabled(oid, False)
         if cfg.forces.final_icp:
-            self._polish(world, sim, {oid: segments[oid] for oid in with_data}, cam, timer)
+            polish(world, sim, {oid: segments[oid] for oid in with_data}, cam, cfg, timer)
         if unchanged or cfg.forces.final_icp:
             score = scorer.evaluate(world, timer)
         # data wins over physics for objects new in this frame, or held by their data before:
@@ -704,7 +701,7 @@ class SceneParser:
 
         with timer("verification"):
             final_verdicts, placed = verify_and_place(
-                world, scorer, score, models, groups, segments, owner, view,
+                world, scorer, score, models, groups, trees, owner, view,
                 set(prev_pose) | set(removed), self.config, timer,
             )  # fmt: skip
             if placed:
@@ -713,10 +710,11 @@ class SceneParser:
                 oid: evidence(
                     models[oid],
                     score.poses[world.index(oid)],
-                    segments.get(oid),
+                    trees.tree(oid),
                     view,
                     cfg,
                     own_label=owner.get(oid),
+                    segment_spacing=trees.spacing(oid),
                 )  # fmt: skip
                 for oid in ids
                 if oid not in removed
@@ -747,50 +745,6 @@ class SceneParser:
                 rescore=partial(_rescore, world, scorer, timer),
             ),
         )
-
-    def _polish(
-        self,
-        world: World,
-        sim: Simulator,
-        segments: Mapping[str, np.ndarray],
-        camera_position: np.ndarray | None,
-        timer: StageTimer,
-    ) -> None:
-        """Pull every enabled object with data toward its ICP pose (``forces.final_icp``) for
-        ``search.final_settle`` s, then ``search.settle_without_forces`` s without forces.
-
-        ICP alone is precise but knows no physics (it floats and interpenetrates objects);
-        the data forces alone are physical but converge slowly. A spring toward the ICP pose
-        inside the simulation gets both. ICP results that jump more than 2 cm or 20 degrees
-        are ignored (a wrong local minimum), as are segments with fewer than 30 points.
-        """
-        cfg = self.config
-        forces = sim.forces
-        with timer("icp"):
-            for oid, seg in segments.items():
-                if not world.is_enabled(oid) or len(seg) < 30:
-                    continue
-                T = world.get_pose(oid)
-                T_icp = icp_refine(
-                    world.model_of(oid),
-                    T,
-                    seg,
-                    camera_position,
-                    max_distance=cfg.forces.icp_max_distance,
-                )
-                dt, dth = pose_change(T, T_icp, None, world.model_of(oid).center_of_mass)
-                if dt < 0.02 and dth < math.radians(20.0):
-                    forces.set_pose_target(world.index(oid), T_icp)
-        forces.reset()
-        state = world.save_state()
-        try:
-            sim.settle(cfg.search.final_settle, with_forces=True)
-            sim.settle(cfg.search.settle_without_forces, with_forces=False)
-        except PhysicsError as exc:  # pragma: no cover - a settled scene pulled a little
-            log.warning("final ICP settle failed (%s); keeping the searched scene", exc)
-            world.restore_state(state)
-        for k in range(len(world.ids)):
-            forces.set_pose_target(k, None)
 
     # -------------------------------------------------------------- output
     def _finish(self, frame: Frame, out: _Outcome):

@@ -37,6 +37,7 @@ from ssp.probability import (
     log_support,
     log_transition_from_poses,
 )
+from ssp.segments import SegmentTrees
 from ssp.support import SupportGraph, build_support_graph
 from ssp.timing import StageTimer
 
@@ -109,6 +110,8 @@ class SceneScorer:
         camera_position: (3,) camera position in the world, m, or None. When given, the data
             fit c counts only the model samples facing the camera (the far side was never
             observed), so c is the fraction of the *seeable* surface explained.
+        trees: the frame's segment trees to use for the ids in ``segments`` (shared with
+            verification); None: built here.
     """
 
     def __init__(
@@ -118,6 +121,7 @@ class SceneScorer:
         segments: Mapping[str, np.ndarray],
         previous: Mapping[str, np.ndarray | None],
         camera_position: np.ndarray | None = None,
+        trees: SegmentTrees | None = None,
     ) -> None:
         self.config = config
         self.camera_position = (
@@ -133,7 +137,10 @@ class SceneScorer:
         self.trees: list[cKDTree | None] = []
         for oid in self.ids:
             seg = segments.get(oid)
-            self.trees.append(cKDTree(seg) if seg is not None and len(seg) else None)
+            if seg is None or not len(seg):
+                self.trees.append(None)
+            else:
+                self.trees.append(cKDTree(seg) if trees is None else trees.tree(oid))
         self._fits: dict[tuple[int, bytes], float] = {}
         n_fit = int(config.search.fit_samples)
         self.fit_samples, self.fit_normals = [], []

@@ -28,12 +28,54 @@ from ssp.geometry import transform_points
 from ssp.library.model import ObjectModel
 from ssp.scene import Frame
 
-__all__ = ["explained_fraction", "object_segments"]
+__all__ = ["SegmentTrees", "explained_fraction", "object_segments", "point_spacing"]
 
 log = logging.getLogger(__name__)
 
 #: Model samples used to vote for an object's label.
 _VOTE_SAMPLES = 200
+
+
+def point_spacing(tree: cKDTree, n: int = 256) -> float:
+    """Median distance (m) from a segment's points to their nearest other point (an evenly
+    strided subset of at most ``n``): the cloud's sampling on that object. A downsampled or
+    low-resolution cloud explains fewer model samples within a fixed radius; the fit counts
+    samples within a few spacings, so it does not depend on the density."""
+    pts = tree.data
+    if len(pts) < 2:
+        return 0.0
+    q = pts[:: max(1, len(pts) // n)]
+    d, _ = tree.query(q, k=2)
+    return float(np.median(d[:, 1]))
+
+
+class SegmentTrees:
+    """The KD-tree and :func:`point_spacing` of each object's segment, built on first use and
+    shared by the frame's scorer and verification (one tree per segment and frame).
+
+    Args:
+        segments: ``id -> (K, 3)`` segment points (world, m); missing or empty: no tree.
+    """
+
+    def __init__(self, segments: Mapping[str, np.ndarray]) -> None:
+        self._segments = segments
+        self._trees: dict[str, cKDTree | None] = {}
+        self._spacings: dict[str, float | None] = {}
+
+    def tree(self, oid: str) -> cKDTree | None:
+        """The segment's tree, or None when the object has no points."""
+        if oid not in self._trees:
+            seg = self._segments.get(oid)
+            ok = seg is not None and len(seg)
+            self._trees[oid] = cKDTree(np.asarray(seg, dtype=float)) if ok else None
+        return self._trees[oid]
+
+    def spacing(self, oid: str) -> float | None:
+        """The segment's point spacing (m), or None when the object has no points."""
+        if oid not in self._spacings:
+            tree = self.tree(oid)
+            self._spacings[oid] = None if tree is None else point_spacing(tree)
+        return self._spacings[oid]
 
 
 def _bounding_sphere(model: ObjectModel) -> tuple[np.ndarray, float]:

@@ -37,7 +37,7 @@ from scipy.spatial import cKDTree
 from ssp.config import SSPConfig
 from ssp.geometry import transform_points
 from ssp.library.model import ObjectModel
-from ssp.segments import explained_fraction
+from ssp.segments import explained_fraction, point_spacing
 from ssp.visibility import (
     BEHIND_OWN,
     NOT_FACING,
@@ -115,19 +115,6 @@ class Verdict:
 #: A surface sample counts as explained within this many point spacings of the segment (at
 #: least the inlier radius): a grid of spacing s leaves no surface point farther than 0.71 s.
 SPACING_COVER = 0.75
-
-
-def point_spacing(tree: cKDTree, n: int = 256) -> float:
-    """Median distance (m) from a segment's points to their nearest other point (an evenly
-    strided subset of at most ``n``): the cloud's sampling on that object. A downsampled or
-    low-resolution cloud explains fewer model samples within a fixed radius; the fit counts
-    samples within :data:`SPACING_COVER` spacings, so it does not depend on the density."""
-    pts = tree.data
-    if len(pts) < 2:
-        return 0.0
-    q = pts[:: max(1, len(pts) // n)]
-    d, _ = tree.query(q, k=2)
-    return float(np.median(d[:, 1]))
 
 
 def _samples(model: ObjectModel, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -241,12 +228,13 @@ def verify_final(
     model: ObjectModel,
     T_final: np.ndarray,
     hypotheses: Sequence[np.ndarray],
-    segment: np.ndarray | None,
+    segment: np.ndarray | cKDTree | None,
     view: CameraView | None,
     config: SSPConfig,
     *,
     own_label: int | None,
     stability: float,
+    segment_spacing: float | None = None,
 ) -> Verdict:
     """The verdict on a new object after the search: :func:`check_new` at its final pose
     ``T_final``. An object is never reported at a pose its data does not support: when the
@@ -257,14 +245,23 @@ def verify_final(
     says so). When its ``stability`` term at the final pose says it would fall (below
     ``verification.fall_stability``), it is kept only if its data is strong
     (``verification.stand_explained``): a cube proposed on a ball explains half of the ball
-    and cannot rest on it."""
-    tree = None if segment is None or not len(segment) else cKDTree(segment)
-    ev = evidence(model, T_final, tree, view, config, own_label=own_label)
+    and cannot rest on it. ``segment``: ``(K, 3)`` points or their KD-tree;
+    ``segment_spacing``: their :func:`~ssp.segments.point_spacing` when known."""
+    tree = segment if isinstance(segment, cKDTree) else None
+    if tree is None and segment is not None and len(segment):
+        tree = cKDTree(np.asarray(segment, dtype=float))
+    spacing = segment_spacing
+    if spacing is None and tree is not None:
+        spacing = point_spacing(tree)
+    ev = evidence(model, T_final, tree, view, config, own_label=own_label, segment_spacing=spacing)
     verdict = check_new(ev, config)
     if not verdict.keep:
         best: tuple[float, np.ndarray, Verdict] | None = None
         for T in hypotheses:
-            hv = check_new(evidence(model, T, tree, view, config, own_label=own_label), config)
+            ev_h = evidence(
+                model, T, tree, view, config, own_label=own_label, segment_spacing=spacing
+            )
+            hv = check_new(ev_h, config)
             e = hv.evidence
             strength = e.fit if e.explained is None else e.explained
             if hv.keep and (best is None or strength > best[0]):
@@ -378,7 +375,8 @@ def verify_and_place(
 ) -> tuple[dict[str, Verdict], dict[str, np.ndarray]]:
     """Parser step 8: :func:`verify_final` of every new object (not in ``skip``: known or
     removed ones) at its searched pose (``score``: the scene ``world`` holds, scored by
-    ``scorer``; ``groups``, ``segments``, ``owner``: the hypotheses, points and label per id);
+    ``scorer``; ``groups``, ``owner``: the hypotheses and label per id; ``segments``: the
+    frame's :class:`~ssp.segments.SegmentTrees`);
     those kept at a hypothesis instead are put there in ``world``, one at a time, strongest data
     first, unless there it would be inside another object (its collision term below
     ``verification.fallback_collision``, the data fallbacks' rule): then it stays where
@@ -397,11 +395,12 @@ def verify_and_place(
             models[oid],
             score.poses[i],
             [h.T_world_obj for h in groups.get(oid, ())],
-            segments.get(oid),
+            segments.tree(oid),
             view,
             cfg,
             own_label=owner.get(oid),
             stability=float(score.terms[i, 0]),
+            segment_spacing=segments.spacing(oid),
         )
     to_place = [oid for oid, v in verdicts.items() if v.keep and v.T_world_obj is not None]
 
