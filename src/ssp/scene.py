@@ -25,6 +25,8 @@ log = logging.getLogger(__name__)
 
 #: A cloud whose median distance from the world origin exceeds this (m) is taken to be in mm.
 MM_CLOUD_MEDIAN = 50.0
+#: That median is taken over at most about this many evenly strided points of the cloud.
+UNITS_SAMPLE = 10_000
 
 
 class FrameError(SSPError, ValueError):
@@ -105,7 +107,8 @@ class Frame:
 
         Checks, in order: ``stamp`` finite; ``points`` shaped ``(N, 3)`` and numeric, non-finite
         rows dropped (the count is logged; ``labels`` are dropped with them), at least one left;
-        the cloud is in metres (median distance from the origin <= :data:`MM_CLOUD_MEDIAN`);
+        the cloud is in metres (median distance from the origin <= :data:`MM_CLOUD_MEDIAN`, over
+        about :data:`UNITS_SAMPLE` points);
         ``labels`` integer-valued of length N; each segment ``(K, 3)`` (non-finite rows
         dropped); ``T_world_cam`` rigid; ``hypotheses`` a list of :class:`Hypothesis` with a
         class name (str) in ``library``, ``instance_id`` None or a str, ``segment`` None or an
@@ -125,7 +128,9 @@ class Frame:
                 "empty cloud: the frame has no finite points"
                 + (f" (all {len(keep)} were NaN or infinite)" if len(keep) else "")
             )
-        median = float(np.median(np.linalg.norm(points, axis=1)))
+        # the units check needs no more than an evenly strided subset of a large cloud
+        sample = points[:: max(1, len(points) // UNITS_SAMPLE)]
+        median = float(np.median(np.linalg.norm(sample, axis=1)))
         if median > MM_CLOUD_MEDIAN:
             raise FrameError(
                 f"cloud median distance from the origin is {median:.1f} m; points look like "
@@ -308,7 +313,10 @@ def _clean_points(
         arr = arr.reshape(0, 3)
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise FrameError(f"{what}: expected shape (N, 3), got {arr.shape}")
-    keep = np.all(np.isfinite(arr), axis=1)
+    finite = np.isfinite(arr)
+    if finite.all():  # the common case, without a row-wise reduction and a masked copy
+        return arr.copy(), np.ones(len(arr), dtype=bool)
+    keep = finite.all(axis=1)
     dropped = int(len(keep) - keep.sum())
     if dropped and keep.any():
         log.info("%s: dropped %d of %d non-finite points", what, dropped, len(keep))

@@ -14,6 +14,7 @@ they belong to the scene parser, which passes its verdict to :func:`classify`.
 from __future__ import annotations
 
 import itertools
+import math
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import replace
 
@@ -80,6 +81,7 @@ class _Cluster:
 
     def __init__(self, first: Hypothesis, order: int, instance_id: str | None = None) -> None:
         self.members = [first]
+        self.indices = [order]  # input positions of the members
         self.order = order  # position of its first (best) hypothesis, for stable ordering
         self.first_index = order  # smallest input position among its members
         self.instance_id = instance_id
@@ -87,6 +89,7 @@ class _Cluster:
 
     def add(self, h: Hypothesis, index: int) -> None:
         self.members.append(h)
+        self.indices.append(index)
         self.first_index = min(self.first_index, index)
         if self.segment is None:
             self.segment = h.segment
@@ -197,6 +200,8 @@ def associate(
         c = centres.get(class_name)
         return T[:3, 3] if c is None else T[:3, :3] @ np.asarray(c, dtype=float) + T[:3, 3]
 
+    # each hypothesis's centre, once (a cluster's best is its first member: centre[c.order])
+    centre = [tuple(at(h.class_name, h.T_world_obj).tolist()) for h in hypotheses]
     order = sorted(range(len(hypotheses)), key=lambda i: (-float(hypotheses[i].score), i))
     clusters: list[_Cluster] = []
     by_id: dict[str, _Cluster] = {}
@@ -213,7 +218,7 @@ def associate(
         h = hypotheses[i]
         if h.instance_id is not None:
             continue
-        t = at(h.class_name, h.T_world_obj)
+        t = centre[i]
         best, best_d = None, np.inf
         if h.segment is not None:  # one instance segment is one object, however spread
             best = next(
@@ -227,7 +232,7 @@ def associate(
         for c in clusters if best is None else ():
             if c.best.class_name != h.class_name or not c.accepts(h.segment):
                 continue
-            d = float(np.linalg.norm(at(h.class_name, c.best.T_world_obj) - t))
+            d = math.dist(centre[c.order], t)
             if d <= gate(h.class_name) and d < best_d:
                 best, best_d = c, d
         if best is None:
@@ -253,8 +258,8 @@ def associate(
             if target is None:
                 kept.append(c)
             else:
-                for h in c.members:
-                    target.add(h, c.first_index)
+                for h, index in zip(c.members, c.indices, strict=True):
+                    target.add(h, index)
         clusters = kept
 
     free = [c for c in clusters if c.instance_id is None]
@@ -266,19 +271,20 @@ def associate(
         )
         if cols:
             sym = symmetries.get(class_name)
-            centre = centres.get(class_name)
+            c_model = centres.get(class_name)
+            radius_c = gate(class_name)
+            p_prev = {k: at(class_name, previous[k][1]) for k in cols}
             cost = np.full((len(rows), len(cols)), _FORBIDDEN)
             for r, c in enumerate(rows):
+                at_members = np.array([centre[i] for i in c.indices])
                 for j, k in enumerate(cols):
                     T_prev = previous[k][1]
-                    p_prev = at(class_name, T_prev)
-                    for h in c.members:
-                        if np.linalg.norm(at(class_name, h.T_world_obj) - p_prev) > gate(
-                            class_name
-                        ):
-                            continue  # gated out: skip the (costlier) symmetric rotation
-                        dt, dth = pose_change(T_prev, h.T_world_obj, sym, centre)
-                        if dt <= gate(class_name):
+                    near = np.linalg.norm(at_members - p_prev[k], axis=1) <= radius_c
+                    # the gated-out members skip the (costlier) symmetric rotation
+                    for m in np.flatnonzero(near):
+                        h = c.members[m]
+                        dt, dth = pose_change(T_prev, h.T_world_obj, sym, c_model)
+                        if dt <= radius_c:
                             cost[r, j] = min(cost[r, j], dt + rotation_weight * dth)
             for r, j in zip(*linear_sum_assignment(cost), strict=True):
                 if cost[r, j] < _FORBIDDEN:

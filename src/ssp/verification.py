@@ -147,6 +147,8 @@ def evidence(
     pw = transform_points(T, pts)
     if view is not None:
         spacing = float(np.sqrt(model.mesh.area / len(pts))) if len(pts) else None
+        if model.convexity_excess <= view.depth_tolerance:
+            spacing = None  # a (nearly) convex object cannot hide its own facing samples
         state = view.classify(pw, nrm @ T[:3, :3].T, own_label, self_spacing=spacing)
         facing = (state != NOT_FACING) & (state != SELF_HIDDEN)
         visible = (state == SEEN) | (state == SEEN_THROUGH) | (state == BEHIND_OWN)

@@ -107,6 +107,25 @@ class ObjectModel:
         return cKDTree(np.asarray(self.surface_points, dtype=float))
 
     @cached_property
+    def convexity_excess(self) -> float:
+        """Largest height (m) of the object above the tangent plane of one of its surface
+        samples: ``max_i max_v n_i . (v - p_i)`` over the samples ``p_i, n_i`` and the hull
+        vertices ``v``; 0 (to rounding) for a convex mesh. No sample can be hidden behind the
+        object's own surface when this is below the depth tolerance of
+        :meth:`ssp.visibility.CameraView.classify`'s self-occlusion test."""
+        p = np.asarray(self.surface_points, dtype=float)
+        n = np.asarray(self.surface_normals, dtype=float)
+        v = self.hull_vertices
+        if not len(p) or not len(v):
+            return 0.0
+        n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        excess = 0.0
+        for a in range(0, len(p), 4096):  # (chunk, V) at a time
+            h = (n[a : a + 4096] @ v.T).max(axis=1) - (n[a : a + 4096] * p[a : a + 4096]).sum(1)
+            excess = max(excess, float(h.max()))
+        return excess
+
+    @cached_property
     def diameter(self) -> float:
         """Largest distance between two points of the object (eps_d of Eq. 8), m."""
         from scipy.spatial.distance import pdist
