@@ -25,6 +25,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ssp.geometry import transform_points
+from ssp.kdtree import KDTree
 from ssp.library.model import ObjectModel
 from ssp.scene import Frame
 
@@ -34,6 +35,9 @@ log = logging.getLogger(__name__)
 
 #: Model samples used to vote for an object's label.
 _VOTE_SAMPLES = 200
+#: Leaf size of the frame's point tree for the votes (pykdtree: 1.4 ms for 62k points against
+#: 4.2 ms for scipy's tree; exact nearest neighbours).
+_VOTE_TREE_LEAF = 64
 
 
 def point_spacing(tree: cKDTree, n: int = 256) -> float:
@@ -110,12 +114,17 @@ def object_segments(
         table: the world has a table at z = 0; crops leave out points below ``table_clearance``.
     """
     points = frame.points
-    trees: list[cKDTree] = []
+    trees: dict[str, object] = {}
 
-    def tree() -> cKDTree:  # built only when an object has no known label
-        if not trees:  # sliding-midpoint splits: built in about half the time, exact queries
-            trees.append(cKDTree(points, balanced_tree=False, compact_nodes=False))
-        return trees[0]
+    def vote_tree() -> KDTree:  # built only when an object has no known label
+        if "vote" not in trees:
+            trees["vote"] = KDTree(np.ascontiguousarray(points), leafsize=_VOTE_TREE_LEAF)
+        return trees["vote"]
+
+    def tree() -> cKDTree:  # for crops (ball queries); sliding-midpoint splits build faster
+        if "crop" not in trees:
+            trees["crop"] = cKDTree(points, balanced_tree=False, compact_nodes=False)
+        return trees["crop"]
 
     by_label = _indices_by_label(frame.labels) if frame.labels is not None else {}
     out: dict[str, np.ndarray] = {}
@@ -133,7 +142,7 @@ def object_segments(
                 log.warning("object %s: its segment label %d is not in the cloud", oid, label)
                 label = None
             if label is None:
-                label = _vote_label(frame, tree(), model, poses[0], radius)
+                label = _vote_label(frame, vote_tree(), model, poses[0], radius)
             if label is not None and members is not None:
                 members[oid] = label
             if label is not None and frame.label_kind == "instance":
@@ -154,12 +163,14 @@ def _indices_by_label(labels: np.ndarray) -> dict[int, np.ndarray]:
 
 
 def _vote_label(
-    frame: Frame, tree: cKDTree, model: ObjectModel, T: np.ndarray, radius: float
+    frame: Frame, tree: KDTree, model: ObjectModel, T: np.ndarray, radius: float
 ) -> int | None:
     samples = np.asarray(model.surface_points, dtype=float)
     if len(samples) > _VOTE_SAMPLES:
         samples = samples[:: int(np.ceil(len(samples) / _VOTE_SAMPLES))]
-    dist, idx = tree.query(transform_points(T, samples), k=1, distance_upper_bound=radius)
+    dist, idx = tree.query(
+        np.ascontiguousarray(transform_points(T, samples)), k=1, distance_upper_bound=radius
+    )
     hit = np.isfinite(dist)
     if not hit.any():
         return None

@@ -55,9 +55,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ssp.geometry import invert, validate_pose
+from ssp.kdtree import KDTree
 
 #: Smallest camera-frame depth (m) taken as "in front of the camera"; avoids dividing by ~0.
 MIN_DEPTH = 1e-6
@@ -82,6 +82,10 @@ SELF_COVER = 0.75
 
 #: Neighbours (in the image) searched for a sample's self-occluders.
 SELF_NEIGHBOURS = 16
+
+#: Leaf size of the ray tree: larger leaves build faster (1.2 ms for 62k rays against 3.7 ms
+#: for scipy's tree) and keep the exact nearest-neighbour queries as fast.
+RAY_TREE_LEAF = 64
 
 #: Lookup radius (normalised image coordinates, ~rad) used when the cloud has too few points
 #: (fewer than 2 distinct rays) to estimate one: about one pixel of a 640 px wide, 60 deg camera.
@@ -144,7 +148,9 @@ def _self_hidden(
     rays = p_cam[:, :2] / depth[:, None]
     cover = SELF_COVER * spacing / depth  # each sample's footprint radius in the image
     k = min(SELF_NEIGHBOURS + 1, n)
-    dist, idx = cKDTree(rays).query(rays, k=k, distance_upper_bound=float(cover.max()))
+    rays = np.ascontiguousarray(rays)
+    dist, idx = KDTree(rays).query(rays, k=k, distance_upper_bound=float(cover.max()))
+    dist, idx = dist.reshape(n, k), idx.reshape(n, k).astype(np.intp)
     ok = np.isfinite(dist)
     j = np.where(ok, idx, 0)
     ok &= dist <= cover[j]  # within the occluder's footprint
@@ -155,7 +161,7 @@ def _self_hidden(
     return ok.any(axis=1)
 
 
-def estimate_angular_resolution(rays: np.ndarray, tree: cKDTree | None = None) -> float:
+def estimate_angular_resolution(rays: np.ndarray, tree: KDTree | None = None) -> float:
     """Lookup radius for rays ``(n, 2)`` in normalised image coordinates (~rad).
 
     :data:`RESOLUTION_FACTOR` x the median distance from each ray (at most
@@ -163,16 +169,17 @@ def estimate_angular_resolution(rays: np.ndarray, tree: cKDTree | None = None) -
     (exact duplicates are ignored). :data:`FALLBACK_ANGULAR_RESOLUTION` when there are fewer
     than 2 distinct rays.
     """
-    rays = np.asarray(rays, dtype=float)
+    rays = np.ascontiguousarray(rays, dtype=float)
     if len(rays) < 2:
         return FALLBACK_ANGULAR_RESOLUTION
     if tree is None:
-        tree = cKDTree(rays)
+        tree = KDTree(rays, leafsize=RAY_TREE_LEAF)
     # The median over an evenly strided subset (every point of a small cloud) keeps this cheap
     # on full depth images; a few neighbours so duplicated rays do not hide the real spacing.
     queries = rays[:: -(-len(rays) // ESTIMATE_MAX_QUERIES)]
     k = min(len(rays), 4)
-    dist, _ = tree.query(queries, k=k, workers=1)
+    dist, _ = tree.query(np.ascontiguousarray(queries), k=k)
+    dist = dist.reshape(len(queries), k)
     dist = np.where(dist > 0.0, dist, np.inf)  # drops the ray itself and its duplicates
     nearest = dist.min(axis=1)
     nearest = nearest[np.isfinite(nearest)]
@@ -218,12 +225,8 @@ class CameraView:
         p_cam = p_cam[front]
         self._labels = None if labels is None else labels[front]
         self._depths = p_cam[:, 2].copy()
-        rays = p_cam[:, :2] / p_cam[:, 2:3]
-        # unbalanced (sliding-midpoint) splits and no shrunk node boxes build in about a third
-        # of the time; the queries are exact nearest neighbours either way
-        self._tree = (
-            cKDTree(rays, balanced_tree=False, compact_nodes=False) if len(rays) else None
-        )
+        rays = np.ascontiguousarray(p_cam[:, :2] / p_cam[:, 2:3])
+        self._tree = KDTree(rays, leafsize=RAY_TREE_LEAF) if len(rays) else None
 
         if angular_resolution is None:
             self._resolution = estimate_angular_resolution(rays, self._tree)
@@ -302,9 +305,9 @@ class CameraView:
             return out
         p_cam = p_cam[facing]
         depth = p_cam[:, 2]
-        rays = p_cam[:, :2] / depth[:, None]
+        rays = np.ascontiguousarray(p_cam[:, :2] / depth[:, None])
         # Nearest ray in angle, not the smallest depth: a depth image holds one depth per pixel.
-        dist, idx = self._tree.query(rays, k=1, distance_upper_bound=self._resolution, workers=1)
+        dist, idx = self._tree.query(rays, k=1, distance_upper_bound=self._resolution)
         found = np.isfinite(dist)
         diff = np.full(len(depth), np.nan)
         diff[found] = self._depths[idx[found]] - depth[found]
@@ -351,8 +354,8 @@ class CameraView:
         p_cam = pts @ self._T_cam_world[:3, :3].T + self._T_cam_world[:3, 3]
         ok = p_cam[:, 2] > MIN_DEPTH
         depth = p_cam[ok, 2]
-        rays = p_cam[ok, :2] / depth[:, None]
-        dist, idx = self._tree.query(rays, k=1, distance_upper_bound=self._resolution, workers=1)
+        rays = np.ascontiguousarray(p_cam[ok, :2] / depth[:, None])
+        dist, idx = self._tree.query(rays, k=1, distance_upper_bound=self._resolution)
         found = np.isfinite(dist)
         hidden = np.zeros(len(depth), dtype=bool)
         j = idx[found]
