@@ -222,8 +222,10 @@ class CameraView:
 
         p_cam = pts @ self._T_cam_world[:3, :3].T + self._T_cam_world[:3, 3]
         front = p_cam[:, 2] > MIN_DEPTH
-        p_cam = p_cam[front]
-        self._labels = None if labels is None else labels[front]
+        if not front.all():  # (a copy of the whole cloud otherwise)
+            p_cam = p_cam[front]
+            labels = None if labels is None else labels[front]
+        self._labels = labels
         self._depths = p_cam[:, 2].copy()
         rays = np.ascontiguousarray(p_cam[:, :2] / p_cam[:, 2:3])
         self._tree = KDTree(rays, leafsize=RAY_TREE_LEAF) if len(rays) else None
