@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
+
 from ssp.eval.bench_parser import FRAMES, STAGES, bench_parser, stacks, write_report
 from ssp.library import ObjectLibrary
 
@@ -90,3 +92,33 @@ def test_compare_with_an_unknown_revision_says_so():
 
     with pytest.raises(ArgumentError, match="no-such-revision"):
         compare_parser("no-such-revision", sizes=(2,), k=2, repeats=1, rounds=1)
+
+
+def _interpenetrating(scene: dict, lib) -> list[tuple[str, str]]:
+    """Pairs of objects whose hull boxes overlap by more than 0.1 mm on every axis."""
+    from ssp.geometry import hull_box
+
+    ids = list(scene)
+    boxes = {o: hull_box(lib[scene[o][0]].hull_vertices, [scene[o][1]]) for o in ids}
+    out = []
+    for i, a in enumerate(ids):
+        for b in ids[i + 1 :]:
+            overlap = np.minimum(boxes[a][1], boxes[b][1]) - np.maximum(boxes[a][0], boxes[b][0])
+            if (overlap > 1e-4).all():
+                out.append((a, b))
+    return out
+
+
+def test_changed_frames_are_scenes_physics_allows():
+    """The changed frame moves the first stack; it must not push it into a neighbour (the
+    link/node structure's node a is flush against link 1's end on +x, so it moves to -x)."""
+    from ssp.eval.bench_parser import SLIDE, _slide, links_structure, stacks
+
+    lib = ObjectLibrary.builtin()
+    for n in (5, 10, 20):
+        gt = stacks(lib, n, seed=n * 10)
+        assert _interpenetrating(_slide(gt, SLIDE), lib) == []
+    links = links_structure(lib, link="block", node="cube")
+    assert _interpenetrating(links, lib) == []
+    assert _interpenetrating(_slide(links, -SLIDE), lib) == []
+    assert _interpenetrating(_slide(links, SLIDE), lib) == [("node_a", "link_1")]
