@@ -505,3 +505,12 @@ def test_library_mapping(config):
     with pytest.raises(ModelError, match="two models"):
         ObjectLibrary([box, box])
     assert box.surface_points.flags.writeable is False
+
+
+def test_convexity_excess_is_zero_only_for_convex_models(lib):
+    """``ObjectModel.convexity_excess``: no surface sample of the cube or the block lies below
+    another sample's tangent plane by more than rounding, so ``evidence`` may skip their
+    self-occlusion test; a mallet's head stands far above the tangent planes of its handle."""
+    assert lib["cube"].convexity_excess < 1e-9
+    assert lib["block"].convexity_excess < 1e-9
+    assert lib["mallet"].convexity_excess > 0.05

@@ -8,7 +8,8 @@ import numpy as np
 
 from ssp.geometry import make_pose, transform_points
 from ssp.scene import Frame
-from ssp.segments import explained_fraction, object_segments
+from ssp.kdtree import KDTree
+from ssp.segments import _label_votes, explained_fraction, object_segments
 
 
 def _two_cubes(lib):
@@ -68,3 +69,41 @@ def test_explained_fraction_counts_the_points_on_the_models_surface(lib):
     half = make_pose(t=T_low[:3, 3] + [float(cube.extents[0]) / 2, 0.0, 0.0])
     assert 0.2 < explained_fraction(low, cube, half, 0.004) < 0.8
     assert explained_fraction(np.zeros((0, 3)), cube, T_low, 0.004) == 0.0
+
+
+def test_one_object_per_instance_label_a_hidden_object_keeps_its_own_points(lib):
+    """The mostly hidden lower cube touches more of the upper cube's points than of its own:
+    it takes its own label, the upper cube the other one, never both the same segment."""
+    cube, T_low, T_high, frame, n_low = _two_cubes(lib)
+    votes = _label_votes(frame, KDTree(frame.points), cube, T_low, 0.01)
+    assert votes[1] > votes[0]  # alone, the lower cube's vote went to the upper cube's label
+    objects = {"low": (cube, [T_low]), "high": (cube, [T_high])}
+    seg, owner = object_segments(frame, objects, radius=0.01)
+    assert owner == {"low": 0, "high": 1}
+    assert len(seg["low"]) == n_low and len(seg["high"]) == len(frame.points) - n_low
+
+
+def test_an_object_touching_only_taken_labels_gets_no_segment(lib, caplog):
+    cube, T_low, T_high, frame, n_low = _two_cubes(lib)
+    hidden = Frame(0.0, frame.points[n_low:], labels=frame.labels[n_low:])  # low unseen
+    objects = {"low": (cube, [T_low]), "high": (cube, [T_high])}
+    with caplog.at_level(logging.INFO, logger="ssp.segments"):
+        seg, owner = object_segments(hidden, objects, radius=0.01)
+    assert owner == {"high": 1} and len(seg["low"]) == 0
+    assert "low: the labels it touches are other objects' segments" in caplog.text
+    # a label known to be an object's (its hypotheses' segment) is not voted away
+    seg, owner = object_segments(hidden, objects, radius=0.01, labels={"low": 1})
+    assert owner == {"low": 1} and len(seg["high"]) == 0
+
+
+def test_cluster_labels_are_shared(lib):
+    """A cluster label may hold several objects: both take their points from a crop."""
+    cube, T_low, T_high, frame, _ = _two_cubes(lib)
+    clusters = Frame(
+        0.0, frame.points, labels=np.zeros(len(frame.points), int), label_kind="cluster"
+    )
+    members: dict[str, int] = {}
+    objects = {"low": (cube, [T_low]), "high": (cube, [T_high])}
+    seg, owner = object_segments(clusters, objects, radius=0.01, members=members)
+    assert owner == {} and members == {"low": 0, "high": 0}
+    assert len(seg["low"]) > 0 and len(seg["high"]) > 0

@@ -8,7 +8,11 @@ object's model with the scene points that belong to it. Where those come from, i
    (:attr:`ssp.scene.Hypothesis.segment`): the points of that label;
 3. ``frame.labels``: the label that covers most of the object's best candidate pose (the label
    of the nearest scene point of each model sample, voted over samples within ``radius``;
-   negative labels mark the table and background and never vote);
+   negative labels mark the table and background and never vote). An instance label is one
+   object's: a label known to be an object's (2) is not voted away, and of the objects voting
+   for one label the one it covers most of its samples takes it; the others take the next label
+   they touch that is free, or none (an object hidden under another then has its own few points
+   or no data, never the other object's segment);
 4. otherwise a local crop: the scene points within the object's bounding sphere (plus ``radius``)
    of any of its candidate poses, leaving out the table (``z < table_clearance``) when the world
    has one. Neighbouring objects can leak into a crop; labels or segments are better.
@@ -129,28 +133,68 @@ def object_segments(
     by_label = _indices_by_label(frame.labels) if frame.labels is not None else {}
     out: dict[str, np.ndarray] = {}
     owner: dict[str, int] = {}
+    chosen: dict[str, int | None] = {}  # id -> label (known or voted), None: crop
+    votes: dict[str, dict[int, float]] = {}  # voters: id -> label -> fraction of samples
     for oid, (model, poses) in objects.items():
         if frame.segments is not None and oid in frame.segments:
             out[oid] = frame.segments[oid]
-            continue
-        if not len(points) or not len(poses):
+        elif not len(points) or not len(poses):
             out[oid] = np.zeros((0, 3))
-            continue
-        if frame.labels is not None:
+        elif frame.labels is None:
+            chosen[oid] = None
+        else:
             label = (labels or {}).get(oid)
             if label is not None and label not in by_label:
                 log.warning("object %s: its segment label %d is not in the cloud", oid, label)
                 label = None
             if label is None:
-                label = _vote_label(frame, vote_tree(), model, poses[0], radius)
-            if label is not None and members is not None:
-                members[oid] = label
-            if label is not None and frame.label_kind == "instance":
-                out[oid] = points[by_label[label]]
-                owner[oid] = label
-                continue
-        out[oid] = _crop(points, tree(), model, poses, radius, table, table_clearance)
-    return out, owner
+                votes[oid] = _label_votes(frame, vote_tree(), model, poses[0], radius)
+                label = max(votes[oid], key=lambda k: (votes[oid][k], -k), default=None)
+            chosen[oid] = label
+    if frame.label_kind == "instance" and votes:
+        chosen.update(_one_object_per_label(chosen, votes))
+    for oid, label in chosen.items():
+        model, poses = objects[oid]
+        if label is not None and members is not None:
+            members[oid] = label
+        if label is not None and frame.label_kind == "instance":
+            out[oid] = points[by_label[label]]
+            owner[oid] = label
+        elif label is None and oid in votes and votes[oid]:
+            out[oid] = np.zeros((0, 3))  # every label it touches is another object's
+        else:
+            out[oid] = _crop(points, tree(), model, poses, radius, table, table_clearance)
+    return {oid: out[oid] for oid in objects}, owner
+
+
+def _one_object_per_label(
+    chosen: Mapping[str, int | None], votes: Mapping[str, Mapping[int, float]]
+) -> dict[str, int | None]:
+    """Instance labels for the voters (``votes``: id -> label -> fraction of its samples
+    nearest a point of that label), one object per label: labels known to be an object's
+    (``chosen`` for the ids that did not vote) are taken; then, best fraction first (ties:
+    id, then label), each voter takes a label it touches that no one has taken. A hidden
+    object thus gets its own few points, not the segment of the object on it; one that
+    touches only taken labels gets no segment (its data are another object's)."""
+    taken = {label for oid, label in chosen.items() if oid not in votes and label is not None}
+    pairs = sorted((-f, oid, label) for oid, vs in votes.items() for label, f in vs.items())
+    out: dict[str, int | None] = {oid: None for oid in votes}
+    done: set[str] = set()
+    for _, oid, label in pairs:
+        if oid in done or label in taken:
+            continue
+        out[oid] = label
+        done.add(oid)
+        taken.add(label)
+    for oid in sorted(votes):
+        if votes[oid] and out[oid] != chosen.get(oid):
+            how = "none of them" if out[oid] is None else f"segment {out[oid]}"
+            log.info(
+                "object %s: the labels it touches are other objects' segments; it takes %s",
+                oid,
+                how,
+            )
+    return out
 
 
 def _indices_by_label(labels: np.ndarray) -> dict[int, np.ndarray]:
@@ -162,9 +206,12 @@ def _indices_by_label(labels: np.ndarray) -> dict[int, np.ndarray]:
     return {int(v): order[a:b] for v, a, b in zip(values, starts, ends, strict=True)}
 
 
-def _vote_label(
+def _label_votes(
     frame: Frame, tree: KDTree, model: ObjectModel, T: np.ndarray, radius: float
-) -> int | None:
+) -> dict[int, float]:
+    """``label -> fraction`` of the model's vote samples at ``T`` whose nearest scene point
+    (within ``radius``, m) carries that label (negative labels: table, background,
+    unlabelled, never vote); empty when no sample has a labelled point near."""
     samples = np.asarray(model.surface_points, dtype=float)
     if len(samples) > _VOTE_SAMPLES:
         samples = samples[:: int(np.ceil(len(samples) / _VOTE_SAMPLES))]
@@ -173,13 +220,11 @@ def _vote_label(
     )
     hit = np.isfinite(dist)
     if not hit.any():
-        return None
+        return {}
     votes = np.asarray(frame.labels)[idx[hit]]
-    votes = votes[votes >= 0]  # negative labels: table, background, unlabelled
-    if not len(votes):
-        return None
+    votes = votes[votes >= 0]
     values, counts = np.unique(votes, return_counts=True)
-    return int(values[np.argmax(counts)])  # ties: the smallest label (np.unique sorts)
+    return {int(v): int(c) / len(samples) for v, c in zip(values, counts, strict=True)}
 
 
 def _crop(
