@@ -8,11 +8,10 @@ object's model with the scene points that belong to it. Where those come from, i
    (:attr:`ssp.scene.Hypothesis.segment`): the points of that label;
 3. ``frame.labels``: the label that covers most of the object's best candidate pose (the label
    of the nearest scene point of each model sample, voted over samples within ``radius``;
-   negative labels mark the table and background and never vote). An instance label is one
-   object's: a label known to be an object's (2) is not voted away, and of the objects voting
-   for one label the one it covers most of its samples takes it; the others take the next label
-   they touch that is free, or none (an object hidden under another then has its own few points
-   or no data, never the other object's segment);
+   negative labels mark the table and background and never vote). Of the objects voting for
+   one instance label, the one it covers most of its samples takes it; the others take the next
+   label they touch that no voter took, or none (an object hidden under another then has its
+   own few points or no data, not the other object's segment);
 4. otherwise a local crop: the scene points within the object's bounding sphere (plus ``radius``)
    of any of its candidate poses, leaving out the table (``z < table_clearance``) when the world
    has one. Neighbouring objects can leak into a crop; labels or segments are better.
@@ -171,12 +170,13 @@ def _one_object_per_label(
     chosen: Mapping[str, int | None], votes: Mapping[str, Mapping[int, float]]
 ) -> dict[str, int | None]:
     """Instance labels for the voters (``votes``: id -> label -> fraction of its samples
-    nearest a point of that label), one object per label: labels known to be an object's
-    (``chosen`` for the ids that did not vote) are taken; then, best fraction first (ties:
-    id, then label), each voter takes a label it touches that no one has taken. A hidden
-    object thus gets its own few points, not the segment of the object on it; one that
-    touches only taken labels gets no segment (its data are another object's)."""
-    taken = {label for oid, label in chosen.items() if oid not in votes and label is not None}
+    nearest a point of that label), one voter per label: best fraction first (ties: id, then
+    label), each voter takes a label it touches that no other voter has taken. A hidden object
+    thus gets its own few points, not the segment of the object on it; one that touches only
+    taken labels gets no segment (its data are another object's). A label known to be an
+    object's (``chosen`` for the ids that did not vote: its hypotheses' segment) does not
+    take a voter's data away: those hypotheses may be a false object on a known one."""
+    taken: set[int] = set()
     pairs = sorted((-f, oid, label) for oid, vs in votes.items() for label, f in vs.items())
     out: dict[str, int | None] = {oid: None for oid in votes}
     done: set[str] = set()
