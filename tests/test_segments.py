@@ -73,14 +73,17 @@ def test_explained_fraction_counts_the_points_on_the_models_surface(lib):
 
 def test_one_object_per_instance_label_a_hidden_object_keeps_its_own_points(lib):
     """The mostly hidden lower cube touches more of the upper cube's points than of its own:
-    it takes its own label, the upper cube the other one, never both the same segment."""
+    known, it takes its own label, the upper cube the other one, never both the same segment;
+    new, it takes the label it covers most (it must earn its place with its data)."""
     cube, T_low, T_high, frame, n_low = _two_cubes(lib)
     votes = _label_votes(frame, KDTree(frame.points), cube, T_low, 0.01)
     assert votes[1] > votes[0]  # alone, the lower cube's vote went to the upper cube's label
     objects = {"low": (cube, [T_low]), "high": (cube, [T_high])}
-    seg, owner = object_segments(frame, objects, radius=0.01)
+    seg, owner = object_segments(frame, objects, radius=0.01, known={"low", "high"})
     assert owner == {"low": 0, "high": 1}
     assert len(seg["low"]) == n_low and len(seg["high"]) == len(frame.points) - n_low
+    seg, owner = object_segments(frame, objects, radius=0.01, known={"high"})
+    assert owner == {"low": 1, "high": 1}
 
 
 def test_an_object_touching_only_taken_labels_gets_no_segment(lib, caplog):
@@ -88,12 +91,14 @@ def test_an_object_touching_only_taken_labels_gets_no_segment(lib, caplog):
     hidden = Frame(0.0, frame.points[n_low:], labels=frame.labels[n_low:])  # low unseen
     objects = {"low": (cube, [T_low]), "high": (cube, [T_high])}
     with caplog.at_level(logging.INFO, logger="ssp.segments"):
-        seg, owner = object_segments(hidden, objects, radius=0.01)
+        seg, owner = object_segments(hidden, objects, radius=0.01, known={"low", "high"})
     assert owner == {"high": 1} and len(seg["low"]) == 0
     assert "low: the labels it touches are other objects' segments" in caplog.text
     # a label known to be an object's (its hypotheses' segment, maybe a false object's) does
     # not take a voter's data away
-    seg, owner = object_segments(hidden, objects, radius=0.01, labels={"low": 1})
+    seg, owner = object_segments(
+        hidden, objects, radius=0.01, labels={"low": 1}, known={"low", "high"}
+    )
     assert owner == {"low": 1, "high": 1} and len(seg["high"]) == len(seg["low"]) > 0
 
 

@@ -508,6 +508,7 @@ class SceneParser:
                 table=self.table,
                 labels=segment_labels,
                 members=members,
+                known=set(self._known),
             )
             view = None
             if frame.T_world_cam is not None:

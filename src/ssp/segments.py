@@ -8,10 +8,14 @@ object's model with the scene points that belong to it. Where those come from, i
    (:attr:`ssp.scene.Hypothesis.segment`): the points of that label;
 3. ``frame.labels``: the label that covers most of the object's best candidate pose (the label
    of the nearest scene point of each model sample, voted over samples within ``radius``;
-   negative labels mark the table and background and never vote). Of the objects voting for
-   one instance label, the one it covers most of its samples takes it; the others take the next
-   label they touch that no voter took, or none (an object hidden under another then has its
-   own few points or no data, not the other object's segment);
+   negative labels mark the table and background and never vote). Objects already in the scene
+   take an instance label each: of those voting for one label, the one it covers most of its
+   samples takes it, the others the next label they touch that none of them took, or none (a
+   known object hidden under another then has its own few points or no data, not the other
+   object's segment, which would pull it off). A new object takes the label it covers most,
+   another's too: it must earn its place with its data, and a false object on an unknown one
+   would pass on the unknown object's points (a label an object's hypotheses came from, 2,
+   is never voted away either: those may be a false object on a known one);
 4. otherwise a local crop: the scene points within the object's bounding sphere (plus ``radius``)
    of any of its candidate poses, leaving out the table (``z < table_clearance``) when the world
    has one. Neighbouring objects can leak into a crop; labels or segments are better.
@@ -22,7 +26,7 @@ All points are world frame, metres.
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -100,6 +104,7 @@ def object_segments(
     table_clearance: float = 0.002,
     labels: Mapping[str, int] | None = None,
     members: dict[str, int] | None = None,
+    known: Collection[str] = (),
 ) -> tuple[dict[str, np.ndarray], dict[str, int]]:
     """Segment points ``(K, 3)`` per object id (possibly empty), and the label each object's
     segment was taken from (only for objects segmented by instance ``frame.labels``).
@@ -113,6 +118,8 @@ def object_segments(
         objects: ``id -> (model, candidate poses)``; the first pose is the best guess.
         labels: ``id -> label`` of ``frame.labels`` known to be the object's (the instance
             segment its hypotheses came from); the others vote.
+        known: the objects already in the scene (verified in an earlier frame): their votes
+            take an instance label each (module docstring, 3).
         radius: vote distance (labels) and crop margin, m (use the data-force cut-off d_t).
         table: the world has a table at z = 0; crops leave out points below ``table_clearance``.
     """
@@ -150,8 +157,9 @@ def object_segments(
                 votes[oid] = _label_votes(frame, vote_tree(), model, poses[0], radius)
                 label = max(votes[oid], key=lambda k: (votes[oid][k], -k), default=None)
             chosen[oid] = label
-    if frame.label_kind == "instance" and votes:
-        chosen.update(_one_object_per_label(chosen, votes))
+    known_votes = {oid: v for oid, v in votes.items() if oid in known}
+    if frame.label_kind == "instance" and known_votes:
+        chosen.update(_one_object_per_label(known_votes))
     for oid, label in chosen.items():
         model, poses = objects[oid]
         if label is not None and members is not None:
@@ -166,16 +174,12 @@ def object_segments(
     return {oid: out[oid] for oid in objects}, owner
 
 
-def _one_object_per_label(
-    chosen: Mapping[str, int | None], votes: Mapping[str, Mapping[int, float]]
-) -> dict[str, int | None]:
+def _one_object_per_label(votes: Mapping[str, Mapping[int, float]]) -> dict[str, int | None]:
     """Instance labels for the voters (``votes``: id -> label -> fraction of its samples
     nearest a point of that label), one voter per label: best fraction first (ties: id, then
     label), each voter takes a label it touches that no other voter has taken. A hidden object
     thus gets its own few points, not the segment of the object on it; one that touches only
-    taken labels gets no segment (its data are another object's). A label known to be an
-    object's (``chosen`` for the ids that did not vote: its hypotheses' segment) does not
-    take a voter's data away: those hypotheses may be a false object on a known one."""
+    taken labels gets no segment (its data are another object's)."""
     taken: set[int] = set()
     pairs = sorted((-f, oid, label) for oid, vs in votes.items() for label, f in vs.items())
     out: dict[str, int | None] = {oid: None for oid in votes}
@@ -187,7 +191,8 @@ def _one_object_per_label(
         done.add(oid)
         taken.add(label)
     for oid in sorted(votes):
-        if votes[oid] and out[oid] != chosen.get(oid):
+        top = max(votes[oid], key=lambda k: (votes[oid][k], -k), default=None)
+        if votes[oid] and out[oid] != top:
             how = "none of them" if out[oid] is None else f"segment {out[oid]}"
             log.info(
                 "object %s: the labels it touches are other objects' segments; it takes %s",
