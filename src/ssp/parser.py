@@ -13,7 +13,7 @@
    group whose segment an undetected object explains where it was is that object's duplicate
    (:func:`ssp.temporal.duplicates_of_undetected`).
 3. **Segments** per object (:func:`ssp.segments.object_segments`).
-4. **Verify** new objects (:mod:`ssp.verification`): one the data does not support at any of
+4. **Verify** new objects (:func:`ssp.verification.verify_new`): one the data does not support at any of
    its hypotheses (not visible, its volume seen empty, or explaining almost nothing) is
    rejected before the search.
 5. **Undetected objects** (:func:`ssp.retention.triage`): replaced, still visible, seen empty,
@@ -84,12 +84,12 @@ from ssp.timing import StageTimer
 from ssp.verification import (
     Evidence,
     Verdict,
-    check_new,
     data_fallbacks,
     evidence,
     held_up,
     may_hold_up,
     verify_and_place,
+    verify_new,
 )
 from ssp.visibility import CameraView
 
@@ -430,43 +430,6 @@ class SceneParser:
             log.info("%s dropped: its segment is %s's (one object per segment)", oid, winner)
         return _Association(groups, counters, claimed, confused, duplicates)
 
-    def _verify_new(
-        self,
-        new: Sequence[str],
-        groups: Mapping[str, list[Hypothesis]],
-        models: Mapping[str, ObjectModel],
-        segments: SegmentTrees,
-        owner: Mapping[str, int],
-        view: CameraView | None,
-    ) -> dict[str, Rejected]:
-        """Stage 4: new objects the data does not support at any of their hypotheses
-        (:func:`ssp.verification.check_new` with ``loose``: the raw hypotheses may be a few
-        millimetres off)."""
-
-        out: dict[str, Rejected] = {}
-        for oid in new:
-            best: tuple[tuple, Evidence, Hypothesis] | None = None
-            tree, spacing = segments.tree(oid), segments.spacing(oid)
-            for h in groups[oid]:
-                ev = evidence(
-                    models[oid], h.T_world_obj, tree, view, self.config,
-                    own_label=owner.get(oid), segment_spacing=spacing,
-                )  # fmt: skip
-                key = (check_new(ev, self.config, loose=True).keep, ev.fit, -ev.seen_through)
-                if best is None or key > best[0]:
-                    best = (key, ev, h)
-                if key[0]:  # one hypothesis the data supports keeps the object
-                    break
-            _, ev, h = best
-            verdict = check_new(ev, self.config, loose=True)
-            if not verdict.keep:
-                out[oid] = Rejected(
-                    oid, h.class_name, np.array(h.T_world_obj), verdict.reason, ev.as_dict(),
-                    h.segment,
-                )  # fmt: skip
-                log.info("%s (%s) rejected: %s", oid, h.class_name, verdict.reason)
-        return out
-
     def _update(self, frame: Frame, timer: StageTimer):
         cfg = self.config
         lib = self.library
@@ -520,9 +483,9 @@ class SceneParser:
                 )
         trees = SegmentTrees(segments)
         with timer("verification"):
-            rejected = self._verify_new(
+            rejected = verify_new(
                 [oid for oid in groups if oid not in self._known],
-                groups, models, trees, owner, view,
+                groups, models, trees, owner, view, cfg,
             )  # fmt: skip
             for oid in rejected:
                 del groups[oid], first[oid], classes[oid]

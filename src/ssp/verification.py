@@ -28,16 +28,19 @@ before; :func:`still_visible` decides whether an undetected known object is stil
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Sequence
+import logging
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from ssp.config import SSPConfig
+from ssp.estimate import Rejected
 from ssp.geometry import transform_points
 from ssp.library.model import ObjectModel
-from ssp.segments import explained_fraction, point_spacing
+from ssp.scene import Hypothesis
+from ssp.segments import SegmentTrees, explained_fraction, point_spacing
 from ssp.visibility import (
     BEHIND_OWN,
     NOT_FACING,
@@ -47,6 +50,8 @@ from ssp.visibility import (
     SELF_HIDDEN,
     CameraView,
 )
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "Evidence",
@@ -59,6 +64,7 @@ __all__ = [
     "still_visible",
     "verify_and_place",
     "verify_final",
+    "verify_new",
 ]
 
 
@@ -224,6 +230,44 @@ def check_new(ev: Evidence, config: SSPConfig, *, loose: bool = False) -> Verdic
     if ev.explained is not None:
         text += f" and accounts for {100 * ev.explained:.0f} % of its segment"
     return Verdict(True, text, ev)
+
+
+def verify_new(
+    new: Sequence[str],
+    groups: Mapping[str, Sequence[Hypothesis]],
+    models: Mapping[str, ObjectModel],
+    segments: SegmentTrees,
+    owner: Mapping[str, int],
+    view: CameraView | None,
+    config: SSPConfig,
+) -> dict[str, Rejected]:
+    """Parser stage 4: the ``new`` objects (ids) that the data supports at none of their
+    hypotheses (``groups``; :func:`check_new` with ``loose``: the raw hypotheses may be a few
+    millimetres off), by id, each with the evidence of its best hypothesis. ``segments``: the
+    frame's segment trees; ``owner``: the instance label of each object's segment."""
+    out: dict[str, Rejected] = {}
+    for oid in new:
+        best: tuple[tuple, Evidence, Hypothesis] | None = None
+        tree, spacing = segments.tree(oid), segments.spacing(oid)
+        for h in groups[oid]:
+            ev = evidence(
+                models[oid], h.T_world_obj, tree, view, config,
+                own_label=owner.get(oid), segment_spacing=spacing,
+            )  # fmt: skip
+            key = (check_new(ev, config, loose=True).keep, ev.fit, -ev.seen_through)
+            if best is None or key > best[0]:
+                best = (key, ev, h)
+            if key[0]:  # one hypothesis the data supports keeps the object
+                break
+        _, ev, h = best
+        verdict = check_new(ev, config, loose=True)
+        if not verdict.keep:
+            out[oid] = Rejected(
+                oid, h.class_name, np.array(h.T_world_obj), verdict.reason, ev.as_dict(),
+                h.segment,
+            )  # fmt: skip
+            log.info("%s (%s) rejected: %s", oid, h.class_name, verdict.reason)
+    return out
 
 
 def verify_final(
