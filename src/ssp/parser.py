@@ -13,9 +13,9 @@
    group whose segment an undetected object explains where it was is that object's duplicate
    (:func:`ssp.temporal.duplicates_of_undetected`).
 3. **Segments** per object (:func:`ssp.segments.object_segments`).
-4. **Verify** new objects (:func:`ssp.verification.verify_new`): one the data does not support at any of
-   its hypotheses (not visible, its volume seen empty, or explaining almost nothing) is
-   rejected before the search.
+4. **Verify** new objects (:func:`ssp.verification.verify_new`): one the data does not
+   support at any of its hypotheses (not visible, its volume seen empty, or explaining almost
+   nothing) is rejected before the search.
 5. **Undetected objects** (:func:`ssp.retention.triage`): replaced, still visible, seen empty,
    hidden (ephemeral) or unseen.
 6. **First guess and support graph**: every object at the pose among its previous pose and
