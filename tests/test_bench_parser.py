@@ -31,11 +31,16 @@ def test_bench_parser_reports_every_frame_kind(tmp_path):
             sec = d["stage_seconds"]
             assert {"total", "segments", "association"} <= set(sec)
             assert 0 < sec["segments"] < sec["total"] <= d["sec_per_frame_max"] + 1e-9
+            err = d["error"]  # the worst object beside the mean
+            assert (
+                err["ssp_mm_max"] >= err["ssp_mm_mean"]
+                and err["ssp_deg_max"] >= err["ssp_deg_mean"]
+            )
         assert row["added"]["hypotheses_tested_mean"] >= row["objects"] * 2
         assert all(isinstance(u, bool) for u in row["unchanged"]["unchanged_shortcut"])
     j, m = write_report(result, tmp_path)
     assert json.loads(j.read_text())["protocol"] == "parser-timing"
-    assert "| 3 | unchanged |" in m.read_text()
+    assert "| 3 | unchanged |" in m.read_text() and "ssp worst" in m.read_text()
 
 
 def test_link_node_structure_puts_every_link_end_on_a_node_face():

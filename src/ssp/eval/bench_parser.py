@@ -209,6 +209,9 @@ def _row(runs: Sequence[dict]) -> dict:
             "error": {
                 "ssp_mm_mean": float(np.mean([x[0] for x in e])),
                 "ssp_deg_mean": float(np.mean([x[1] for x in e])),
+                # the worst object of the frame kind (judge by the tails)
+                "ssp_mm_max": float(np.max([x[0] for x in e])),
+                "ssp_deg_max": float(np.max([x[1] for x in e])),
                 "hypotheses_mm_mean": float(np.mean([x[0] for x in h])),
                 "hypotheses_deg_mean": float(np.mean([x[1] for x in h])),
             },
@@ -335,6 +338,13 @@ def _checks(rows: Sequence[dict]) -> list[dict]:
     return out
 
 
+def _worst(error: dict) -> str:
+    """The worst object's error of a row (``-`` when the row has none: an older bench)."""
+    if "ssp_mm_max" not in error:
+        return "-"
+    return f"{error['ssp_mm_max']:.1f} mm / {error['ssp_deg_max']:.1f} deg"
+
+
 def write_report(result: dict, out: Path) -> tuple[Path, Path]:
     """``out/results.json`` and ``out/results.md`` (a table per frame kind)."""
     out.mkdir(parents=True, exist_ok=True)
@@ -345,8 +355,8 @@ def write_report(result: dict, out: Path) -> tuple[Path, Path]:
         f"{setting(result)})",
         "",
         "| N | frame | s/frame mean | s/frame max | tested | forces | stepping | contacts "
-        "| scoring | other | ssp error | hypotheses error |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| scoring | other | ssp error | ssp worst | hypotheses error |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in result["rows"]:
         label = row_label(r)
@@ -358,6 +368,7 @@ def write_report(result: dict, out: Path) -> tuple[Path, Path]:
                 f"{d['sec_per_frame_max']:.3f} | {d['hypotheses_tested_mean']:.0f} | "
                 + " | ".join(f"{100 * sh[s]:.0f} %" for s in (*STAGES, "other"))
                 + f" | {d['error']['ssp_mm_mean']:.2f} mm / {d['error']['ssp_deg_mean']:.2f} deg"
+                + f" | {_worst(d['error'])}"
                 + f" | {d['error']['hypotheses_mm_mean']:.2f} mm / "
                 + f"{d['error']['hypotheses_deg_mean']:.2f} deg |"
             )
@@ -528,8 +539,8 @@ def write_compare(result: dict, out: Path) -> tuple[Path, Path]:
         f"this code: {setting(result)})",
         "",
         f"| N | frame | {result['rev']} s | this s | speed-up | tested | forces | stepping "
-        "| contacts | scoring | other | error (this) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        f"| contacts | scoring | other | error (this) | worst ({result['rev']} -> this) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in result["rows"]:
         sh = r["this_stage_share"]
@@ -539,7 +550,8 @@ def write_compare(result: dict, out: Path) -> tuple[Path, Path]:
             f"{r['speedup']:.2f}x | {r['rev_tested']:.0f} -> {r['this_tested']:.0f} | "
             + " | ".join(f"{100 * sh[s]:.0f} %" for s in (*STAGES, "other"))
             + f" | {r['this_error']['ssp_mm_mean']:.2f} mm / "
-            + f"{r['this_error']['ssp_deg_mean']:.2f} deg |"
+            + f"{r['this_error']['ssp_deg_mean']:.2f} deg"
+            + f" | {_worst(r['rev_error'])} -> {_worst(r['this_error'])} |"
         )
     m = out / "compare.md"
     m.write_text("\n".join(lines) + "\n")
