@@ -155,7 +155,7 @@ def object_segments(
                 label = None
             if label is None:
                 votes[oid] = _label_votes(frame, vote_tree(), model, poses[0], radius)
-                label = max(votes[oid], key=lambda k: (votes[oid][k], -k), default=None)
+                label = _top_label(votes[oid])
             chosen[oid] = label
     known_votes = {oid: v for oid, v in votes.items() if oid in known}
     if frame.label_kind == "instance" and known_votes:
@@ -191,8 +191,7 @@ def _one_object_per_label(votes: Mapping[str, Mapping[int, float]]) -> dict[str,
         done.add(oid)
         taken.add(label)
     for oid in sorted(votes):
-        top = max(votes[oid], key=lambda k: (votes[oid][k], -k), default=None)
-        if votes[oid] and out[oid] != top:
+        if votes[oid] and out[oid] != _top_label(votes[oid]):
             how = "none of them" if out[oid] is None else f"segment {out[oid]}"
             log.info(
                 "object %s: the labels it touches are other objects' segments; it takes %s",
@@ -200,6 +199,11 @@ def _one_object_per_label(votes: Mapping[str, Mapping[int, float]]) -> dict[str,
                 how,
             )
     return out
+
+
+def _top_label(votes: Mapping[int, float]) -> int | None:
+    """The label with the largest share of the votes (ties: the smallest label), or None."""
+    return max(votes, key=lambda k: (votes[k], -k), default=None)
 
 
 def _indices_by_label(labels: np.ndarray) -> dict[int, np.ndarray]:
