@@ -35,12 +35,11 @@ MAX_JUMP_DEG = 20.0
 #: Segments with fewer points are not registered.
 MIN_POINTS = 30
 
-#: ICP steps at most, and the step (m and rad) below which it stops. From a searched or
-#: previous pose the ICP converges in at most 6 steps when it converges; on a face with few
-#: points its correspondences can flip back and forth and it cycles within about 0.2 mm, where
-#: more steps only change which point of the cycle it stops at. The spring target need not be
-#: finer than 10 um.
-ICP_ITERATIONS = 8
+#: ICP steps at most, and the step (m and rad) below which it stops: the spring target need not
+#: be finer than 10 um. An ICP that cycles stops as soon as it does (``CYCLE_TOLERANCE`` of
+#: :mod:`ssp.registration`); at most 8 steps left a carton of a real capture
+#: (``examples/real_dev.py``, the milk scene) where it would fall.
+ICP_ITERATIONS = 20
 ICP_TOLERANCE = 1e-5
 
 
