@@ -36,9 +36,8 @@ MAX_JUMP_DEG = 20.0
 MIN_POINTS = 30
 
 #: ICP steps at most, and the step (m and rad) below which it stops: the spring target need not
-#: be finer than 10 um. An ICP that cycles stops as soon as it does (``CYCLE_TOLERANCE`` of
-#: :mod:`ssp.registration`); at most 8 steps left a carton of a real capture
-#: (``examples/real_dev.py``, the milk scene) where it would fall.
+#: be finer than 10 um. At most 8 steps left a carton of a real capture (``examples/real_dev.py``,
+#: the milk scene) where it would fall.
 ICP_ITERATIONS = 20
 ICP_TOLERANCE = 1e-5
 

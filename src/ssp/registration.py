@@ -13,7 +13,7 @@ import numpy as np
 from ssp.kdtree import KDTree
 from ssp.library.model import ObjectModel
 
-__all__ = ["CYCLE_TOLERANCE", "even_rows", "facing_mask", "icp_refine", "point_to_plane_icp"]
+__all__ = ["even_rows", "facing_mask", "icp_refine", "point_to_plane_icp"]
 
 
 def even_rows(n_max: int, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -82,12 +82,6 @@ def icp_refine(
     )
 
 
-#: A step that returns within this (m, and rotation-matrix entries) of the pose of 2 or 3 steps
-#: before ends the ICP: on a face with few points its matches can flip back and forth, and it
-#: then cycles (within about 0.2 mm) until the step limit, stopping wherever the cycle is.
-CYCLE_TOLERANCE = 1e-6
-
-
 def _rotvec_matrix(w: np.ndarray) -> np.ndarray:
     """Rotation matrix ``(3, 3)`` of the rotation vector ``w (3,)`` (rad; Rodrigues, in
     scalars: it runs once per ICP step)."""
@@ -147,7 +141,6 @@ def point_to_plane_icp(
     Z[:-1, 9] = (pts * nrm).sum(1)
     M = np.eye(6)
     tol2 = float(tolerance) ** 2
-    recent = [T.copy()]  # the poses so far, for the cycle test
     for _ in range(int(iterations)):
         R, t = T[:3, :3], T[:3, 3]
         q = (seg - t) @ R  # the segment in the model frame
@@ -171,7 +164,4 @@ def point_to_plane_icp(
         T[:3, :3] = R @ Rd
         if v @ v < tol2 and omega @ omega < tol2:  # moved less than the tolerance
             break
-        if any(np.abs(T - U).max() < CYCLE_TOLERANCE for U in recent[-3:-1]):
-            break  # back where it was 2 or 3 steps ago: its matches flip in a cycle
-        recent.append(T.copy())
     return T
