@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Collection, Mapping, Sequence
+from functools import cache
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -124,17 +125,14 @@ def object_segments(
         table: the world has a table at z = 0; crops leave out points below ``table_clearance``.
     """
     points = frame.points
-    trees: dict[str, object] = {}
 
+    @cache
     def vote_tree() -> KDTree:  # built only when an object has no known label
-        if "vote" not in trees:
-            trees["vote"] = KDTree(np.ascontiguousarray(points), leafsize=_VOTE_TREE_LEAF)
-        return trees["vote"]
+        return KDTree(np.ascontiguousarray(points), leafsize=_VOTE_TREE_LEAF)
 
+    @cache
     def tree() -> cKDTree:  # for crops (ball queries); sliding-midpoint splits build faster
-        if "crop" not in trees:
-            trees["crop"] = cKDTree(points, balanced_tree=False, compact_nodes=False)
-        return trees["crop"]
+        return cKDTree(points, balanced_tree=False, compact_nodes=False)
 
     by_label = _indices_by_label(frame.labels) if frame.labels is not None else {}
     out: dict[str, np.ndarray] = {}

@@ -121,8 +121,8 @@ class ObjectModel:
         n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
         excess = 0.0
         for a in range(0, len(p), 4096):  # (chunk, V) at a time
-            h = (n[a : a + 4096] @ v.T).max(axis=1) - (n[a : a + 4096] * p[a : a + 4096]).sum(1)
-            excess = max(excess, float(h.max()))
+            nc, pc = n[a : a + 4096], p[a : a + 4096]
+            excess = max(excess, float(((nc @ v.T).max(axis=1) - (nc * pc).sum(1)).max()))
         return excess
 
     @cached_property
