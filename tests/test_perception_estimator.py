@@ -78,17 +78,78 @@ def test_table_lookup_matches_a_search_of_the_sorted_keys(lib):
     assert (count == 0).any() and (count > 0).any()
 
 
-def test_posed_occupancy_equals_the_pointwise_test():
-    from ssp.perception.estimator import _Occupancy, _rotate_all
+def test_coarse_hits_equal_the_pointwise_test():
+    """The compiled coarse score counts what the occupancy grid and the facing test say of
+    every posed sample, including samples that land outside the grid on every side."""
+    from ssp.perception.estimator import _coarse_hits, _Occupancy
 
     rng = np.random.default_rng(1)
     occ = _Occupancy(rng.random((800, 3)) * 0.1, 0.004)
     R = Rotation.random(50, random_state=2).as_matrix()
-    t = rng.normal(0.05, 0.08, (50, 3))  # many samples land outside the grid, on all sides
+    t = rng.normal(0.05, 0.08, (50, 3))
     v = rng.normal(0.0, 0.04, (40, 3))
-    hit = occ.posed(R, t, v)
-    np.testing.assert_array_equal(hit, occ(_rotate_all(R, v) + t[:, None, :]))
-    assert hit.any() and not hit.all()
+    nv = v / np.linalg.norm(v, axis=1, keepdims=True)
+    cam = np.array([0.3, -0.2, 0.9])
+    world = np.einsum("mij,pj->mpi", R, v) + t[:, None, :]
+    normals = np.einsum("mij,pj->mpi", R, nv)
+    face = ((cam - world) * normals).sum(-1) > 0
+    hit = occ(world)
+    hits, facing = _coarse_hits(R, t, v, nv, cam, occ)
+    np.testing.assert_array_equal(facing, face.sum(1))
+    np.testing.assert_array_equal(hits, (hit & face).sum(1))
+    hits_all, facing_all = _coarse_hits(R, t, v, nv, None, occ)
+    np.testing.assert_array_equal(hits_all, hit.sum(1))
+    assert (facing_all == len(v)).all() and hit.any() and not hit.all()
+
+
+def test_pair_poses_map_the_model_pair_onto_the_scene_pair():
+    """A pair of model samples seen through a rigid motion gives back that motion."""
+    from ssp.perception.estimator import _pair_poses
+
+    rng = np.random.default_rng(3)
+    p = rng.normal(0.0, 0.05, (30, 3))
+    n = rng.normal(0.0, 1.0, (30, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    R = Rotation.random(1, random_state=4).as_matrix()[0]
+    t = np.array([0.4, -0.1, 0.2])
+    i, j = rng.integers(0, 30, 20), rng.integers(0, 30, 20)
+    keep = i != j
+    i, j = i[keep], j[keep]
+    Rs, ts = _pair_poses(p @ R.T + t, n @ R.T, i, j, p, n, i, j)
+    np.testing.assert_allclose(Rs, np.broadcast_to(R, Rs.shape), atol=1e-9)
+    np.testing.assert_allclose(ts, np.broadcast_to(t, ts.shape), atol=1e-9)
+
+
+def test_pair_features_are_the_point_pair_feature():
+    """The compiled features: distance, the three angles quantised, the coplanar flag as the
+    lowest bit (checked against the formula, away from the bin edges)."""
+    from ssp.perception.estimator import _features
+
+    rng = np.random.default_rng(5)
+    p = rng.normal(0.0, 0.05, (200, 3))
+    n = rng.normal(0.0, 1.0, (200, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    i, j = rng.integers(0, 200, 2000), rng.integers(0, 200, 2000)
+    i, j = i[i != j], j[i != j]
+    step_d, step_a = 0.004, np.radians(12.0)
+    keys, coplanar, dist = _features(p, n, i, j, step_d, step_a)
+    d = p[j] - p[i]
+    r = np.linalg.norm(d, axis=1)
+    u = d / r[:, None]
+    a = [np.arccos(np.clip(x, -1, 1)) for x in ((n[i] * u).sum(1), (n[j] * u).sum(1),
+                                                 (n[i] * n[j]).sum(1))]  # fmt: skip
+    flat = (a[2] < np.radians(20)) & (np.abs(a[0] - np.pi / 2) < np.radians(20))
+    nb = int(np.ceil(np.pi / step_a)) + 1
+    q = [np.floor(x / step_a).astype(int) for x in a]
+    ref = (((np.floor(r / step_d).astype(int) * nb + q[0]) * nb + q[1]) * nb + q[2]) * 2 + flat
+    edge = np.zeros(len(r), bool)
+    for x, s in [(r, step_d)] + [(x, step_a) for x in a]:
+        frac = x / s - np.floor(x / s)
+        edge |= (frac < 1e-9) | (frac > 1 - 1e-9)
+    np.testing.assert_allclose(dist, r, rtol=1e-12)
+    np.testing.assert_array_equal(coplanar, flat)
+    np.testing.assert_array_equal(keys[~edge], ref[~edge])
+    assert (~edge).sum() > 0.99 * len(r)
 
 
 def _world_frame_icp(pts, nrm, T, seg, cam, max_distance, iterations, n_points):

@@ -10,10 +10,12 @@ import math
 
 import numpy as np
 
+from ssp.jit import njit
 from ssp.kdtree import KDTree
 from ssp.library.model import ObjectModel
+from ssp.sample_grid import SampleGrid
 
-__all__ = ["even_rows", "facing_mask", "icp_refine", "point_to_plane_icp"]
+__all__ = ["even_rows", "facing_mask", "grid_icp", "icp_refine", "point_to_plane_icp"]
 
 
 def even_rows(n_max: int, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -163,5 +165,185 @@ def point_to_plane_icp(
         T[:3, 3] += R @ (c - Rd @ c + v)
         T[:3, :3] = R @ Rd
         if v @ v < tol2 and omega @ omega < tol2:  # moved less than the tolerance
+            break
+    return T
+
+
+def grid_icp(
+    grid: SampleGrid,
+    normals: np.ndarray,
+    T_init: np.ndarray,
+    points: np.ndarray,
+    camera: np.ndarray | None,
+    *,
+    near: float,
+    max_distance: float,
+    iterations: int,
+    n_points: int,
+    min_pairs: int = 10,
+    tolerance: float = 1e-6,
+) -> np.ndarray:
+    """:func:`point_to_plane_icp` of the samples of ``grid`` (with unit ``normals (S, 3)``,
+    model frame) onto the ``points (K, 3)`` (world, m) near them, with constant-time lookups.
+
+    The points used are those whose voxel lies within ``near`` (m, at most the grid's reach) of
+    a sample at ``T_init`` (to half a voxel diagonal), at most ``n_points`` of them, evenly
+    spaced. Each takes its voxel's nearest sample (:meth:`SampleGrid.nearest`), a miss when
+    that sample does not face the camera at ``T_init`` or lies beyond ``max_distance``,
+    instead of the exact nearest facing sample. Returns ``T_world_obj (4, 4)``.
+    """
+    if max(near, max_distance) > grid.reach:
+        raise ValueError(f"near and max_distance must be within the grid's reach {grid.reach} m")
+    nrm = np.ascontiguousarray(normals, dtype=float)
+    if nrm.shape != grid.points.shape:
+        raise ValueError(f"{len(nrm)} normals for {len(grid.points)} grid samples")
+    return _grid_icp(
+        grid.points,
+        nrm,
+        grid.index,
+        grid.distance,
+        grid.lo,
+        1.0 / grid.voxel,
+        grid.shape,
+        np.array(T_init, dtype=float),
+        np.ascontiguousarray(points, dtype=float).reshape(-1, 3),
+        np.zeros(3) if camera is None else np.asarray(camera, dtype=float),
+        camera is not None,
+        float(near),
+        int(n_points),
+        float(max_distance) ** 2,
+        int(iterations),
+        int(min_pairs),
+        float(tolerance) ** 2,
+    )
+
+
+@njit(cache=True)
+def _grid_icp(pts, nrm, index, distance, lo, inv_voxel, shape, T_init, points, cam, use_cam,
+              near, n_points, max2, iterations, min_pairs, tol2):  # fmt: skip
+    """:func:`grid_icp`, compiled (the grid as its ``index``, ``distance``, ``lo``,
+    ``inv_voxel`` and ``shape``); each step is one pass over the points that accumulates
+    ``G^T G``, ``G^T b`` and the matched samples' sum."""
+    T = T_init.copy()
+    miss = pts.shape[0]
+    n0, n1, n2 = shape[0], shape[1], shape[2]
+    R = T[:3, :3].copy()
+    t = T[:3, 3].copy()
+    # the samples facing the camera at T_init: n . (R^T (cam - t)) > n . p
+    keep = np.ones(miss, dtype=np.bool_)
+    if use_cam:
+        lc = R.T @ (cam - t)
+        for j in range(miss):
+            keep[j] = (
+                nrm[j, 0] * (lc[0] - pts[j, 0])
+                + nrm[j, 1] * (lc[1] - pts[j, 1])
+                + nrm[j, 2] * (lc[2] - pts[j, 2])
+                > 0.0
+            )
+    if keep.sum() < 3:
+        return T
+    # the points whose voxel centre is within `near` of a sample at T_init, at most n_points
+    # of them, evenly spaced
+    close = np.empty(points.shape[0], dtype=np.int64)
+    n_close = 0
+    for k in range(points.shape[0]):
+        d0, d1, d2 = points[k, 0] - t[0], points[k, 1] - t[1], points[k, 2] - t[2]
+        w0 = (R[0, 0] * d0 + R[1, 0] * d1 + R[2, 0] * d2 - lo[0]) * inv_voxel
+        w1 = (R[0, 1] * d0 + R[1, 1] * d1 + R[2, 1] * d2 - lo[1]) * inv_voxel
+        w2 = (R[0, 2] * d0 + R[1, 2] * d1 + R[2, 2] * d2 - lo[2]) * inv_voxel
+        if w0 < 0.0 or w1 < 0.0 or w2 < 0.0:
+            continue
+        i0, i1, i2 = int(w0), int(w1), int(w2)
+        if i0 < n0 and i1 < n1 and i2 < n2 and distance[(i0 * n1 + i1) * n2 + i2] <= near:
+            close[n_close] = k
+            n_close += 1
+    if n_close < min_pairs:
+        return T
+    n_seg = min(n_close, n_points)
+    seg = np.empty((n_seg, 3))
+    step = (n_close - 1) / max(n_seg - 1, 1)
+    for k in range(n_seg):
+        src = close[n_close - 1] if k == n_seg - 1 else close[int(k * step)]
+        seg[k, 0], seg[k, 1], seg[k, 2] = points[src, 0], points[src, 1], points[src, 2]
+    for _ in range(iterations):
+        R = T[:3, :3].copy()
+        t = T[:3, 3].copy()
+        GtG = np.zeros((6, 6))
+        Gtb = np.zeros(6)
+        csum = np.zeros(3)
+        g = np.zeros(6)
+        m = 0
+        for k in range(seg.shape[0]):
+            d0, d1, d2 = seg[k, 0] - t[0], seg[k, 1] - t[1], seg[k, 2] - t[2]
+            # q = R^T (s - t), the point in the model frame
+            q0 = R[0, 0] * d0 + R[1, 0] * d1 + R[2, 0] * d2
+            q1 = R[0, 1] * d0 + R[1, 1] * d1 + R[2, 1] * d2
+            q2 = R[0, 2] * d0 + R[1, 2] * d1 + R[2, 2] * d2
+            i0 = int((q0 - lo[0]) * inv_voxel)
+            i1 = int((q1 - lo[1]) * inv_voxel)
+            i2 = int((q2 - lo[2]) * inv_voxel)
+            if i0 < 0 or i1 < 0 or i2 < 0 or i0 >= n0 or i1 >= n1 or i2 >= n2:
+                continue
+            j = index[(i0 * n1 + i1) * n2 + i2]
+            if j == miss or not keep[j]:
+                continue
+            p0, p1, p2 = pts[j, 0], pts[j, 1], pts[j, 2]
+            e0, e1, e2 = q0 - p0, q1 - p1, q2 - p2
+            if e0 * e0 + e1 * e1 + e2 * e2 > max2:
+                continue
+            a0, a1, a2 = nrm[j, 0], nrm[j, 1], nrm[j, 2]
+            g[0], g[1], g[2] = p1 * a2 - p2 * a1, p2 * a0 - p0 * a2, p0 * a1 - p1 * a0
+            g[3], g[4], g[5] = a0, a1, a2
+            b = a0 * e0 + a1 * e1 + a2 * e2  # n . (q - p)
+            for r in range(6):
+                Gtb[r] += g[r] * b
+                for q in range(r, 6):
+                    GtG[r, q] += g[r] * g[q]
+            csum[0] += p0
+            csum[1] += p1
+            csum[2] += p2
+            m += 1
+        if m < min_pairs:
+            break
+        for r in range(6):
+            for q in range(r):
+                GtG[r, q] = GtG[q, r]
+        cx, cy, cz = csum[0] / m, csum[1] / m, csum[2] / m
+        M = np.eye(6)
+        M[3, 1], M[3, 2] = -cz, cy
+        M[4, 0], M[4, 2] = cz, -cx
+        M[5, 0], M[5, 1] = -cy, cx
+        H = M.T @ GtG @ M
+        damp = 1e-6 * np.trace(H) / 6.0 + 1e-12
+        for r in range(6):
+            H[r, r] += damp
+        x = np.linalg.solve(H, M.T @ Gtb)
+        w0, w1, w2, v0, v1, v2 = x[0], x[1], x[2], x[3], x[4], x[5]
+        theta = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+        Rd = np.eye(3)
+        if theta >= 1e-12:
+            ux, uy, uz = w0 / theta, w1 / theta, w2 / theta
+            s, co = math.sin(theta), math.cos(theta)
+            C = 1.0 - co
+            Rd[0, 0], Rd[0, 1], Rd[0, 2] = (
+                co + ux * ux * C,
+                ux * uy * C - uz * s,
+                ux * uz * C + uy * s,
+            )
+            Rd[1, 0], Rd[1, 1], Rd[1, 2] = (
+                uy * ux * C + uz * s,
+                co + uy * uy * C,
+                uy * uz * C - ux * s,
+            )
+            Rd[2, 0], Rd[2, 1], Rd[2, 2] = (
+                uz * ux * C - uy * s,
+                uz * uy * C + ux * s,
+                co + uz * uz * C,
+            )
+        cen = np.array([cx, cy, cz])
+        shift = cen - Rd @ cen + np.array([v0, v1, v2])
+        T[:3, 3] = t + R @ shift
+        T[:3, :3] = R @ Rd
+        if v0 * v0 + v1 * v1 + v2 * v2 < tol2 and theta * theta < tol2:
             break
     return T

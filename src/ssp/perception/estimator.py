@@ -8,21 +8,21 @@ The paper's pipeline gets several poses per object from ObjRecRANSAC (Papazov & 
    point-pair feature ``F = (|d|, angle(n1, d), angle(n2, d), angle(n1, n2))`` (Drost et al.
    2010) quantised and sorted into a hash table. Coplanar pairs (both normals perpendicular to
    ``d`` and parallel to each other) are flagged: a box has thousands of them, all alike, and
-   they fix only a plane.
+   they fix only a plane. The features and the pair poses are compiled (:mod:`ssp.jit`).
 2. **Scene pairs**: ``pair_samples`` random non-coplanar pairs of the thinned segment; each is
    looked up, and up to ``matches_per_pair`` model pairs with the same feature give a pose each
    (the frame of ``(p1, n1, p2)`` of the model pair mapped onto the scene pair's).
 3. **Scoring** every candidate on a dilated occupancy grid of the segment (voxel
    ``score_voxel``): the number of camera-facing model samples in occupied voxels. This is
-   ObjRecRANSAC's acceptance test and costs a gather per sample (:meth:`_Occupancy.posed`: one
-   matrix product gives every candidate's voxel coordinates).
+   ObjRecRANSAC's acceptance test, compiled (:func:`_coarse_kernel`, a few nanoseconds per
+   candidate and sample).
 4. **Refinement**: the best candidates that differ (symmetry-aware), and the best candidate of
-   each other orientation (``alternatives``), are refined by point-to-plane ICP (:func:`_icp`,
-   :func:`ssp.registration.icp_refine`'s algorithm solved in the model frame) on the segment
-   points near them and scored by the F1 of *fit* (facing samples with a segment point within
-   ``inlier_distance``) and *coverage* (segment points within that distance of the model,
-   tested in the model frame against a cached tree of its samples). The class with the best
-   score wins;
+   each other orientation (``alternatives``), are refined by point-to-plane ICP on the segment
+   points near them (:func:`ssp.registration.grid_icp`: the model's dense samples looked up
+   in a :class:`~ssp.sample_grid.SampleGrid` in the model frame, compiled), and scored by the
+   F1 of *fit* (facing samples with a segment point within ``inlier_distance``) and *coverage*
+   (segment points within that distance of the model, tested exactly on the same grid). The
+   class with the best score wins;
    its ``k`` hypotheses are the best pose, the other orientations that explain the segment
    nearly as well (:func:`_diverse`), then the rest by score.
 5. **Several objects per segment**: the points the winner explains are removed and the rest is
@@ -45,10 +45,12 @@ from scipy import ndimage
 
 from ssp.config import PerceptionConfig
 from ssp.errors import PerceptionError, UnknownObjectError
+from ssp.jit import njit
 from ssp.kdtree import KDTree
 from ssp.library.model import ObjectModel
 from ssp.perception.cleaning import robust_extent
-from ssp.registration import even_rows, facing_mask, point_to_plane_icp
+from ssp.registration import even_rows, facing_mask, grid_icp
+from ssp.sample_grid import SampleGrid
 from ssp.scene import Hypothesis
 
 __all__ = ["HypothesisEstimator", "ModelPairs", "SegmentResult", "voxel_thin"]
@@ -57,10 +59,15 @@ log = logging.getLogger(__name__)
 
 
 #: The two ICP stages of the refinement (step 4): segment points within ``near`` (m) of the
-#: model are matched to ``n_samples`` model samples within ``max_distance`` (m), at most
-#: ``n_points`` of them, for at most ``iterations`` Gauss-Newton steps.
-_COARSE_ICP = dict(near=0.012, max_distance=0.012, iterations=8, n_samples=400, n_points=500)
-_FINE_ICP = dict(near=0.008, max_distance=0.005, iterations=10, n_samples=800, n_points=1000)
+#: model, at most ``n_points`` of them, are matched to the dense model samples within
+#: ``max_distance`` (m), for at most ``iterations`` Gauss-Newton steps.
+_COARSE_ICP = dict(near=0.012, max_distance=0.012, iterations=8, n_points=500)
+_FINE_ICP = dict(near=0.008, max_distance=0.005, iterations=10, n_points=1000)
+
+#: The dense samples' :class:`SampleGrid`: reach (m, the largest ``near`` and ``max_distance``
+#: above) and voxel (m).
+_GRID_REACH = 0.012
+_GRID_VOXEL = 0.002
 
 #: About this many model samples score each candidate pose (step 3).
 _COARSE_SAMPLES = 96
@@ -81,44 +88,86 @@ def voxel_thin(points: np.ndarray, voxel: float) -> np.ndarray:
     return np.sort(first)
 
 
-def _features(p1, n1, p2, n2, dist_step: float, angle_step: float):
-    """Quantised point-pair features of oriented pairs.
+@njit(cache=True)
+def _features(points, normals, first, second, dist_step, angle_step):
+    """Quantised point-pair features of the oriented pairs ``(first[k], second[k])`` of
+    ``points, normals (P, 3)`` (m, unit normals), compiled (scene and model pairs both go
+    through this function, so equal features get equal keys).
 
-    Args: ``(M, 3)`` arrays of points (m) and unit normals. Returns ``(keys (M,) int64,
-    coplanar (M,) bool, dist (M,) m)``; the coplanar flag is the key's lowest bit, so coplanar
-    and non-coplanar pairs never match each other.
+    Returns ``(keys (M,) int64, coplanar (M,) bool, dist (M,) m)``; the coplanar flag is the
+    key's lowest bit, so coplanar and non-coplanar pairs never match each other.
     """
-    d = p2 - p1
-    dist = np.linalg.norm(d, axis=1)
-    u = d / np.maximum(dist, 1e-12)[:, None]
-    a1 = np.arccos(np.clip((n1 * u).sum(1), -1, 1))
-    a2 = np.arccos(np.clip((n2 * u).sum(1), -1, 1))
-    a3 = np.arccos(np.clip((n1 * n2).sum(1), -1, 1))
-    coplanar = (a3 < np.radians(20)) & (np.abs(a1 - np.pi / 2) < np.radians(20))
+    M = first.shape[0]
+    keys = np.empty(M, dtype=np.int64)
+    coplanar = np.empty(M, dtype=np.bool_)
+    dist = np.empty(M)
     nb = int(np.ceil(np.pi / angle_step)) + 1
-    q = [np.floor(a / angle_step).astype(np.int64) for a in (a1, a2, a3)]
-    qd = np.floor(dist / dist_step).astype(np.int64)
-    keys = (((qd * nb + q[0]) * nb + q[1]) * nb + q[2]) * 2 + coplanar
+    r20 = np.radians(20.0)
+    half_pi = 0.5 * np.pi
+    for k in range(M):
+        i, j = first[k], second[k]
+        d0 = points[j, 0] - points[i, 0]
+        d1 = points[j, 1] - points[i, 1]
+        d2 = points[j, 2] - points[i, 2]
+        r = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        s = 1.0 / max(r, 1e-12)
+        u0, u1, u2 = d0 * s, d1 * s, d2 * s
+        m0, m1, m2 = normals[i, 0], normals[i, 1], normals[i, 2]
+        e0, e1, e2 = normals[j, 0], normals[j, 1], normals[j, 2]
+        a1 = np.arccos(min(max(m0 * u0 + m1 * u1 + m2 * u2, -1.0), 1.0))
+        a2 = np.arccos(min(max(e0 * u0 + e1 * u1 + e2 * u2, -1.0), 1.0))
+        a3 = np.arccos(min(max(m0 * e0 + m1 * e1 + m2 * e2, -1.0), 1.0))
+        flat = a3 < r20 and abs(a1 - half_pi) < r20
+        q1 = int(np.floor(a1 / angle_step))
+        q2 = int(np.floor(a2 / angle_step))
+        q3 = int(np.floor(a3 / angle_step))
+        qd = int(np.floor(r / dist_step))
+        keys[k] = (((qd * nb + q1) * nb + q2) * nb + q3) * 2 + (1 if flat else 0)
+        coplanar[k] = flat
+        dist[k] = r
     return keys, coplanar, dist
 
 
-def _rotate_all(R: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """``(M, P, 3)``: the ``P`` vectors ``v (P, 3)`` rotated by each of ``R (M, 3, 3)`` (one
-    matrix product, much faster than an einsum over the batch)."""
-    return (R.reshape(-1, 3) @ v.T).reshape(len(R), 3, len(v)).transpose(0, 2, 1)
+@njit(cache=True)
+def _pair_poses(scene_p, scene_n, a, b, model_p, model_n, mi, mj):
+    """Poses ``R (K, 3, 3)``, ``t (K, 3)`` mapping model pair ``(mi[k], mj[k])`` onto scene
+    pair ``(a[k], b[k])``, compiled: each pair's frame has its origin at the first point, x
+    along its normal and y toward the second point, and ``T = F_scene F_model^-1``."""
+    K = a.shape[0]
+    R = np.empty((K, 3, 3))
+    t = np.empty((K, 3))
+    Fs = np.empty((3, 3))
+    Fm = np.empty((3, 3))
+    for k in range(K):
+        _pair_frame(scene_p, scene_n, a[k], b[k], Fs)
+        _pair_frame(model_p, model_n, mi[k], mj[k], Fm)
+        for r in range(3):
+            for c in range(3):
+                R[k, r, c] = Fs[r, 0] * Fm[c, 0] + Fs[r, 1] * Fm[c, 1] + Fs[r, 2] * Fm[c, 2]
+        for r in range(3):
+            t[k, r] = scene_p[a[k], r] - (
+                R[k, r, 0] * model_p[mi[k], 0]
+                + R[k, r, 1] * model_p[mi[k], 1]
+                + R[k, r, 2] * model_p[mi[k], 2]
+            )
+    return R, t
 
 
-def _pair_frames(p1, n1, p2) -> np.ndarray:
-    """Rigid frames ``(M, 4, 4)`` of oriented pairs: origin ``p1``, x = ``n1``, y toward ``p2``."""
-    x = n1 / np.linalg.norm(n1, axis=1, keepdims=True)
-    d = p2 - p1
-    y = d - (d * x).sum(1, keepdims=True) * x
-    y /= np.maximum(np.linalg.norm(y, axis=1, keepdims=True), 1e-12)
-    z = np.cross(x, y)
-    F = np.zeros((len(p1), 4, 4))
-    F[:, :3, 0], F[:, :3, 1], F[:, :3, 2], F[:, :3, 3] = x, y, z, p1
-    F[:, 3, 3] = 1.0
-    return F
+@njit(cache=True)
+def _pair_frame(p, n, i, j, F):
+    """The rotation ``F (3, 3)`` (columns x, y, z) of the oriented pair ``(i, j)`` of ``p, n``:
+    x = the unit normal of ``i``, y toward ``j`` orthogonal to x."""
+    x0, x1, x2 = n[i, 0], n[i, 1], n[i, 2]
+    s = 1.0 / np.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
+    x0, x1, x2 = x0 * s, x1 * s, x2 * s
+    d0, d1, d2 = p[j, 0] - p[i, 0], p[j, 1] - p[i, 1], p[j, 2] - p[i, 2]
+    dx = d0 * x0 + d1 * x1 + d2 * x2
+    y0, y1, y2 = d0 - dx * x0, d1 - dx * x1, d2 - dx * x2
+    s = 1.0 / max(np.sqrt(y0 * y0 + y1 * y1 + y2 * y2), 1e-12)
+    y0, y1, y2 = y0 * s, y1 * s, y2 * s
+    F[0, 0], F[1, 0], F[2, 0] = x0, x1, x2
+    F[0, 1], F[1, 1], F[2, 1] = y0, y1, y2
+    F[0, 2], F[1, 2], F[2, 2] = x1 * y2 - x2 * y1, x2 * y0 - x0 * y2, x0 * y1 - x1 * y0
 
 
 @dataclass
@@ -148,14 +197,12 @@ class ModelPairs:
     angle_step: float
     min_dist: float
     max_dist: float
-    #: ``n_samples`` -> evenly spaced ``(points, normals)`` of the full surface samples (ICP).
-    icp_samples: dict = field(default_factory=dict, repr=False)
     #: The distinct ``keys``, the index of each one's first pair and its number of pairs.
     unique_keys: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)
     unique_first: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)
     unique_count: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)
-    #: KD-tree of ``dense_points`` (model frame), built on first use.
-    _dense_tree: KDTree | None = field(default=None, repr=False)
+    #: :class:`SampleGrid` of ``dense_points`` (model frame), built on first use.
+    _grid: SampleGrid | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         if len(self.keys) and not len(self.unique_keys):
@@ -172,29 +219,18 @@ class ModelPairs:
         found = self.unique_keys[pos] == keys
         return self.unique_first[pos], np.where(found, self.unique_count[pos], 0)
 
-    def dense_tree(self) -> KDTree:
-        """KD-tree of the dense samples in the model frame (built once)."""
-        if self._dense_tree is None:
-            self._dense_tree = KDTree(np.ascontiguousarray(self.dense_points))
-        return self._dense_tree
-
-    def samples(self, model: ObjectModel, n: int) -> tuple[np.ndarray, np.ndarray]:
-        """At most ``n`` evenly spaced surface samples and normals ``(n, 3)`` of ``model``
-        (as :func:`ssp.registration.icp_refine` takes them), cached."""
-        if n not in self.icp_samples:
-            self.icp_samples[n] = even_rows(
-                n,
-                np.asarray(model.surface_points, dtype=float),
-                np.asarray(model.surface_normals, dtype=float),
-            )
-        return self.icp_samples[n]
+    def grid(self) -> SampleGrid:
+        """The nearest-sample grid of the dense samples in the model frame (built once)."""
+        if self._grid is None:
+            self._grid = SampleGrid(self.dense_points, _GRID_REACH, _GRID_VOXEL)
+        return self._grid
 
     @classmethod
     def build(cls, model: ObjectModel, cfg: PerceptionConfig) -> ModelPairs:
         diameter = float(model.diameter)
         pts = np.asarray(model.surface_points, dtype=float)
         nrm = np.asarray(model.surface_normals, dtype=float)
-        dense_p, dense_n = even_rows(1500, pts, nrm)
+        dense_p, dense_n = (np.array(a, order="C") for a in even_rows(1500, pts, nrm))
         voxel = cfg.sampling * diameter
         sel = voxel_thin(pts, voxel)
         while len(sel) > cfg.max_model_points:
@@ -205,7 +241,7 @@ class ModelPairs:
         i, j = np.nonzero(~np.eye(n, dtype=bool))
         angle_step = np.radians(cfg.angle_step_deg)
         dist_step = voxel
-        keys, _, dist = _features(pts[i], nrm[i], pts[j], nrm[j], dist_step, angle_step)
+        keys, _, dist = _features(pts, nrm, i, j, dist_step, angle_step)
         min_dist, max_dist = 0.15 * diameter, 0.9 * diameter
         ok = (dist >= min_dist) & (dist <= max_dist)
         keys, i, j = keys[ok], i[ok], j[ok]
@@ -254,27 +290,6 @@ class _Occupancy:
         )
         return self.grid.ravel()[(ix * int(self.shape[1]) + iy) * int(self.shape[2]) + iz]
 
-    def posed(self, R: np.ndarray, t: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """Bool ``(M, P)``: the voxel of ``R_m v_p + t_m`` is occupied, for poses ``R (M, 3,
-        3)``, ``t (M, 3)`` and points ``v (P, 3)``: ``self(_rotate_all(R, v) + t[:, None])``
-        as one homogeneous matrix product in voxel units, with 32-bit indices."""
-        M, P = len(R), len(v)
-        A = np.empty((M, 3, 4))
-        A[:, :, :3] = R * (1.0 / self.voxel)
-        A[:, :, 3] = (t - self.lo) * (1.0 / self.voxel)
-        w = (A.reshape(-1, 4) @ np.hstack([v, np.ones((P, 1))]).T).reshape(M, 3, P)
-        # negative indices wrap to huge unsigned ones and are clipped onto the far border
-        # voxels, which are empty like the near ones
-        big = int(np.prod(self.shape)) >= 2**31
-        i = w.astype(np.int64 if big else np.int32).view(np.uint64 if big else np.uint32)
-        np.minimum(i, (self.shape - 1).astype(i.dtype)[None, :, None], out=i)
-        s1, s2 = (i.dtype.type(n) for n in self.shape[1:])
-        flat = i[:, 0] * s1
-        flat += i[:, 1]
-        flat *= s2
-        flat += i[:, 2]
-        return self.grid.ravel()[flat]
-
 
 def _coarse_hits(R, t, cp, cn, cam, occ: _Occupancy) -> tuple[np.ndarray, np.ndarray]:
     """Coarse score of candidate poses ``R (M, 3, 3)``, ``t (M, 3)`` on model samples ``cp,
@@ -282,14 +297,56 @@ def _coarse_hits(R, t, cp, cn, cam, occ: _Occupancy) -> tuple[np.ndarray, np.nda
     ``cam`` is None) that fall in an occupied voxel of ``occ``, and of facing samples."""
     if len(R) == 0 or len(cp) == 0:
         return np.zeros(len(R), dtype=np.int64), np.zeros(len(R), dtype=np.int64)
-    hit = occ.posed(R, t, cp)
-    if cam is None:
-        return hit.sum(1), np.full(len(R), len(cp), dtype=np.int64)
-    # (R n).(cam - R p - t) = n.(R^T (cam - t)) - n.p
-    local_cam = np.einsum("nji,nj->ni", R, cam - t)
-    facing = local_cam @ cn.T > (cn * cp).sum(1)[None, :]
-    hit &= facing
-    return hit.sum(1), facing.sum(1)
+    return _coarse_kernel(
+        np.ascontiguousarray(R, dtype=float),
+        np.ascontiguousarray(t, dtype=float),
+        np.ascontiguousarray(cp, dtype=float),
+        np.ascontiguousarray(cn, dtype=float),
+        np.zeros(3) if cam is None else np.asarray(cam, dtype=float),
+        cam is not None,
+        occ.grid.ravel(),
+        occ.lo,
+        1.0 / occ.voxel,
+        occ.shape,
+    )
+
+
+@njit(cache=True)
+def _coarse_kernel(R, t, cp, cn, cam, use_cam, grid, lo, inv_voxel, shape):
+    """:func:`_coarse_hits`, compiled: per pose, the samples facing ``cam`` (``n . (R^T (cam -
+    t)) > n . p``, all unless ``use_cam``) and those of them in an occupied voxel of ``grid``
+    (flat, ``shape``, corner ``lo``); out-of-grid samples are misses."""
+    M, P = R.shape[0], cp.shape[0]
+    hits = np.zeros(M, dtype=np.int64)
+    facing = np.zeros(M, dtype=np.int64)
+    n0, n1, n2 = shape[0], shape[1], shape[2]
+    pn = np.empty(P)
+    for k in range(P):
+        pn[k] = cn[k, 0] * cp[k, 0] + cn[k, 1] * cp[k, 1] + cn[k, 2] * cp[k, 2]
+    for i in range(M):
+        d0, d1, d2 = cam[0] - t[i, 0], cam[1] - t[i, 1], cam[2] - t[i, 2]
+        c0 = R[i, 0, 0] * d0 + R[i, 1, 0] * d1 + R[i, 2, 0] * d2
+        c1 = R[i, 0, 1] * d0 + R[i, 1, 1] * d1 + R[i, 2, 1] * d2
+        c2 = R[i, 0, 2] * d0 + R[i, 1, 2] * d1 + R[i, 2, 2] * d2
+        o0, o1, o2 = t[i, 0] - lo[0], t[i, 1] - lo[1], t[i, 2] - lo[2]
+        h = 0
+        f = 0
+        for k in range(P):
+            if use_cam and cn[k, 0] * c0 + cn[k, 1] * c1 + cn[k, 2] * c2 <= pn[k]:
+                continue
+            f += 1
+            x, y, z = cp[k, 0], cp[k, 1], cp[k, 2]
+            w0 = (R[i, 0, 0] * x + R[i, 0, 1] * y + R[i, 0, 2] * z + o0) * inv_voxel
+            w1 = (R[i, 1, 0] * x + R[i, 1, 1] * y + R[i, 1, 2] * z + o1) * inv_voxel
+            w2 = (R[i, 2, 0] * x + R[i, 2, 1] * y + R[i, 2, 2] * z + o2) * inv_voxel
+            if w0 < 0.0 or w1 < 0.0 or w2 < 0.0:
+                continue
+            i0, i1, i2 = int(w0), int(w1), int(w2)
+            if i0 < n0 and i1 < n1 and i2 < n2 and grid[(i0 * n1 + i1) * n2 + i2]:
+                h += 1
+        hits[i] = h
+        facing[i] = f
+    return hits, facing
 
 
 @dataclass
@@ -366,9 +423,7 @@ class HypothesisEstimator:
         building its own (:mod:`ssp.lanes`)."""
         for name in dict.fromkeys(classes):
             table = self.table(name)
-            table.dense_tree()
-            for stage in (_COARSE_ICP, _FINE_ICP):
-                table.samples(self.library[name], stage["n_samples"])
+            table.grid()
 
     # ------------------------------------------------------------------ one segment
     def estimate(
@@ -480,9 +535,7 @@ class HypothesisEstimator:
         m = cfg.pair_samples
         a = rng.integers(0, len(sp), 6 * m)
         b = rng.integers(0, len(sp), 6 * m)
-        keys, coplanar, dist = _features(
-            sp[a], sn[a], sp[b], sn[b], table.dist_step, table.angle_step
-        )
+        keys, coplanar, dist = _features(sp, sn, a, b, table.dist_step, table.angle_step)
         ok = np.flatnonzero((dist >= table.min_dist) & (dist <= table.max_dist))
         lo, count = table.lookup(keys[ok])
         # matched pairs only; non-coplanar first (they fix a pose), coplanar ones fill up (a
@@ -500,10 +553,7 @@ class HypothesisEstimator:
         mp = (lo[:, None] + draw).ravel()[use]
         pair = np.repeat(np.arange(len(a)), c)[use]  # the scene pair of each match
         mi, mj = table.first[mp], table.second[mp]
-        F_s = _pair_frames(sp[a], sn[a], sp[b])[pair]
-        F_m = _pair_frames(table.points[mi], table.normals[mi], table.points[mj])
-        R = F_s[:, :3, :3] @ np.swapaxes(F_m[:, :3, :3], 1, 2)
-        t = F_s[:, :3, 3] - np.einsum("nij,nj->ni", R, F_m[:, :3, 3])
+        R, t = _pair_poses(sp, sn, a[pair], b[pair], table.points, table.normals, mi, mj)
         # coarse score: facing samples in occupied voxels of the segment
         step = max(1, len(table.points) // _COARSE_SAMPLES)
         cp, cn = table.points[::step], table.normals[::step]
@@ -556,20 +606,17 @@ class HypothesisEstimator:
                 chosen.append(idx)
                 extra += 1
                 far &= _rotation_distances(R[rest], R[idx], sym) > apart
-        model = self.library[table.name]
-        coarse_pts = table.samples(model, _COARSE_ICP["n_samples"])
-        fine_pts = table.samples(model, _FINE_ICP["n_samples"])
         poses: list[np.ndarray] = []
         for idx in chosen:  # coarse ICP, then drop the candidates that met
             T = np.eye(4)
             T[:3, :3], T[:3, 3] = R[idx], t[idx]
-            T = self._icp_stage(table, coarse_pts, T, p, cam, _COARSE_ICP)
+            T = self._icp_stage(table, T, p, cam, _COARSE_ICP)
             if not any(_same_pose(T, U, table.symmetries) for U in poses):
                 poses.append(T)
         tree = KDTree(p)
         refined = []
         for T in poses:  # fine ICP
-            T = self._icp_stage(table, fine_pts, T, p, cam, _FINE_ICP)
+            T = self._icp_stage(table, T, p, cam, _FINE_ICP)
             refined.append((*self._score(table, T, p, tree, cam), T))
         refined.sort(key=lambda r: -r[0])
         out: list[tuple[float, np.ndarray, float]] = []
@@ -578,24 +625,15 @@ class HypothesisEstimator:
                 out.append((s, T, cover))
         return out
 
-    def _icp_stage(self, table: ModelPairs, samples, T, p, cam, stage: dict) -> np.ndarray:
-        """``T`` refined by :func:`_icp` with the settings ``stage`` (:data:`_COARSE_ICP`) on
-        the points of ``p`` within ``stage["near"]`` of the model at ``T``."""
-        near = self._near(table, T, p, stage["near"])
-        return point_to_plane_icp(
-            *samples,
-            T,
-            p[near],
-            cam,
-            max_distance=stage["max_distance"],
-            iterations=stage["iterations"],
-            n_points=stage["n_points"],
-        )
+    def _icp_stage(self, table: ModelPairs, T, p, cam, stage: dict) -> np.ndarray:
+        """``T`` refined by :func:`ssp.registration.grid_icp` of the dense samples with the
+        settings ``stage`` (:data:`_COARSE_ICP`) on the points of ``p`` near the model."""
+        return grid_icp(table.grid(), table.dense_normals, T, p, cam, **stage)
 
     def _near(self, table: ModelPairs, T, p, radius: float) -> np.ndarray:
         """Mask of segment points ``p (N, 3)`` within ``radius`` (m) of the dense model
         samples at ``T`` (the points are moved into the model frame, whose tree is cached)."""
-        return _within(table.dense_tree(), (p - T[:3, 3]) @ T[:3, :3], radius)
+        return table.grid().within(p, radius, T)
 
     def _score(self, table: ModelPairs, T, p, tree: KDTree, cam) -> tuple[float, float]:
         """``(score, coverage)``: the score is the F1 of fit (facing samples with a segment

@@ -1,0 +1,170 @@
+"""A voxel grid of the nearest model sample: constant-time neighbour lookups in the model frame.
+
+The estimator's refinement runs some twenty ICPs per segment, each a few hundred to a thousand
+nearest-neighbour queries per step, always against the same model samples in the model frame.
+:class:`SampleGrid` answers them from a grid built once per model: every voxel within
+``reach`` of the samples holds its centre's nearest sample and that distance.
+
+* :meth:`SampleGrid.nearest` is approximate: a query takes the nearest sample of its voxel's
+  centre, at most ``voxel * sqrt(3) / 2`` closer to it than the true nearest sample.
+* :meth:`SampleGrid.within` is exact: the centre's distance bounds the query's to within that
+  half-diagonal, and only queries in the uncertain band go to the KD-tree.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ssp.jit import njit
+from ssp.kdtree import KDTree
+
+__all__ = ["SampleGrid"]
+
+#: The grid holds at most about this many voxels (the voxel grows for large models).
+MAX_VOXELS = 1_500_000
+
+#: m: more than the float32 rounding of the stored distances.
+_ROUNDING = 1e-6
+
+
+class SampleGrid:
+    """Nearest sample and its distance for every voxel within ``reach`` of ``points``.
+
+    Args:
+        points: ``(S, 3)`` samples (model frame, m), ``S < 2**31``.
+        reach: m; queries farther than this from every sample are misses.
+        voxel: voxel side, m (grown until the grid has at most :data:`MAX_VOXELS`).
+
+    Attributes: ``points``; ``tree`` (KD-tree of the points); ``voxel``; ``half_diagonal``
+    (m); ``miss`` (the index of a miss: ``S``).
+    """
+
+    def __init__(self, points: np.ndarray, reach: float, voxel: float) -> None:
+        self.points = np.array(points, dtype=float, order="C").reshape(-1, 3)  # a copy
+        if len(self.points) == 0:
+            raise ValueError("a sample grid needs at least one sample")
+        self.tree = KDTree(self.points)
+        self.reach = float(reach)
+        self.miss = len(self.points)
+        lo_pts, hi_pts = self.points.min(0), self.points.max(0)
+        while True:
+            # a border of at least reach + voxel: its voxels are misses, and out-of-grid
+            # queries are clipped onto it
+            margin = self.reach + 2.0 * voxel
+            shape = np.ceil((hi_pts - lo_pts + 2 * margin) / voxel).astype(np.int64) + 1
+            if int(np.prod(shape)) <= MAX_VOXELS:
+                break
+            voxel *= 1.25
+        self.voxel = float(voxel)
+        self.half_diagonal = 0.5 * math.sqrt(3.0) * self.voxel
+        self.lo = lo_pts - margin
+        self.shape = shape
+        index, distance = _fill(self.points, self.lo, self.voxel, shape,
+                                self.reach + self.half_diagonal)  # fmt: skip
+        itype = np.int16 if self.miss < 2**15 else np.int32
+        self.index = index.astype(itype)
+        self.distance = distance.astype(np.float32)
+        self._scale = np.array(shape[1:], dtype=np.uint32)
+
+    def cells(self, q: np.ndarray) -> np.ndarray:
+        """Flat voxel indices ``(N,)`` of queries ``q (N, 3)`` (model frame); queries outside
+        the grid land on its border voxels, which are misses."""
+        w = (q - self.lo) * (1.0 / self.voxel)
+        # negative coordinates wrap to huge unsigned ones, clipped onto the far border
+        i = w.astype(np.int32).view(np.uint32)
+        np.minimum(i, (self.shape - 1).astype(np.uint32), out=i)
+        flat = i[:, 0] * self._scale[0]
+        flat += i[:, 1]
+        flat *= self._scale[1]
+        flat += i[:, 2]
+        return flat
+
+    def nearest(self, q: np.ndarray) -> np.ndarray:
+        """Approximate nearest sample of each query ``q (N, 3)``: the nearest of its voxel's
+        centre, or :attr:`miss` beyond ``reach`` (plus at most the half-diagonal)."""
+        return self.index[self.cells(q)]
+
+    def within(self, q: np.ndarray, radius: float, T: np.ndarray | None = None) -> np.ndarray:
+        """Exact mask ``(N,)`` of the queries ``q (N, 3)`` with a sample within ``radius``
+        (m, at most ``reach``). ``T``: the grid's pose ``(4, 4)``, the queries then in that
+        pose's parent frame (a model's samples at ``T_world_obj`` and world points)."""
+        if radius > self.reach:
+            raise ValueError(f"radius {radius} m is beyond the grid's reach {self.reach} m")
+        q = np.ascontiguousarray(q, dtype=float).reshape(-1, 3)
+        if len(q) == 0:
+            return np.zeros(0, dtype=bool)
+        T = np.eye(4) if T is None else np.asarray(T, dtype=float)
+        band = self.half_diagonal + _ROUNDING
+        status = _within_kernel(
+            q, np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]),
+            self.distance, self.lo, 1.0 / self.voxel, self.shape, radius - band, radius + band,
+        )  # fmt: skip
+        inside = status == 1
+        unsure = np.flatnonzero(status == 2)
+        if len(unsure):
+            local = (q[unsure] - T[:3, 3]) @ T[:3, :3]
+            dq, _ = self.tree.query(local, k=1, distance_upper_bound=radius)
+            inside[unsure] = np.isfinite(dq)
+        return inside
+
+
+@njit(cache=True)
+def _within_kernel(q, R, t, distance, lo, inv_voxel, shape, sure, maybe):
+    """Per query of ``q (N, 3)`` moved into the grid's frame (``R^T (q - t)``): 1 when its
+    voxel centre's distance is at most ``sure``, 2 when at most ``maybe``, else 0."""
+    n0, n1, n2 = shape[0], shape[1], shape[2]
+    out = np.zeros(q.shape[0], dtype=np.int8)
+    for k in range(q.shape[0]):
+        d0, d1, d2 = q[k, 0] - t[0], q[k, 1] - t[1], q[k, 2] - t[2]
+        w0 = (R[0, 0] * d0 + R[1, 0] * d1 + R[2, 0] * d2 - lo[0]) * inv_voxel
+        w1 = (R[0, 1] * d0 + R[1, 1] * d1 + R[2, 1] * d2 - lo[1]) * inv_voxel
+        w2 = (R[0, 2] * d0 + R[1, 2] * d1 + R[2, 2] * d2 - lo[2]) * inv_voxel
+        if w0 < 0.0 or w1 < 0.0 or w2 < 0.0:
+            continue
+        i0, i1, i2 = int(w0), int(w1), int(w2)
+        if i0 >= n0 or i1 >= n1 or i2 >= n2:
+            continue
+        d = distance[(i0 * n1 + i1) * n2 + i2]
+        if d <= sure:
+            out[k] = 1
+        elif d <= maybe:
+            out[k] = 2
+    return out
+
+
+@njit(cache=True)
+def _fill(points, lo, voxel, shape, bound):
+    """Per voxel of the grid (corner ``lo``, side ``voxel``, ``shape``), flat: the index of
+    the sample nearest to its centre (the first of equals) and that distance, for centres
+    within ``bound`` of a sample; ``len(points)`` and inf elsewhere. Each sample visits the
+    voxels of its ``bound`` cube, so the cost is the samples times that cube's voxels."""
+    n0, n1, n2 = shape[0], shape[1], shape[2]
+    S = points.shape[0]
+    best = np.full(n0 * n1 * n2, np.inf)
+    index = np.full(n0 * n1 * n2, S, dtype=np.int64)
+    b2 = bound * bound
+    for s in range(S):
+        x, y, z = points[s, 0], points[s, 1], points[s, 2]
+        lo0 = max(int(np.floor((x - bound - lo[0]) / voxel - 0.5)), 0)
+        lo1 = max(int(np.floor((y - bound - lo[1]) / voxel - 0.5)), 0)
+        lo2 = max(int(np.floor((z - bound - lo[2]) / voxel - 0.5)), 0)
+        hi0 = min(int(np.ceil((x + bound - lo[0]) / voxel - 0.5)), n0 - 1)
+        hi1 = min(int(np.ceil((y + bound - lo[1]) / voxel - 0.5)), n1 - 1)
+        hi2 = min(int(np.ceil((z + bound - lo[2]) / voxel - 0.5)), n2 - 1)
+        for i in range(lo0, hi0 + 1):
+            dx = lo[0] + (i + 0.5) * voxel - x
+            for j in range(lo1, hi1 + 1):
+                dy = lo[1] + (j + 0.5) * voxel - y
+                dxy = dx * dx + dy * dy
+                if dxy > b2:
+                    continue
+                base = (i * n1 + j) * n2
+                for k in range(lo2, hi2 + 1):
+                    dz = lo[2] + (k + 0.5) * voxel - z
+                    d2 = dxy + dz * dz
+                    if d2 <= b2 and d2 < best[base + k]:
+                        best[base + k] = d2
+                        index[base + k] = s
+    return index, np.sqrt(best)
