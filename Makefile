@@ -15,6 +15,8 @@ $(PY):
 
 $(STAMP): pyproject.toml | $(PY)
 	$(PY) -m pip install --quiet --disable-pip-version-check -e ".[test]"
+	@echo "compiling the estimator's kernels (numba, once)"
+	$(PY) -c "from ssp.perception.estimator import compile_kernels; compile_kernels()"
 	@touch $(STAMP)
 
 install: $(STAMP)  ## create .venv and install ssp with its test extras

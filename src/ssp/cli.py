@@ -570,6 +570,45 @@ def _bench_parser_compare(
         console.print(f"wrote [bold]{f}[/]")
 
 
+@bench_app.command("estimator")
+@_friendly
+def bench_estimator_cmd(
+    out: Path = typer.Option(Path("bench-out/estimator"), "--out", "-o", help="Output folder."),
+    experiment: str = typer.Option(
+        "isolated", help="isolated (tools, 8 candidate classes) or structure (blocks)."
+    ),
+    sequences: int = typer.Option(3, min=1, help="Synthetic sequences (20 frames each)."),
+    seed: int = typer.Option(1000, min=0, help="Seed of the first sequence."),
+    compare: str | None = typer.Option(
+        None,
+        "--compare",
+        help="A git revision (or another checkout's folder) run beside this code on the same "
+        "segments, alternately in fresh processes: the speed-up and the recall of each "
+        "(compare.md).",
+        show_default=False,
+        metavar="REV",
+    ),
+    rounds: int = typer.Option(1, min=1, help="With --compare: runs of each code."),
+) -> None:
+    """Seconds per segment and recall of the built-in pose estimator on Table I's rendered
+    segments (the estimator alone, after its tables are built), and issue 19's target."""
+    from ssp.eval.bench_estimator import bench_estimator, compare_estimator, write_report
+
+    if experiment not in ("isolated", "structure"):
+        raise typer.BadParameter(f"--experiment must be isolated or structure, not {experiment!r}")
+    with console.status("timing the estimator") as status:
+        if compare is None:
+            result = bench_estimator(experiment, sequences, seed, progress=status.update)
+        else:
+            result = compare_estimator(
+                compare, experiment, sequences, seed, rounds, progress=status.update
+            )
+    files = write_report(result, out)
+    console.print(files[1].read_text())
+    for f in files:
+        console.print(f"wrote [bold]{f}[/]")
+
+
 @bench_app.command("soak")
 @_friendly
 def bench_soak_cmd(

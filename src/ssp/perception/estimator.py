@@ -53,7 +53,7 @@ from ssp.registration import even_rows, facing_mask, grid_icp
 from ssp.sample_grid import SampleGrid
 from ssp.scene import Hypothesis
 
-__all__ = ["HypothesisEstimator", "ModelPairs", "SegmentResult", "voxel_thin"]
+__all__ = ["HypothesisEstimator", "ModelPairs", "SegmentResult", "compile_kernels", "voxel_thin"]
 
 log = logging.getLogger(__name__)
 
@@ -238,7 +238,7 @@ class ModelPairs:
             sel = voxel_thin(pts, voxel)
         pts, nrm = pts[sel], nrm[sel]
         n = len(pts)
-        i, j = np.nonzero(~np.eye(n, dtype=bool))
+        i, j = (np.ascontiguousarray(a) for a in np.nonzero(~np.eye(n, dtype=bool)))
         angle_step = np.radians(cfg.angle_step_deg)
         dist_step = voxel
         keys, _, dist = _features(pts, nrm, i, j, dist_step, angle_step)
@@ -419,8 +419,9 @@ class HypothesisEstimator:
 
     def prepare(self, classes: Iterable[str]) -> None:
         """Build everything :meth:`estimate` caches for ``classes`` now (pair tables, their
-        trees and ICP samples), so that processes forked afterwards share it instead of each
-        building its own (:mod:`ssp.lanes`)."""
+        sample grids and the compiled kernels), so that processes forked afterwards share it
+        instead of each building its own (:mod:`ssp.lanes`)."""
+        compile_kernels()
         for name in dict.fromkeys(classes):
             table = self.table(name)
             table.grid()
@@ -651,6 +652,22 @@ class HypothesisEstimator:
     def _explained(self, table: ModelPairs, T, p) -> np.ndarray:
         """Mask of points ``p`` within ``inlier_distance`` of the model surface at ``T``."""
         return self._near(table, T, p, self.cfg.inlier_distance)
+
+
+def compile_kernels() -> None:
+    """Compile the estimator's kernels for the argument types it passes them, or load them
+    from numba's cache (``make install`` runs this once: a first compile takes some 30 s)."""
+    rng = np.random.default_rng(0)
+    p = rng.normal(0.0, 0.02, (64, 3))
+    n = p / np.linalg.norm(p, axis=1, keepdims=True)
+    i = np.arange(63)
+    _features(p, n, i, i + 1, 0.004, 0.2)
+    _pair_poses(p, n, i, i + 1, p, n, i.astype(np.int32), (i + 1).astype(np.int32))
+    _coarse_hits(np.repeat(np.eye(3)[None], 2, 0), np.zeros((2, 3)), p, n, np.ones(3),
+                 _Occupancy(p, 0.004))  # fmt: skip
+    grid = SampleGrid(p, _GRID_REACH, _GRID_VOXEL)
+    grid.within(p, 0.005, np.eye(4))
+    grid_icp(grid, n, np.eye(4), p, np.ones(3), **_COARSE_ICP)
 
 
 def _within(tree: KDTree, q: np.ndarray, radius: float) -> np.ndarray:

@@ -41,7 +41,7 @@ from ssp.perception.table import table_frame
 from ssp.scene import Frame, Hypothesis
 from ssp.timing import StageTimer
 
-__all__ = ["Perception", "PerceptionResult", "check_camera_axes"]
+__all__ = ["Perception", "PerceptionResult", "SegmentRequest", "check_camera_axes"]
 
 log = logging.getLogger(__name__)
 
@@ -96,6 +96,35 @@ class PerceptionResult:
         return float(np.mean([r.seconds for r in self.segments.values()]))
 
 
+@dataclass(frozen=True)
+class SegmentRequest:
+    """What the estimator is asked of one segment (:meth:`Perception.segment_request`).
+
+    Attributes: ``label``; ``points``, ``normals`` ``(N, 3)`` (world, m; unit normals toward
+    the camera); ``classes`` (candidates); ``camera`` ``(3,)`` (world) or None;
+    ``single_object`` (an instance label); ``seed`` (the estimator's seed plus the label).
+    """
+
+    label: int
+    points: np.ndarray
+    normals: np.ndarray
+    classes: tuple[str, ...]
+    camera: np.ndarray | None
+    single_object: bool
+    seed: int
+
+    def run(self, estimator: HypothesisEstimator) -> SegmentResult:
+        """:meth:`HypothesisEstimator.estimate` of this segment."""
+        return estimator.estimate(
+            self.points,
+            self.normals,
+            self.classes,
+            self.camera,
+            single_object=self.single_object,
+            seed=self.seed,
+        )
+
+
 class Perception:
     """The perception front end (module docstring).
 
@@ -126,6 +155,29 @@ class Perception:
             raise PerceptionError("no candidate classes")
         self.classes = tuple(names)
         self.estimator = HypothesisEstimator(library, cfg, seed=seed)
+
+    def segment_request(
+        self,
+        points: np.ndarray,
+        segmentation: Segmentation,
+        label: int,
+        camera: np.ndarray | None,
+        instance: bool,
+    ) -> SegmentRequest:
+        """The estimator's input for segment ``label`` of ``points (N, 3)`` (world, m): its
+        points, their normals (``normal_neighbours``, toward ``camera``), its class when the
+        segmentation names one (else every candidate class) and its seed."""
+        seg = points[segmentation.labels == label]
+        cls = segmentation.classes.get(label)
+        return SegmentRequest(
+            label=int(label),
+            points=seg,
+            normals=estimate_normals(seg, k=self.cfg.normal_neighbours, viewpoint=camera),
+            classes=(cls,) if cls is not None else self.classes,
+            camera=camera,
+            single_object=bool(instance),
+            seed=self.estimator.seed + int(label),
+        )
 
     # ------------------------------------------------------------------ inputs
     def from_depth(
@@ -249,20 +301,10 @@ class Perception:
 
             def one(label: int, _base=None) -> tuple[float, SegmentResult]:
                 """Normals and hypotheses of one segment: ``(normals seconds, result)``."""
-                seg = pts[segmentation.labels == label]
                 t0 = time.perf_counter()
-                nrm = estimate_normals(seg, k=self.cfg.normal_neighbours, viewpoint=cam)
+                request = self.segment_request(pts, segmentation, label, cam, instance)
                 t_nrm = time.perf_counter() - t0
-                cls = segmentation.classes.get(label)
-                res = self.estimator.estimate(
-                    seg,
-                    nrm,
-                    [cls] if cls is not None else self.classes,
-                    cam,
-                    single_object=instance,
-                    seed=self.estimator.seed + label,
-                )
-                return t_nrm, res
+                return t_nrm, request.run(self.estimator)
 
             if self.cfg.processes > 1 and len(seg_labels) > 1:
                 # what estimate() caches is built here, before the fork, so every lane has it
