@@ -152,9 +152,12 @@ def test_pair_features_are_the_point_pair_feature():
     assert (~edge).sum() > 0.99 * len(r)
 
 
-def _world_frame_icp(pts, nrm, T, seg, cam, max_distance, iterations, n_points):
+def _world_frame_icp(pts, nrm, T, seg, cam, max_distance, iterations, n_points, grid=None):
     """Reference: point-to-plane Gauss-Newton in the world frame, samples moved every step
-    (the algorithm as first written, before it was solved in the model frame)."""
+    (the algorithm as first written, before it was solved in the model frame). Each point is
+    matched to the nearest facing sample (scipy's tree), or with ``grid`` (a
+    :class:`ssp.sample_grid.SampleGrid` of ``pts``) to its voxel's sample if that faces the
+    camera and lies within ``max_distance``."""
     from scipy.spatial import cKDTree
 
     from ssp.registration import even_rows, facing_mask
@@ -162,12 +165,20 @@ def _world_frame_icp(pts, nrm, T, seg, cam, max_distance, iterations, n_points):
     T = T.copy()
     (seg,) = even_rows(n_points, seg)
     keep = facing_mask(pts @ T[:3, :3].T + T[:3, 3], nrm @ T[:3, :3].T, cam)
-    pts, nrm = pts[keep], nrm[keep]
-    tree = cKDTree(pts)
+    kept = np.flatnonzero(keep)
+    tree = cKDTree(pts[kept])
     for _ in range(iterations):
         R, t = T[:3, :3], T[:3, 3]
-        dist, idx = tree.query((seg - t) @ R, k=1, distance_upper_bound=max_distance)
-        ok = np.isfinite(dist)
+        local = (seg - t) @ R
+        if grid is None:
+            dist, j = tree.query(local, k=1, distance_upper_bound=max_distance)
+            ok = np.isfinite(dist)
+            idx = np.where(ok, kept[np.minimum(j, len(kept) - 1)], 0)
+        else:
+            idx = grid.nearest(local)
+            ok = idx != grid.miss
+            idx = np.where(ok, idx, 0)
+            ok &= keep[idx] & (np.linalg.norm(local - pts[idx], axis=1) <= max_distance)
         q, p, n = seg[ok], pts[idx[ok]] @ R.T + t, nrm[idx[ok]] @ R.T
         c = p.mean(axis=0)
         A = np.hstack([np.cross(p - c, n), n])

@@ -97,33 +97,15 @@ def test_a_large_model_gets_a_coarser_voxel():
 
 
 def _reference_grid_icp(grid, nrm, T, points, cam, near, max_distance, iterations, n_points):
-    """Reference in numpy: the grid's near test and matches, then world-frame point-to-plane
-    Gauss-Newton with the samples moved every step."""
-    T = T.copy()
-    pts = grid.points
-    keep = facing_mask(pts @ T[:3, :3].T + T[:3, 3], nrm @ T[:3, :3].T, cam)
+    """Reference in numpy: the points whose voxel is within ``near`` of a sample at ``T``,
+    then the world-frame point-to-plane Gauss-Newton of the estimator's tests, with the grid's
+    matches."""
+    from test_perception_estimator import _world_frame_icp
+
     local = (points - T[:3, 3]) @ T[:3, :3]
     close = grid.distance[grid.cells(local)] <= near
-    (seg,) = even_rows(n_points, points[close])
-    for _ in range(iterations):
-        R, t = T[:3, :3], T[:3, 3]
-        idx = grid.nearest((seg - t) @ R)
-        ok = idx != grid.miss
-        ok[ok] &= keep[idx[ok]]
-        ok[ok] &= np.linalg.norm((seg[ok] - t) @ R - pts[idx[ok]], axis=1) <= max_distance
-        q, p, n = seg[ok], pts[idx[ok]] @ R.T + t, nrm[idx[ok]] @ R.T
-        c = p.mean(axis=0)
-        A = np.hstack([np.cross(p - c, n), n])
-        H = A.T @ A
-        H += np.eye(6) * (1e-6 * np.trace(H) / 6.0 + 1e-12)
-        x = np.linalg.solve(H, A.T @ -((p - q) * n).sum(axis=1))
-        D = np.eye(4)
-        D[:3, :3] = Rotation.from_rotvec(x[:3]).as_matrix()
-        D[:3, 3] = c - D[:3, :3] @ c + x[3:]
-        T = D @ T
-        if np.linalg.norm(x[3:]) < 1e-6 and np.linalg.norm(x[:3]) < 1e-6:
-            break
-    return T
+    return _world_frame_icp(grid.points, nrm, T, points[close], cam, max_distance, iterations,
+                            n_points, grid=grid)  # fmt: skip
 
 
 def test_grid_icp_is_point_to_plane_gauss_newton_and_finds_the_pose(samples):

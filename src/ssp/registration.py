@@ -13,7 +13,7 @@ import numpy as np
 from ssp.jit import njit
 from ssp.kdtree import KDTree
 from ssp.library.model import ObjectModel
-from ssp.sample_grid import SampleGrid
+from ssp.sample_grid import SampleGrid, posed_cell
 
 __all__ = ["even_rows", "facing_mask", "grid_icp", "icp_refine", "point_to_plane_icp"]
 
@@ -226,7 +226,6 @@ def _grid_icp(pts, nrm, index, distance, lo, inv_voxel, shape, T_init, points, c
     ``G^T G``, ``G^T b`` and the matched samples' sum."""
     T = T_init.copy()
     miss = pts.shape[0]
-    n0, n1, n2 = shape[0], shape[1], shape[2]
     R = T[:3, :3].copy()
     t = T[:3, 3].copy()
     # the samples facing the camera at T_init: n . (R^T (cam - t)) > n . p
@@ -247,14 +246,9 @@ def _grid_icp(pts, nrm, index, distance, lo, inv_voxel, shape, T_init, points, c
     close = np.empty(points.shape[0], dtype=np.int64)
     n_close = 0
     for k in range(points.shape[0]):
-        d0, d1, d2 = points[k, 0] - t[0], points[k, 1] - t[1], points[k, 2] - t[2]
-        w0 = (R[0, 0] * d0 + R[1, 0] * d1 + R[2, 0] * d2 - lo[0]) * inv_voxel
-        w1 = (R[0, 1] * d0 + R[1, 1] * d1 + R[2, 1] * d2 - lo[1]) * inv_voxel
-        w2 = (R[0, 2] * d0 + R[1, 2] * d1 + R[2, 2] * d2 - lo[2]) * inv_voxel
-        if w0 < 0.0 or w1 < 0.0 or w2 < 0.0:
-            continue
-        i0, i1, i2 = int(w0), int(w1), int(w2)
-        if i0 < n0 and i1 < n1 and i2 < n2 and distance[(i0 * n1 + i1) * n2 + i2] <= near:
+        cell, _, _, _ = posed_cell(R, t, points[k, 0], points[k, 1], points[k, 2], lo,
+                                   inv_voxel, shape)  # fmt: skip
+        if cell >= 0 and distance[cell] <= near:
             close[n_close] = k
             n_close += 1
     if n_close < min_pairs:
@@ -274,17 +268,11 @@ def _grid_icp(pts, nrm, index, distance, lo, inv_voxel, shape, T_init, points, c
         g = np.zeros(6)
         m = 0
         for k in range(seg.shape[0]):
-            d0, d1, d2 = seg[k, 0] - t[0], seg[k, 1] - t[1], seg[k, 2] - t[2]
-            # q = R^T (s - t), the point in the model frame
-            q0 = R[0, 0] * d0 + R[1, 0] * d1 + R[2, 0] * d2
-            q1 = R[0, 1] * d0 + R[1, 1] * d1 + R[2, 1] * d2
-            q2 = R[0, 2] * d0 + R[1, 2] * d1 + R[2, 2] * d2
-            i0 = int((q0 - lo[0]) * inv_voxel)
-            i1 = int((q1 - lo[1]) * inv_voxel)
-            i2 = int((q2 - lo[2]) * inv_voxel)
-            if i0 < 0 or i1 < 0 or i2 < 0 or i0 >= n0 or i1 >= n1 or i2 >= n2:
+            cell, q0, q1, q2 = posed_cell(R, t, seg[k, 0], seg[k, 1], seg[k, 2], lo,
+                                          inv_voxel, shape)  # fmt: skip
+            if cell < 0:
                 continue
-            j = index[(i0 * n1 + i1) * n2 + i2]
+            j = index[cell]
             if j == miss or not keep[j]:
                 continue
             p0, p1, p2 = pts[j, 0], pts[j, 1], pts[j, 2]

@@ -20,7 +20,7 @@ import numpy as np
 from ssp.jit import njit
 from ssp.kdtree import KDTree
 
-__all__ = ["SampleGrid"]
+__all__ = ["SampleGrid", "posed_cell"]
 
 #: The grid holds at most about this many voxels (the voxel grows for large models).
 MAX_VOXELS = 1_500_000
@@ -111,22 +111,33 @@ class SampleGrid:
 
 
 @njit(cache=True)
+def posed_cell(R, t, x, y, z, lo, inv_voxel, shape):
+    """``(flat, q0, q1, q2)``: the point ``(x, y, z)`` moved into a grid's frame, ``q = R^T
+    ((x, y, z) - t)``, and the flat index of its voxel (-1 outside the grid: corner ``lo``,
+    ``1 / voxel`` = ``inv_voxel``, ``shape``). Compiled, for the kernels."""
+    d0, d1, d2 = x - t[0], y - t[1], z - t[2]
+    q0 = R[0, 0] * d0 + R[1, 0] * d1 + R[2, 0] * d2
+    q1 = R[0, 1] * d0 + R[1, 1] * d1 + R[2, 1] * d2
+    q2 = R[0, 2] * d0 + R[1, 2] * d1 + R[2, 2] * d2
+    w0, w1, w2 = (q0 - lo[0]) * inv_voxel, (q1 - lo[1]) * inv_voxel, (q2 - lo[2]) * inv_voxel
+    if w0 < 0.0 or w1 < 0.0 or w2 < 0.0:
+        return -1, q0, q1, q2
+    i0, i1, i2 = int(w0), int(w1), int(w2)
+    if i0 >= shape[0] or i1 >= shape[1] or i2 >= shape[2]:
+        return -1, q0, q1, q2
+    return (i0 * shape[1] + i1) * shape[2] + i2, q0, q1, q2
+
+
+@njit(cache=True)
 def _within_kernel(q, R, t, distance, lo, inv_voxel, shape, sure, maybe):
     """Per query of ``q (N, 3)`` moved into the grid's frame (``R^T (q - t)``): 1 when its
     voxel centre's distance is at most ``sure``, 2 when at most ``maybe``, else 0."""
-    n0, n1, n2 = shape[0], shape[1], shape[2]
     out = np.zeros(q.shape[0], dtype=np.int8)
     for k in range(q.shape[0]):
-        d0, d1, d2 = q[k, 0] - t[0], q[k, 1] - t[1], q[k, 2] - t[2]
-        w0 = (R[0, 0] * d0 + R[1, 0] * d1 + R[2, 0] * d2 - lo[0]) * inv_voxel
-        w1 = (R[0, 1] * d0 + R[1, 1] * d1 + R[2, 1] * d2 - lo[1]) * inv_voxel
-        w2 = (R[0, 2] * d0 + R[1, 2] * d1 + R[2, 2] * d2 - lo[2]) * inv_voxel
-        if w0 < 0.0 or w1 < 0.0 or w2 < 0.0:
+        cell, _, _, _ = posed_cell(R, t, q[k, 0], q[k, 1], q[k, 2], lo, inv_voxel, shape)
+        if cell < 0:
             continue
-        i0, i1, i2 = int(w0), int(w1), int(w2)
-        if i0 >= n0 or i1 >= n1 or i2 >= n2:
-            continue
-        d = distance[(i0 * n1 + i1) * n2 + i2]
+        d = distance[cell]
         if d <= sure:
             out[k] = 1
         elif d <= maybe:
