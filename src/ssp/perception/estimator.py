@@ -315,35 +315,45 @@ def _coarse_hits(R, t, cp, cn, cam, occ: _Occupancy) -> tuple[np.ndarray, np.nda
 def _coarse_kernel(R, t, cp, cn, cam, use_cam, grid, lo, inv_voxel, shape):
     """:func:`_coarse_hits`, compiled: per pose, the samples facing ``cam`` (``n . (R^T (cam -
     t)) > n . p``, all unless ``use_cam``) and those of them in an occupied voxel of ``grid``
-    (flat, ``shape``, corner ``lo``); out-of-grid samples are misses."""
+    (flat, ``shape``, corner ``lo``); out-of-grid samples are misses. Each pose's voxel
+    coordinates and facing values are computed in one branch-free pass (which vectorises),
+    then counted."""
     M, P = R.shape[0], cp.shape[0]
     hits = np.zeros(M, dtype=np.int64)
     facing = np.zeros(M, dtype=np.int64)
     n0, n1, n2 = shape[0], shape[1], shape[2]
-    pn = np.empty(P)
-    for k in range(P):
-        pn[k] = cn[k, 0] * cp[k, 0] + cn[k, 1] * cp[k, 1] + cn[k, 2] * cp[k, 2]
+    f0, f1, f2 = float(n0), float(n1), float(n2)
+    X, Y, Z = cp[:, 0].copy(), cp[:, 1].copy(), cp[:, 2].copy()
+    NX, NY, NZ = cn[:, 0].copy(), cn[:, 1].copy(), cn[:, 2].copy()
+    pn = NX * X + NY * Y + NZ * Z
+    W0, W1, W2, F = np.empty(P), np.empty(P), np.empty(P), np.empty(P)
     for i in range(M):
         d0, d1, d2 = cam[0] - t[i, 0], cam[1] - t[i, 1], cam[2] - t[i, 2]
         c0 = R[i, 0, 0] * d0 + R[i, 1, 0] * d1 + R[i, 2, 0] * d2
         c1 = R[i, 0, 1] * d0 + R[i, 1, 1] * d1 + R[i, 2, 1] * d2
         c2 = R[i, 0, 2] * d0 + R[i, 1, 2] * d1 + R[i, 2, 2] * d2
-        o0, o1, o2 = t[i, 0] - lo[0], t[i, 1] - lo[1], t[i, 2] - lo[2]
+        a00, a01, a02 = R[i, 0, 0] * inv_voxel, R[i, 0, 1] * inv_voxel, R[i, 0, 2] * inv_voxel
+        a10, a11, a12 = R[i, 1, 0] * inv_voxel, R[i, 1, 1] * inv_voxel, R[i, 1, 2] * inv_voxel
+        a20, a21, a22 = R[i, 2, 0] * inv_voxel, R[i, 2, 1] * inv_voxel, R[i, 2, 2] * inv_voxel
+        o0 = (t[i, 0] - lo[0]) * inv_voxel
+        o1 = (t[i, 1] - lo[1]) * inv_voxel
+        o2 = (t[i, 2] - lo[2]) * inv_voxel
+        for k in range(P):
+            x, y, z = X[k], Y[k], Z[k]
+            F[k] = NX[k] * c0 + NY[k] * c1 + NZ[k] * c2 - pn[k]
+            W0[k] = a00 * x + a01 * y + a02 * z + o0
+            W1[k] = a10 * x + a11 * y + a12 * z + o1
+            W2[k] = a20 * x + a21 * y + a22 * z + o2
         h = 0
         f = 0
         for k in range(P):
-            if use_cam and cn[k, 0] * c0 + cn[k, 1] * c1 + cn[k, 2] * c2 <= pn[k]:
+            if use_cam and F[k] <= 0.0:
                 continue
             f += 1
-            x, y, z = cp[k, 0], cp[k, 1], cp[k, 2]
-            w0 = (R[i, 0, 0] * x + R[i, 0, 1] * y + R[i, 0, 2] * z + o0) * inv_voxel
-            w1 = (R[i, 1, 0] * x + R[i, 1, 1] * y + R[i, 1, 2] * z + o1) * inv_voxel
-            w2 = (R[i, 2, 0] * x + R[i, 2, 1] * y + R[i, 2, 2] * z + o2) * inv_voxel
-            if w0 < 0.0 or w1 < 0.0 or w2 < 0.0:
-                continue
-            i0, i1, i2 = int(w0), int(w1), int(w2)
-            if i0 < n0 and i1 < n1 and i2 < n2 and grid[(i0 * n1 + i1) * n2 + i2]:
-                h += 1
+            w0, w1, w2 = W0[k], W1[k], W2[k]
+            if w0 >= 0.0 and w1 >= 0.0 and w2 >= 0.0 and w0 < f0 and w1 < f1 and w2 < f2:
+                if grid[(int(w0) * n1 + int(w1)) * n2 + int(w2)]:
+                    h += 1
         hits[i] = h
         facing[i] = f
     return hits, facing
@@ -581,17 +591,23 @@ class HypothesisEstimator:
         sym = table.symmetries
         order = np.argsort(-coarse, kind="stable")[: 40 * cfg.refine]
         chosen: list[int] = []  # distinct candidates, best coarse score first
+        near, turn = 0.1 * table.diameter, np.radians(15)
         for idx in order:
             if coarse[idx] == 0:
                 break
-            if all(
-                np.linalg.norm(t[idx] - t[o]) > 0.1 * table.diameter
-                or _rotation_distance(R[o], R[idx], sym) > np.radians(15)
-                for o in chosen
-            ):
-                chosen.append(int(idx))
-                if len(chosen) >= cfg.refine:
-                    break
+            # distinct: from every chosen one, farther than `near` or turned by over `turn`
+            if chosen:
+                close = np.flatnonzero(np.linalg.norm(t[chosen] - t[idx], axis=1) <= near)
+                if (
+                    len(close)
+                    and (
+                        _rotation_distances(R[np.asarray(chosen)[close]], R[idx], sym) <= turn
+                    ).any()
+                ):
+                    continue
+            chosen.append(int(idx))
+            if len(chosen) >= cfg.refine:
+                break
         if chosen and cfg.alternatives:
             # the best candidate of each other orientation, best first
             apart = np.radians(cfg.alternative_deg)
