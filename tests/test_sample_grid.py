@@ -81,11 +81,11 @@ def test_grid_bad_arguments(samples):
     with pytest.raises(ValueError, match="at least one sample"):
         SampleGrid(np.zeros((0, 3)), reach=0.01, voxel=0.002)
     with pytest.raises(ValueError, match="reach"):
-        grid_icp(grid, samples[1], np.eye(4), samples[0], None, near=0.01, max_distance=0.005,
+        grid_icp(grid, samples[1], np.eye(4), samples[0], None, max_distance=0.01,
                  iterations=3, n_points=100)  # fmt: skip
     with pytest.raises(ValueError, match="normals"):
-        grid_icp(grid, samples[1][:5], np.eye(4), samples[0], None, near=0.008,
-                 max_distance=0.005, iterations=3, n_points=100)  # fmt: skip
+        grid_icp(grid, samples[1][:5], np.eye(4), samples[0], None, max_distance=0.005,
+                 iterations=3, n_points=100)  # fmt: skip
 
 
 def test_a_large_model_gets_a_coarser_voxel():
@@ -94,18 +94,6 @@ def test_a_large_model_gets_a_coarser_voxel():
     p = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
     grid = SampleGrid(p, reach=0.01, voxel=0.002)
     assert grid.voxel > 0.002 and np.prod(grid.shape) <= MAX_VOXELS
-
-
-def _reference_grid_icp(grid, nrm, T, points, cam, near, max_distance, iterations, n_points):
-    """Reference in numpy: the points whose voxel is within ``near`` of a sample at ``T``,
-    then the world-frame point-to-plane Gauss-Newton of the estimator's tests, with the grid's
-    matches."""
-    from test_perception_estimator import _world_frame_icp
-
-    local = (points - T[:3, 3]) @ T[:3, :3]
-    close = grid.distance[grid.cells(local)] <= near
-    return _world_frame_icp(grid.points, nrm, T, points[close], cam, max_distance, iterations,
-                            n_points, grid=grid)  # fmt: skip
 
 
 def test_grid_icp_is_point_to_plane_gauss_newton_and_finds_the_pose(samples):
@@ -122,21 +110,21 @@ def test_grid_icp_is_point_to_plane_gauss_newton_and_finds_the_pose(samples):
     T0 = T_gt.copy()
     T0[:3, :3] = Rotation.from_rotvec([0.04, -0.05, 0.06]).as_matrix() @ T0[:3, :3]
     T0[:3, 3] += [0.003, -0.002, 0.002]
-    ours = grid_icp(grid, nrm, T0, seen, cam, near=0.012, max_distance=0.012, iterations=8,
-                    n_points=500)  # fmt: skip
-    ref = _reference_grid_icp(grid, nrm, T0, seen, cam, 0.012, 0.012, 8, 500)
+    from test_perception_estimator import _world_frame_icp
+
+    ours = grid_icp(grid, nrm, T0, seen, cam, max_distance=0.012, iterations=8, n_points=500)
+    ref = _world_frame_icp(pts, nrm, T0, seen, cam, 0.012, 8, 500, grid=grid)
     np.testing.assert_allclose(ours, ref, atol=1e-9)
-    fine = grid_icp(grid, nrm, ours, seen, cam, near=0.008, max_distance=0.005, iterations=20,
+    fine = grid_icp(grid, nrm, ours, seen, cam, max_distance=0.005, iterations=20,
                     n_points=1000)  # fmt: skip
     assert np.abs(ours - T0).max() > 1e-3  # it moved
     assert np.linalg.norm(fine[:3, 3] - T_gt[:3, 3]) < 0.001
     dR = Rotation.from_matrix(fine[:3, :3] @ T_gt[:3, :3].T).magnitude()
     assert np.degrees(dR) < 1.0
-    # too few points near the start: the start comes back
+    # no sample within reach of the points: the start comes back
     far = T0.copy()
     far[:3, 3] += 0.5
     np.testing.assert_array_equal(
-        grid_icp(grid, nrm, far, seen, cam, near=0.012, max_distance=0.012, iterations=8,
-                 n_points=500),
+        grid_icp(grid, nrm, far, seen, cam, max_distance=0.012, iterations=8, n_points=500),
         far,
-    )  # fmt: skip
+    )

@@ -173,10 +173,9 @@ def grid_icp(
     grid: SampleGrid,
     normals: np.ndarray,
     T_init: np.ndarray,
-    points: np.ndarray,
+    segment: np.ndarray,
     camera: np.ndarray | None,
     *,
-    near: float,
     max_distance: float,
     iterations: int,
     n_points: int,
@@ -184,33 +183,34 @@ def grid_icp(
     tolerance: float = 1e-6,
 ) -> np.ndarray:
     """:func:`point_to_plane_icp` of the samples of ``grid`` (with unit ``normals (S, 3)``,
-    model frame) onto the ``points (K, 3)`` (world, m) near them, with constant-time lookups.
-
-    The points used are those whose voxel lies within ``near`` (m, at most the grid's reach) of
-    a sample at ``T_init`` (to half a voxel diagonal), at most ``n_points`` of them, evenly
-    spaced. Each takes its voxel's nearest sample (:meth:`SampleGrid.nearest`), a miss when
-    that sample does not face the camera at ``T_init`` or lies beyond ``max_distance``,
-    instead of the exact nearest facing sample. Returns ``T_world_obj (4, 4)``.
+    model frame) onto ``segment (K, 3)`` (world, m), with constant-time lookups: at most
+    ``n_points`` of the segment points, evenly spaced, each matched to its voxel's nearest
+    sample (:meth:`SampleGrid.nearest`), a miss when that sample does not face the camera at
+    ``T_init`` or lies beyond ``max_distance``, instead of the exact nearest facing sample.
+    Returns ``T_world_obj (4, 4)`` (``T_init`` when there are fewer than ``min_pairs``
+    points or fewer than 3 facing samples).
     """
-    if max(near, max_distance) > grid.reach:
-        raise ValueError(f"near and max_distance must be within the grid's reach {grid.reach} m")
+    if max_distance > grid.reach:
+        raise ValueError(f"max_distance must be within the grid's reach {grid.reach} m")
     nrm = np.ascontiguousarray(normals, dtype=float)
     if nrm.shape != grid.points.shape:
         raise ValueError(f"{len(nrm)} normals for {len(grid.points)} grid samples")
+    T = np.array(T_init, dtype=float)
+    seg = np.asarray(segment, dtype=float).reshape(-1, 3)
+    if len(seg) < min_pairs:
+        return T
+    (seg,) = even_rows(n_points, seg)
     return _grid_icp(
         grid.points,
         nrm,
         grid.index,
-        grid.distance,
         grid.lo,
         1.0 / grid.voxel,
         grid.shape,
-        np.array(T_init, dtype=float),
-        np.ascontiguousarray(points, dtype=float).reshape(-1, 3),
+        T,
+        np.ascontiguousarray(seg),
         np.zeros(3) if camera is None else np.asarray(camera, dtype=float),
         camera is not None,
-        float(near),
-        int(n_points),
         float(max_distance) ** 2,
         int(iterations),
         int(min_pairs),
@@ -219,11 +219,11 @@ def grid_icp(
 
 
 @njit(cache=True)
-def _grid_icp(pts, nrm, index, distance, lo, inv_voxel, shape, T_init, points, cam, use_cam,
-              near, n_points, max2, iterations, min_pairs, tol2):  # fmt: skip
-    """:func:`grid_icp`, compiled (the grid as its ``index``, ``distance``, ``lo``,
-    ``inv_voxel`` and ``shape``); each step is one pass over the points that accumulates
-    ``G^T G``, ``G^T b`` and the matched samples' sum."""
+def _grid_icp(pts, nrm, index, lo, inv_voxel, shape, T_init, seg, cam, use_cam, max2,
+              iterations, min_pairs, tol2):  # fmt: skip
+    """:func:`grid_icp`, compiled (the grid as its ``index``, ``lo``, ``inv_voxel`` and
+    ``shape``); each step is one pass over the points ``seg`` that accumulates ``G^T G``,
+    ``G^T b`` and the matched samples' sum."""
     T = T_init.copy()
     miss = pts.shape[0]
     R = T[:3, :3].copy()
@@ -241,24 +241,6 @@ def _grid_icp(pts, nrm, index, distance, lo, inv_voxel, shape, T_init, points, c
             )
     if keep.sum() < 3:
         return T
-    # the points whose voxel centre is within `near` of a sample at T_init, at most n_points
-    # of them, evenly spaced
-    close = np.empty(points.shape[0], dtype=np.int64)
-    n_close = 0
-    for k in range(points.shape[0]):
-        cell, _, _, _ = posed_cell(R, t, points[k, 0], points[k, 1], points[k, 2], lo,
-                                   inv_voxel, shape)  # fmt: skip
-        if cell >= 0 and distance[cell] <= near:
-            close[n_close] = k
-            n_close += 1
-    if n_close < min_pairs:
-        return T
-    n_seg = min(n_close, n_points)
-    seg = np.empty((n_seg, 3))
-    step = (n_close - 1) / max(n_seg - 1, 1)
-    for k in range(n_seg):
-        src = close[n_close - 1] if k == n_seg - 1 else close[int(k * step)]
-        seg[k, 0], seg[k, 1], seg[k, 2] = points[src, 0], points[src, 1], points[src, 2]
     for _ in range(iterations):
         R = T[:3, :3].copy()
         t = T[:3, 3].copy()

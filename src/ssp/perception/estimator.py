@@ -59,13 +59,14 @@ log = logging.getLogger(__name__)
 
 
 #: The two ICP stages of the refinement (step 4): segment points within ``near`` (m) of the
-#: model, at most ``n_points`` of them, are matched to the dense model samples within
-#: ``max_distance`` (m), for at most ``iterations`` Gauss-Newton steps.
-_COARSE_ICP = dict(near=0.012, max_distance=0.012, iterations=8, n_points=500)
-_FINE_ICP = dict(near=0.008, max_distance=0.005, iterations=10, n_points=1000)
+#: model (its dense samples, exactly), at most ``n_points`` of them, are matched to
+#: ``n_samples`` evenly spaced model samples within ``max_distance`` (m), for at most
+#: ``iterations`` Gauss-Newton steps.
+_COARSE_ICP = dict(near=0.012, max_distance=0.012, iterations=8, n_samples=400, n_points=500)
+_FINE_ICP = dict(near=0.008, max_distance=0.005, iterations=10, n_samples=800, n_points=1000)
 
-#: The dense samples' :class:`SampleGrid`: reach (m, the largest ``near`` and ``max_distance``
-#: above) and voxel (m).
+#: The :class:`SampleGrid` of the dense samples and of each stage's samples: reach (m, the
+#: largest ``near`` and ``max_distance`` above) and voxel (m).
 _GRID_REACH = 0.012
 _GRID_VOXEL = 0.002
 
@@ -203,6 +204,9 @@ class ModelPairs:
     unique_count: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)
     #: :class:`SampleGrid` of ``dense_points`` (model frame), built on first use.
     _grid: SampleGrid | None = field(default=None, repr=False)
+    #: ``n`` -> the :class:`SampleGrid` of ``n`` evenly spaced surface samples and their
+    #: normals (the ICP stages' samples), built on first use.
+    _icp_grids: dict = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
         if len(self.keys) and not len(self.unique_keys):
@@ -224,6 +228,21 @@ class ModelPairs:
         if self._grid is None:
             self._grid = SampleGrid(self.dense_points, _GRID_REACH, _GRID_VOXEL)
         return self._grid
+
+    def icp_grid(self, model: ObjectModel, n: int) -> tuple[SampleGrid, np.ndarray]:
+        """``(grid, normals (n, 3))`` of at most ``n`` evenly spaced surface samples of
+        ``model`` (as :func:`ssp.registration.icp_refine` takes them), built once."""
+        if n not in self._icp_grids:
+            pts, nrm = even_rows(
+                n,
+                np.asarray(model.surface_points, dtype=float),
+                np.asarray(model.surface_normals, dtype=float),
+            )
+            self._icp_grids[n] = (
+                SampleGrid(pts, _GRID_REACH, _GRID_VOXEL),
+                np.array(nrm, dtype=float, order="C"),
+            )
+        return self._icp_grids[n]
 
     @classmethod
     def build(cls, model: ObjectModel, cfg: PerceptionConfig) -> ModelPairs:
@@ -435,6 +454,8 @@ class HypothesisEstimator:
         for name in dict.fromkeys(classes):
             table = self.table(name)
             table.grid()
+            for stage in (_COARSE_ICP, _FINE_ICP):
+                table.icp_grid(self.library[name], stage["n_samples"])
 
     # ------------------------------------------------------------------ one segment
     def estimate(
@@ -643,9 +664,20 @@ class HypothesisEstimator:
         return out
 
     def _icp_stage(self, table: ModelPairs, T, p, cam, stage: dict) -> np.ndarray:
-        """``T`` refined by :func:`ssp.registration.grid_icp` of the dense samples with the
-        settings ``stage`` (:data:`_COARSE_ICP`) on the points of ``p`` near the model."""
-        return grid_icp(table.grid(), table.dense_normals, T, p, cam, **stage)
+        """``T`` refined by :func:`ssp.registration.grid_icp` with the settings ``stage``
+        (:data:`_COARSE_ICP`) on the points of ``p`` within ``stage["near"]`` of the model."""
+        near = self._near(table, T, p, stage["near"])
+        grid, normals = table.icp_grid(self.library[table.name], stage["n_samples"])
+        return grid_icp(
+            grid,
+            normals,
+            T,
+            p[near],
+            cam,
+            max_distance=stage["max_distance"],
+            iterations=stage["iterations"],
+            n_points=stage["n_points"],
+        )
 
     def _near(self, table: ModelPairs, T, p, radius: float) -> np.ndarray:
         """Mask of segment points ``p (N, 3)`` within ``radius`` (m) of the dense model
@@ -683,7 +715,7 @@ def compile_kernels() -> None:
                  _Occupancy(p, 0.004))  # fmt: skip
     grid = SampleGrid(p, _GRID_REACH, _GRID_VOXEL)
     grid.within(p, 0.005, np.eye(4))
-    grid_icp(grid, n, np.eye(4), p, np.ones(3), **_COARSE_ICP)
+    grid_icp(grid, n, np.eye(4), p, np.ones(3), max_distance=0.012, iterations=2, n_points=50)
 
 
 def _within(tree: KDTree, q: np.ndarray, radius: float) -> np.ndarray:
