@@ -156,8 +156,8 @@ def _world_frame_icp(pts, nrm, T, seg, cam, max_distance, iterations, n_points, 
     """Reference: point-to-plane Gauss-Newton in the world frame, samples moved every step
     (the algorithm as first written, before it was solved in the model frame). Each point is
     matched to the nearest facing sample (scipy's tree), or with ``grid`` (a
-    :class:`ssp.sample_grid.SampleGrid` of ``pts``) to its voxel's sample if that faces the
-    camera and lies within ``max_distance``."""
+    :class:`ssp.sample_grid.SampleGrid` of ``pts`` with normals) to the nearest facing one
+    of its voxel's per-direction samples, if within ``max_distance``."""
     from scipy.spatial import cKDTree
 
     from ssp.registration import even_rows, facing_mask
@@ -175,10 +175,10 @@ def _world_frame_icp(pts, nrm, T, seg, cam, max_distance, iterations, n_points, 
             ok = np.isfinite(dist)
             idx = np.where(ok, kept[np.minimum(j, len(kept) - 1)], 0)
         else:
-            idx = grid.nearest(local)
+            idx = grid.nearest(local, keep)
             ok = idx != grid.miss
             idx = np.where(ok, idx, 0)
-            ok &= keep[idx] & (np.linalg.norm(local - pts[idx], axis=1) <= max_distance)
+            ok &= np.linalg.norm(local - pts[idx], axis=1) <= max_distance
         q, p, n = seg[ok], pts[idx[ok]] @ R.T + t, nrm[idx[ok]] @ R.T
         c = p.mean(axis=0)
         A = np.hstack([np.cross(p - c, n), n])

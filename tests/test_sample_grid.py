@@ -80,12 +80,17 @@ def test_grid_bad_arguments(samples):
         grid.within(samples[0], 0.01)
     with pytest.raises(ValueError, match="at least one sample"):
         SampleGrid(np.zeros((0, 3)), reach=0.01, voxel=0.002)
-    with pytest.raises(ValueError, match="reach"):
-        grid_icp(grid, samples[1], np.eye(4), samples[0], None, max_distance=0.01,
-                 iterations=3, n_points=100)  # fmt: skip
     with pytest.raises(ValueError, match="normals"):
-        grid_icp(grid, samples[1][:5], np.eye(4), samples[0], None, max_distance=0.005,
-                 iterations=3, n_points=100)  # fmt: skip
+        grid_icp(grid, np.eye(4), samples[0], None, max_distance=0.005, iterations=3,
+                 n_points=100)  # fmt: skip
+    with_normals = SampleGrid(samples[0], reach=0.008, voxel=0.002, normals=samples[1])
+    with pytest.raises(ValueError, match="reach"):
+        grid_icp(with_normals, np.eye(4), samples[0], None, max_distance=0.01, iterations=3,
+                 n_points=100)  # fmt: skip
+    with pytest.raises(ValueError, match="normals for"):
+        SampleGrid(samples[0], reach=0.008, voxel=0.002, normals=samples[1][:5])
+    with pytest.raises(ValueError, match="normals"):
+        grid.nearest(samples[0], keep=np.ones(len(samples[0]), bool))
 
 
 def test_a_large_model_gets_a_coarser_voxel():
@@ -98,7 +103,7 @@ def test_a_large_model_gets_a_coarser_voxel():
 
 def test_grid_icp_is_point_to_plane_gauss_newton_and_finds_the_pose(samples):
     pts, nrm = samples
-    grid = SampleGrid(pts, reach=0.012, voxel=0.002)
+    grid = SampleGrid(pts, reach=0.012, voxel=0.002, normals=nrm)
     T_gt = np.eye(4)
     T_gt[:3, :3] = Rotation.from_rotvec([0.2, 0.5, -0.3]).as_matrix()
     T_gt[:3, 3] = [0.1, 0.05, 0.6]
@@ -112,11 +117,10 @@ def test_grid_icp_is_point_to_plane_gauss_newton_and_finds_the_pose(samples):
     T0[:3, 3] += [0.003, -0.002, 0.002]
     from test_perception_estimator import _world_frame_icp
 
-    ours = grid_icp(grid, nrm, T0, seen, cam, max_distance=0.012, iterations=8, n_points=500)
+    ours = grid_icp(grid, T0, seen, cam, max_distance=0.012, iterations=8, n_points=500)
     ref = _world_frame_icp(pts, nrm, T0, seen, cam, 0.012, 8, 500, grid=grid)
     np.testing.assert_allclose(ours, ref, atol=1e-9)
-    fine = grid_icp(grid, nrm, ours, seen, cam, max_distance=0.005, iterations=20,
-                    n_points=1000)  # fmt: skip
+    fine = grid_icp(grid, ours, seen, cam, max_distance=0.005, iterations=20, n_points=1000)
     assert np.abs(ours - T0).max() > 1e-3  # it moved
     assert np.linalg.norm(fine[:3, 3] - T_gt[:3, 3]) < 0.001
     dR = Rotation.from_matrix(fine[:3, :3] @ T_gt[:3, :3].T).magnitude()
@@ -125,6 +129,25 @@ def test_grid_icp_is_point_to_plane_gauss_newton_and_finds_the_pose(samples):
     far = T0.copy()
     far[:3, 3] += 0.5
     np.testing.assert_array_equal(
-        grid_icp(grid, nrm, far, seen, cam, max_distance=0.012, iterations=8, n_points=500),
+        grid_icp(grid, far, seen, cam, max_distance=0.012, iterations=8, n_points=500),
         far,
     )
+
+
+def test_nearest_facing_keeps_a_thin_parts_faces_apart():
+    """A 4 mm plate seen from above: a point on its top face takes a top sample even where a
+    bottom sample is nearer, once the bottom ones are not kept (they face away)."""
+    rng = np.random.default_rng(4)
+    top = np.c_[rng.uniform(-0.05, 0.05, (400, 2)), np.full(400, 0.002)]
+    bottom = np.c_[rng.uniform(-0.05, 0.05, (400, 2)), np.full(400, -0.002)]
+    pts = np.vstack([top, bottom])
+    nrm = np.vstack([np.tile([0, 0, 1.0], (400, 1)), np.tile([0, 0, -1.0], (400, 1))])
+    grid = SampleGrid(pts, reach=0.012, voxel=0.002, normals=nrm)
+    q = np.c_[rng.uniform(-0.04, 0.04, (2000, 2)), np.full(2000, 0.0015)]
+    keep = nrm[:, 2] > 0
+    idx = grid.nearest(q, keep)
+    assert (idx != grid.miss).all() and keep[idx].all()
+    d_top, _ = cKDTree(top).query(q)
+    got = np.linalg.norm(pts[idx] - q, axis=1)
+    assert (got <= d_top + 2 * grid.half_diagonal + 1e-12).all()
+    assert (~keep[grid.nearest(q)]).any()  # without the faces apart, some take the bottom

@@ -171,7 +171,6 @@ def point_to_plane_icp(
 
 def grid_icp(
     grid: SampleGrid,
-    normals: np.ndarray,
     T_init: np.ndarray,
     segment: np.ndarray,
     camera: np.ndarray | None,
@@ -182,19 +181,18 @@ def grid_icp(
     min_pairs: int = 10,
     tolerance: float = 1e-6,
 ) -> np.ndarray:
-    """:func:`point_to_plane_icp` of the samples of ``grid`` (with unit ``normals (S, 3)``,
-    model frame) onto ``segment (K, 3)`` (world, m), with constant-time lookups: at most
-    ``n_points`` of the segment points, evenly spaced, each matched to its voxel's nearest
-    sample (:meth:`SampleGrid.nearest`), a miss when that sample does not face the camera at
-    ``T_init`` or lies beyond ``max_distance``, instead of the exact nearest facing sample.
-    Returns ``T_world_obj (4, 4)`` (``T_init`` when there are fewer than ``min_pairs``
-    points or fewer than 3 facing samples).
+    """:func:`point_to_plane_icp` of the samples of ``grid`` (built with their normals, model
+    frame) onto ``segment (K, 3)`` (world, m), with constant-time lookups: at most
+    ``n_points`` of the segment points, evenly spaced, each matched to the nearest camera-facing
+    (at ``T_init``) of its voxel's nearest samples of every normal direction
+    (:meth:`SampleGrid.nearest` with ``keep``) within ``max_distance``, instead of the exact
+    nearest facing sample. Returns ``T_world_obj (4, 4)`` (``T_init`` when there are fewer
+    than ``min_pairs`` points or fewer than 3 facing samples).
     """
     if max_distance > grid.reach:
         raise ValueError(f"max_distance must be within the grid's reach {grid.reach} m")
-    nrm = np.ascontiguousarray(normals, dtype=float)
-    if nrm.shape != grid.points.shape:
-        raise ValueError(f"{len(nrm)} normals for {len(grid.points)} grid samples")
+    if grid.normals is None:
+        raise ValueError("grid_icp needs a grid built with the samples' normals")
     T = np.array(T_init, dtype=float)
     seg = np.asarray(segment, dtype=float).reshape(-1, 3)
     if len(seg) < min_pairs:
@@ -202,8 +200,9 @@ def grid_icp(
     (seg,) = even_rows(n_points, seg)
     return _grid_icp(
         grid.points,
-        nrm,
-        grid.index,
+        grid.normals,
+        grid.bins,
+        grid.bin_index,
         grid.lo,
         1.0 / grid.voxel,
         grid.shape,
@@ -219,11 +218,11 @@ def grid_icp(
 
 
 @njit(cache=True)
-def _grid_icp(pts, nrm, index, lo, inv_voxel, shape, T_init, seg, cam, use_cam, max2,
+def _grid_icp(pts, nrm, bins, bin_index, lo, inv_voxel, shape, T_init, seg, cam, use_cam, max2,
               iterations, min_pairs, tol2):  # fmt: skip
-    """:func:`grid_icp`, compiled (the grid as its ``index``, ``lo``, ``inv_voxel`` and
-    ``shape``); each step is one pass over the points ``seg`` that accumulates ``G^T G``,
-    ``G^T b`` and the matched samples' sum."""
+    """:func:`grid_icp`, compiled (the grid as its samples' ``bins``, ``bin_index``, ``lo``,
+    ``inv_voxel`` and ``shape``); each step is one pass over the points ``seg`` that
+    accumulates ``G^T G``, ``G^T b`` and the matched samples' sum."""
     T = T_init.copy()
     miss = pts.shape[0]
     R = T[:3, :3].copy()
@@ -241,6 +240,11 @@ def _grid_icp(pts, nrm, index, lo, inv_voxel, shape, T_init, seg, cam, use_cam, 
             )
     if keep.sum() < 3:
         return T
+    n_bins = bin_index.shape[1]
+    live = np.zeros(n_bins, dtype=np.bool_)  # directions with a facing sample
+    for j in range(miss):
+        if keep[j]:
+            live[bins[j]] = True
     for _ in range(iterations):
         R = T[:3, :3].copy()
         t = T[:3, 3].copy()
@@ -254,13 +258,23 @@ def _grid_icp(pts, nrm, index, lo, inv_voxel, shape, T_init, seg, cam, use_cam, 
                                           inv_voxel, shape)  # fmt: skip
             if cell < 0:
                 continue
-            j = index[cell]
-            if j == miss or not keep[j]:
+            j = miss
+            best = max2
+            for bb in range(n_bins):  # the nearest facing of the directions' nearest samples
+                if not live[bb]:
+                    continue
+                c = bin_index[cell, bb]
+                if c == miss or not keep[c]:
+                    continue
+                f0, f1, f2 = q0 - pts[c, 0], q1 - pts[c, 1], q2 - pts[c, 2]
+                d2 = f0 * f0 + f1 * f1 + f2 * f2
+                if d2 < best or (j == miss and d2 <= best):
+                    best = d2
+                    j = c
+            if j == miss:
                 continue
             p0, p1, p2 = pts[j, 0], pts[j, 1], pts[j, 2]
             e0, e1, e2 = q0 - p0, q1 - p1, q2 - p2
-            if e0 * e0 + e1 * e1 + e2 * e2 > max2:
-                continue
             a0, a1, a2 = nrm[j, 0], nrm[j, 1], nrm[j, 2]
             g[0], g[1], g[2] = p1 * a2 - p2 * a1, p2 * a0 - p0 * a2, p0 * a1 - p1 * a0
             g[3], g[4], g[5] = a0, a1, a2

@@ -20,13 +20,27 @@ import numpy as np
 from ssp.jit import njit
 from ssp.kdtree import KDTree
 
-__all__ = ["SampleGrid", "posed_cell"]
+__all__ = ["N_BINS", "SampleGrid", "normal_bins", "posed_cell"]
 
 #: The grid holds at most about this many voxels (the voxel grows for large models).
 MAX_VOXELS = 1_500_000
 
 #: m: more than the float32 rounding of the stored distances.
 _ROUNDING = 1e-6
+
+
+#: Normal directions of the per-direction grids: the sample's normal's dominant axis and its
+#: sign (+x, -x, +y, -y, +z, -z). Opposite normals never share one, so the two faces of a
+#: thin part keep their own nearest samples.
+N_BINS = 6
+
+
+def normal_bins(normals: np.ndarray) -> np.ndarray:
+    """The direction bin ``(S,)`` int8 of each unit normal ``(S, 3)`` (:data:`N_BINS`)."""
+    n = np.asarray(normals, dtype=float).reshape(-1, 3)
+    axis = np.argmax(np.abs(n), axis=1)
+    negative = n[np.arange(len(n)), axis] < 0
+    return (2 * axis + negative).astype(np.int8)
 
 
 class SampleGrid:
@@ -36,12 +50,19 @@ class SampleGrid:
         points: ``(S, 3)`` samples (model frame, m), ``S < 2**31``.
         reach: m; queries farther than this from every sample are misses.
         voxel: voxel side, m (grown until the grid has at most :data:`MAX_VOXELS`).
+        normals: ``(S, 3)`` unit normals, or None. With them the grid also holds, per
+            voxel, the nearest sample of each normal direction (:data:`N_BINS`), so that
+            :meth:`nearest` can return the nearest *facing* one (the ICP's matches).
 
-    Attributes: ``points``; ``tree`` (KD-tree of the points); ``voxel``; ``half_diagonal``
-    (m); ``miss`` (the index of a miss: ``S``).
+    Attributes: ``points``; ``normals`` (or None); ``bins`` (each sample's direction);
+    ``tree`` (KD-tree of the points); ``voxel``; ``half_diagonal`` (m); ``miss`` (the index
+    of a miss: ``S``); ``index``, ``distance`` (per voxel, flat); ``bin_index`` (``(voxels,
+    N_BINS)``, with normals).
     """
 
-    def __init__(self, points: np.ndarray, reach: float, voxel: float) -> None:
+    def __init__(
+        self, points: np.ndarray, reach: float, voxel: float, normals: np.ndarray | None = None
+    ) -> None:
         self.points = np.array(points, dtype=float, order="C").reshape(-1, 3)  # a copy
         if len(self.points) == 0:
             raise ValueError("a sample grid needs at least one sample")
@@ -67,6 +88,24 @@ class SampleGrid:
         self.index = index.astype(itype)
         self.distance = distance.astype(np.float32)
         self._scale = np.array(shape[1:], dtype=np.uint32)
+        self.normals = None
+        self.bins = np.zeros(0, dtype=np.int8)
+        self.bin_index = np.zeros((0, 0), dtype=itype)
+        if normals is not None:
+            self.normals = np.array(normals, dtype=float, order="C").reshape(-1, 3)
+            if self.normals.shape != self.points.shape:
+                raise ValueError(f"{len(self.normals)} normals for {len(self.points)} samples")
+            self.bins = normal_bins(self.normals)
+            # (voxels, N_BINS): a voxel's candidates side by side, in one cache line
+            self.bin_index = np.full((int(np.prod(shape)), N_BINS), self.miss, dtype=itype)
+            for b in range(N_BINS):
+                members = np.flatnonzero(self.bins == b)
+                if len(members) == 0:
+                    continue
+                sub, _ = _fill(np.ascontiguousarray(self.points[members]), self.lo, self.voxel,
+                               shape, self.reach + self.half_diagonal)  # fmt: skip
+                found = sub < len(members)
+                self.bin_index[found, b] = members[sub[found]]
 
     def cells(self, q: np.ndarray) -> np.ndarray:
         """Flat voxel indices ``(N,)`` of queries ``q (N, 3)`` (model frame); queries outside
@@ -81,10 +120,28 @@ class SampleGrid:
         flat += i[:, 2]
         return flat
 
-    def nearest(self, q: np.ndarray) -> np.ndarray:
+    def nearest(self, q: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
         """Approximate nearest sample of each query ``q (N, 3)``: the nearest of its voxel's
-        centre, or :attr:`miss` beyond ``reach`` (plus at most the half-diagonal)."""
-        return self.index[self.cells(q)]
+        centre, or :attr:`miss` beyond ``reach`` (plus at most the half-diagonal).
+
+        ``keep``: ``(S,)`` mask of the samples that may be matched (the facing ones; needs
+        the grid's normals): of the voxel's nearest sample of each direction, the kept one
+        nearest to the query (the first direction of equals), or :attr:`miss`.
+        """
+        cells = self.cells(q)
+        if keep is None:
+            return self.index[cells]
+        if self.normals is None:
+            raise ValueError("nearest(keep=...) needs a grid built with normals")
+        cand = self.bin_index[cells].T.astype(np.int64)  # (N_BINS, N)
+        ok = cand != self.miss
+        ok[ok] = np.asarray(keep, dtype=bool)[cand[ok]]
+        pts = np.vstack([self.points, np.zeros((1, 3))])
+        d2 = ((pts[cand] - q[None]) ** 2).sum(-1)
+        d2[~ok] = np.inf
+        best = np.argmin(d2, axis=0)
+        out = cand[best, np.arange(len(q))]
+        return np.where(np.isfinite(d2[best, np.arange(len(q))]), out, self.miss)
 
     def within(self, q: np.ndarray, radius: float, T: np.ndarray | None = None) -> np.ndarray:
         """Exact mask ``(N,)`` of the queries ``q (N, 3)`` with a sample within ``radius``

@@ -204,8 +204,8 @@ class ModelPairs:
     unique_count: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)
     #: :class:`SampleGrid` of ``dense_points`` (model frame), built on first use.
     _grid: SampleGrid | None = field(default=None, repr=False)
-    #: ``n`` -> the :class:`SampleGrid` of ``n`` evenly spaced surface samples and their
-    #: normals (the ICP stages' samples), built on first use.
+    #: ``n`` -> the :class:`SampleGrid` (with normals) of ``n`` evenly spaced surface samples
+    #: (the ICP stages' samples), built on first use.
     _icp_grids: dict = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
@@ -229,19 +229,16 @@ class ModelPairs:
             self._grid = SampleGrid(self.dense_points, _GRID_REACH, _GRID_VOXEL)
         return self._grid
 
-    def icp_grid(self, model: ObjectModel, n: int) -> tuple[SampleGrid, np.ndarray]:
-        """``(grid, normals (n, 3))`` of at most ``n`` evenly spaced surface samples of
-        ``model`` (as :func:`ssp.registration.icp_refine` takes them), built once."""
+    def icp_grid(self, model: ObjectModel, n: int) -> SampleGrid:
+        """The :class:`SampleGrid` (with normals) of at most ``n`` evenly spaced surface
+        samples of ``model`` (as :func:`ssp.registration.icp_refine` takes them), built once."""
         if n not in self._icp_grids:
             pts, nrm = even_rows(
                 n,
                 np.asarray(model.surface_points, dtype=float),
                 np.asarray(model.surface_normals, dtype=float),
             )
-            self._icp_grids[n] = (
-                SampleGrid(pts, _GRID_REACH, _GRID_VOXEL),
-                np.array(nrm, dtype=float, order="C"),
-            )
+            self._icp_grids[n] = SampleGrid(pts, _GRID_REACH, _GRID_VOXEL, normals=nrm)
         return self._icp_grids[n]
 
     @classmethod
@@ -667,10 +664,8 @@ class HypothesisEstimator:
         """``T`` refined by :func:`ssp.registration.grid_icp` with the settings ``stage``
         (:data:`_COARSE_ICP`) on the points of ``p`` within ``stage["near"]`` of the model."""
         near = self._near(table, T, p, stage["near"])
-        grid, normals = table.icp_grid(self.library[table.name], stage["n_samples"])
         return grid_icp(
-            grid,
-            normals,
+            table.icp_grid(self.library[table.name], stage["n_samples"]),
             T,
             p[near],
             cam,
@@ -713,9 +708,9 @@ def compile_kernels() -> None:
     _pair_poses(p, n, i, i + 1, p, n, i.astype(np.int32), (i + 1).astype(np.int32))
     _coarse_hits(np.repeat(np.eye(3)[None], 2, 0), np.zeros((2, 3)), p, n, np.ones(3),
                  _Occupancy(p, 0.004))  # fmt: skip
-    grid = SampleGrid(p, _GRID_REACH, _GRID_VOXEL)
+    grid = SampleGrid(p, _GRID_REACH, _GRID_VOXEL, normals=n)
     grid.within(p, 0.005, np.eye(4))
-    grid_icp(grid, n, np.eye(4), p, np.ones(3), max_distance=0.012, iterations=2, n_points=50)
+    grid_icp(grid, np.eye(4), p, np.ones(3), max_distance=0.012, iterations=2, n_points=50)
 
 
 def _within(tree: KDTree, q: np.ndarray, radius: float) -> np.ndarray:
