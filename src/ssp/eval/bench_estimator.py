@@ -30,7 +30,7 @@ import numpy as np
 
 from ssp.config import SSPConfig
 from ssp.eval.bench_parser import _cores, _tree_of
-from ssp.eval.estimated import RECALL_DEG, RECALL_MM, VISIBLE
+from ssp.eval.estimated import RECALL_DEG, RECALL_MM, VISIBLE, perceive_frame
 from ssp.eval.metrics import pose_error
 
 __all__ = ["bench_estimator", "collect_segments", "compare_estimator", "write_report"]
@@ -66,12 +66,7 @@ def collect_segments(
         for i, sf in enumerate(seq.frames):
             if progress is not None:
                 progress(f"segments of sequence {s}, frame {i + 1}/{len(seq)}")
-            mask = np.asarray(sf.instance).astype(np.int64)
-            mask[mask < -1] = -1
-            res = perception.from_depth(
-                sf.depth, seq.camera, stamp=sf.stamp, T_world_cam=seq.T_world_cam, mask=mask,
-                hypotheses=[],
-            )  # fmt: skip
+            res = perceive_frame(perception, seq, sf, hypotheses=[])
             present = set(int(x) for x in res.segmentation.segment_ids)
             for k, (gid, (cls, T_gt)) in enumerate(sf.gt.items()):
                 if k not in present:

@@ -23,7 +23,9 @@ from ssp.eval.metrics import pose_error
 from ssp.perception.pipeline import Perception
 from ssp.sim.sequence import SimSequence
 
-__all__ = ["RECALL_DEG", "RECALL_MM", "estimate_sequence", "summarize_estimator"]
+__all__ = [
+    "RECALL_DEG", "RECALL_MM", "estimate_sequence", "perceive_frame", "summarize_estimator",
+]  # fmt: skip
 
 #: Recall thresholds: a hypothesis within this translation (mm) and rotation (deg).
 RECALL_MM = 10.0
@@ -50,14 +52,11 @@ def estimate_sequence(
     for i, sf in enumerate(seq.frames):
         if progress is not None:
             progress(f"estimating hypotheses, frame {i + 1}/{len(seq)}")
-        mask = np.asarray(sf.instance).astype(np.int64)
-        mask[mask < -1] = -1
-        res = perception.from_depth(
-            sf.depth, seq.camera, stamp=sf.stamp, T_world_cam=seq.T_world_cam, mask=mask
-        )
+        res = perceive_frame(perception, seq, sf)
         hyps = res.frame.hypotheses
         frames.append(replace(sf, hypotheses=list(hyps)))
-        counts = np.bincount(mask[mask >= 0].ravel(), minlength=len(sf.gt))
+        labels = np.asarray(sf.instance).astype(np.int64)
+        counts = np.bincount(labels[labels >= 0].ravel(), minlength=len(sf.gt))
         for k, (gid, (cls, T_gt)) in enumerate(sf.gt.items()):
             sym = library[cls].symmetry
             seg = res.segments.get(k)
@@ -78,6 +77,18 @@ def estimate_sequence(
     info.pop("hypothesis_sources", None)  # the sources of the noisy hypotheses no longer apply
     info["hypotheses"] = "estimated"
     return replace(seq, frames=frames, info=info), records
+
+
+def perceive_frame(perception: Perception, seq: SimSequence, sf, hypotheses=None):
+    """:meth:`Perception.from_depth` of the rendered frame ``sf`` of ``seq``, segmented by its
+    instance mask, with the sequence's camera pose (``hypotheses``: given instead of
+    estimated, ``[]`` to segment only)."""
+    mask = np.asarray(sf.instance).astype(np.int64)
+    mask[mask < -1] = -1
+    return perception.from_depth(
+        sf.depth, seq.camera, stamp=sf.stamp, T_world_cam=seq.T_world_cam, mask=mask,
+        hypotheses=hypotheses,
+    )  # fmt: skip
 
 
 def _close(h, cls: str, T_gt: np.ndarray, symmetry) -> bool:
