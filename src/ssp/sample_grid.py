@@ -6,7 +6,11 @@ nearest-neighbour queries per step, always against the same model samples in the
 ``reach`` of the samples holds its centre's nearest sample and that distance.
 
 * :meth:`SampleGrid.nearest` is approximate: a query takes the nearest sample of its voxel's
-  centre, at most ``voxel * sqrt(3) / 2`` closer to it than the true nearest sample.
+  centre, at most a voxel diagonal (``voxel * sqrt(3)``) farther from it than the true nearest
+  sample. A grid built with normals also holds each voxel's nearest sample of six normal
+  directions, and ``nearest(q, keep)`` returns the nearest kept (facing) one of them: the two
+  faces of a thin part never share a direction, so a point on the seen face is not matched to
+  the hidden one.
 * :meth:`SampleGrid.within` is exact: the centre's distance bounds the query's to within that
   half-diagonal, and only queries in the uncertain band go to the KD-tree.
 """
