@@ -13,9 +13,6 @@ import numba
 __all__ = ["njit"]
 
 
-def njit(function: Callable | None = None, **options) -> Callable:
-    """``numba.njit`` with the cache on (``@njit`` or ``@njit(cache=..., ...)``)."""
-    options.setdefault("cache", True)
-    if function is None:
-        return numba.njit(**options)
-    return numba.njit(**options)(function)
+def njit(function: Callable) -> Callable:
+    """``@njit``: ``numba.njit(cache=True)`` of ``function``."""
+    return numba.njit(cache=True)(function)

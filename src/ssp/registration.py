@@ -217,7 +217,7 @@ def grid_icp(
     )
 
 
-@njit(cache=True)
+@njit
 def _grid_icp(pts, nrm, bins, bin_index, lo, inv_voxel, shape, T_init, seg, cam, use_cam, max2,
               iterations, min_pairs, tol2):  # fmt: skip
     """:func:`grid_icp`, compiled (the grid as its samples' ``bins``, ``bin_index``, ``lo``,
@@ -259,7 +259,7 @@ def _grid_icp(pts, nrm, bins, bin_index, lo, inv_voxel, shape, T_init, seg, cam,
             if cell < 0:
                 continue
             j = miss
-            best = max2
+            best = np.inf
             for bb in range(n_bins):  # the nearest facing of the directions' nearest samples
                 if not live[bb]:
                     continue
@@ -268,10 +268,10 @@ def _grid_icp(pts, nrm, bins, bin_index, lo, inv_voxel, shape, T_init, seg, cam,
                     continue
                 f0, f1, f2 = q0 - pts[c, 0], q1 - pts[c, 1], q2 - pts[c, 2]
                 d2 = f0 * f0 + f1 * f1 + f2 * f2
-                if d2 < best or (j == miss and d2 <= best):
+                if d2 < best:  # the first of equals
                     best = d2
                     j = c
-            if j == miss:
+            if best > max2:
                 continue
             p0, p1, p2 = pts[j, 0], pts[j, 1], pts[j, 2]
             e0, e1, e2 = q0 - p0, q1 - p1, q2 - p2

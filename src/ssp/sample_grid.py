@@ -171,7 +171,7 @@ class SampleGrid:
         return inside
 
 
-@njit(cache=True)
+@njit
 def posed_cell(R, t, x, y, z, lo, inv_voxel, shape):
     """``(flat, q0, q1, q2)``: the point ``(x, y, z)`` moved into a grid's frame, ``q = R^T
     ((x, y, z) - t)``, and the flat index of its voxel (-1 outside the grid: corner ``lo``,
@@ -189,7 +189,7 @@ def posed_cell(R, t, x, y, z, lo, inv_voxel, shape):
     return (i0 * shape[1] + i1) * shape[2] + i2, q0, q1, q2
 
 
-@njit(cache=True)
+@njit
 def _within_kernel(q, R, t, distance, lo, inv_voxel, shape, sure, maybe):
     """Per query of ``q (N, 3)`` moved into the grid's frame (``R^T (q - t)``): 1 when its
     voxel centre's distance is at most ``sure``, 2 when at most ``maybe``, else 0."""
@@ -206,7 +206,7 @@ def _within_kernel(q, R, t, distance, lo, inv_voxel, shape, sure, maybe):
     return out
 
 
-@njit(cache=True)
+@njit
 def _fill(points, lo, voxel, shape, bound):
     """Per voxel of the grid (corner ``lo``, side ``voxel``, ``shape``), flat: the index of
     the sample nearest to its centre (the first of equals) and that distance, for centres

@@ -89,7 +89,7 @@ def voxel_thin(points: np.ndarray, voxel: float) -> np.ndarray:
     return np.sort(first)
 
 
-@njit(cache=True)
+@njit
 def _features(points, normals, first, second, dist_step, angle_step):
     """Quantised point-pair features of the oriented pairs ``(first[k], second[k])`` of
     ``points, normals (P, 3)`` (m, unit normals), compiled (scene and model pairs both go
@@ -129,7 +129,7 @@ def _features(points, normals, first, second, dist_step, angle_step):
     return keys, coplanar, dist
 
 
-@njit(cache=True)
+@njit
 def _pair_poses(scene_p, scene_n, a, b, model_p, model_n, mi, mj):
     """Poses ``R (K, 3, 3)``, ``t (K, 3)`` mapping model pair ``(mi[k], mj[k])`` onto scene
     pair ``(a[k], b[k])``, compiled: each pair's frame has its origin at the first point, x
@@ -154,7 +154,7 @@ def _pair_poses(scene_p, scene_n, a, b, model_p, model_n, mi, mj):
     return R, t
 
 
-@njit(cache=True)
+@njit
 def _pair_frame(p, n, i, j, F):
     """The rotation ``F (3, 3)`` (columns x, y, z) of the oriented pair ``(i, j)`` of ``p, n``:
     x = the unit normal of ``i``, y toward ``j`` orthogonal to x."""
@@ -327,7 +327,7 @@ def _coarse_hits(R, t, cp, cn, cam, occ: _Occupancy) -> tuple[np.ndarray, np.nda
     )
 
 
-@njit(cache=True)
+@njit
 def _coarse_kernel(R, t, cp, cn, cam, use_cam, grid, lo, inv_voxel, shape):
     """:func:`_coarse_hits`, compiled: per pose, the samples facing ``cam`` (``n . (R^T (cam -
     t)) > n . p``, all unless ``use_cam``) and those of them in an occupied voxel of ``grid``
