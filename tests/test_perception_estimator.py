@@ -444,3 +444,30 @@ def test_a_segment_larger_than_every_model_says_so(lib):
     pts = np.column_stack([pts, np.full(len(pts), 0.05)])  # a 60 cm plate
     res = est.estimate(pts, np.tile([0.0, 0.0, 1.0], (len(pts), 1)), ["cube"], single_object=True)
     assert not res.objects and res.stopped.startswith("larger than every candidate class")
+
+
+def test_estimating_compiles_nothing_beyond_compile_kernels(lib, scene):
+    """Every kernel call uses the argument types that :func:`compile_kernels` compiles (and
+    ``make install`` caches): a camera position or a segment that is a strided view, float32
+    or a list must not make numba compile another specialisation in the middle of a run."""
+    from ssp import registration, sample_grid
+    from ssp.perception import estimator
+
+    estimator.compile_kernels()
+    kernels = [
+        estimator._features, estimator._pair_poses, estimator._pair_frame,
+        estimator._coarse_kernel, registration._grid_icp, sample_grid._fill,
+        sample_grid._within_kernel, sample_grid.posed_cell,
+    ]  # fmt: skip
+    before = [len(k.signatures) for k in kernels]
+    seg = _segment(scene, 1)
+    nrm = estimate_normals(seg, viewpoint=T_WC[:3, 3])
+    est = HypothesisEstimator(lib)
+    for points, normals, camera in (
+        (seg, nrm, T_WC[:3, 3]),  # a column of the camera pose: strided
+        (np.asfortranarray(seg), np.asfortranarray(nrm), list(T_WC[:3, 3])),
+        (seg.astype(np.float32), nrm.astype(np.float32), T_WC[:3, 3].astype(np.float32)),
+    ):
+        res = est.estimate(points, normals, ["cube", "block"], camera, single_object=True)
+        assert res.objects and res.objects[0]
+    assert [len(k.signatures) for k in kernels] == before

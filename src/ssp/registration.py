@@ -208,7 +208,7 @@ def grid_icp(
         grid.shape,
         T,
         np.ascontiguousarray(seg),
-        np.zeros(3) if camera is None else np.asarray(camera, dtype=float),
+        np.zeros(3) if camera is None else np.ascontiguousarray(camera, dtype=float),
         camera is not None,
         float(max_distance) ** 2,
         int(iterations),

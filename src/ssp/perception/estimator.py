@@ -318,7 +318,7 @@ def _coarse_hits(R, t, cp, cn, cam, occ: _Occupancy) -> tuple[np.ndarray, np.nda
         np.ascontiguousarray(t, dtype=float),
         np.ascontiguousarray(cp, dtype=float),
         np.ascontiguousarray(cn, dtype=float),
-        np.zeros(3) if cam is None else np.asarray(cam, dtype=float),
+        np.zeros(3) if cam is None else np.ascontiguousarray(cam, dtype=float),
         cam is not None,
         occ.grid.ravel(),
         occ.lo,
