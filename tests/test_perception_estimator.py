@@ -221,6 +221,32 @@ def test_model_frame_icp_is_point_to_plane_gauss_newton(lib, scene):
     )  # fmt: skip
 
 
+@pytest.mark.parametrize("max_distance", [0.002, 0.004, 0.03])
+def test_exact_icp_matches_are_the_kd_trees(lib, scene, monkeypatch, max_distance):
+    """The compiled ICP's cell search finds each point's nearest facing sample exactly: with
+    a cut-off below the sample spacing (about 3 mm), near it and far above it, and with its
+    cells grown until at most 8 cover the model, it gives the reference's pose (scipy's
+    tree)."""
+    from ssp import registration
+    from ssp.registration import even_rows, point_to_plane_icp
+
+    model = lib["cube"]
+    T_gt = scene[0]["cube_a"][1]
+    seg = _segment(scene, 0)
+    T0 = T_gt.copy()
+    T0[:3, :3] = Rotation.from_rotvec([-0.03, 0.05, 0.02]).as_matrix() @ T0[:3, :3]
+    T0[:3, 3] += [-0.002, 0.003, 0.001]
+    cam = T_WC[:3, 3]
+    pts, nrm = even_rows(600, np.asarray(model.surface_points), np.asarray(model.surface_normals))
+    ref = _world_frame_icp(pts, nrm, T0, seg, cam, max_distance, 6, 800)
+    for cells in (registration.MAX_CELLS, 8):
+        monkeypatch.setattr(registration, "MAX_CELLS", cells)  # read at each call
+        ours = point_to_plane_icp(
+            pts, nrm, T0, seg, cam, max_distance=max_distance, iterations=6, n_points=800
+        )
+        np.testing.assert_allclose(ours, ref, atol=1e-9)
+
+
 @pytest.mark.parametrize("k, cls", [(0, "cube"), (1, "block")])
 def test_single_object_pose_and_class(lib, scene, k, cls):
     gt = scene[0]
@@ -452,15 +478,19 @@ def test_estimating_compiles_nothing_beyond_compile_kernels(lib, scene):
     or a list must not make numba compile another specialisation in the middle of a run."""
     from ssp import registration, sample_grid
     from ssp.perception import estimator
+    from ssp.registration import icp_refine
 
     estimator.compile_kernels()
     kernels = [
         estimator._features, estimator._pair_poses, estimator._pair_frame,
-        estimator._coarse_kernel, registration._grid_icp, sample_grid._fill,
+        estimator._coarse_kernel, registration._grid_icp, registration._exact_icp,
+        registration._facing, registration._gauss_newton_step, registration._accumulate,
+        sample_grid._fill,
         sample_grid._within_kernel, sample_grid.posed_cell,
     ]  # fmt: skip
     before = [len(k.signatures) for k in kernels]
     seg = _segment(scene, 1)
+    T_gt = scene[0]["block_b"][1]
     nrm = estimate_normals(seg, viewpoint=T_WC[:3, 3])
     est = HypothesisEstimator(lib)
     for points, normals, camera in (
@@ -470,4 +500,10 @@ def test_estimating_compiles_nothing_beyond_compile_kernels(lib, scene):
     ):
         res = est.estimate(points, normals, ["cube", "block"], camera, single_object=True)
         assert res.objects and res.objects[0]
+    # the exact ICP (the parser's polish): read-only model samples and segment, strided camera
+    model = lib["block"]
+    frozen = seg.copy()
+    frozen.flags.writeable = False
+    icp_refine(model, T_gt, frozen, T_WC[:3, 3], max_distance=0.01, iterations=3)
+    icp_refine(model, T_gt, seg[::2], list(T_WC[:3, 3]), max_distance=0.01, iterations=3)
     assert [len(k.signatures) for k in kernels] == before

@@ -63,6 +63,7 @@ from ssp.library.symmetry import Symmetry
 from ssp.physics import World
 from ssp.polish import polish
 from ssp.probability import pose_change
+from ssp.registration import load_kernels
 from ssp.retention import REMOVABLE, Triage, support_retained, triage
 from ssp.scene import Frame, FrameError, Hypothesis, TransitionMode
 from ssp.scoring import SceneScore, SceneScorer
@@ -212,6 +213,7 @@ class SceneParser:
         self._last_stamp: float | None = None
         self._world: World | None = None
         self._world_key: tuple[tuple[str, str], ...] | None = None
+        load_kernels()  # the polish's compiled ICP, loaded here rather than in the first frame
 
     def __repr__(self) -> str:
         return f"SceneParser({len(self._known)} objects, {self._frame_index} frames)"

@@ -11,11 +11,13 @@ import math
 import numpy as np
 
 from ssp.jit import njit
-from ssp.kdtree import KDTree
 from ssp.library.model import ObjectModel
 from ssp.sample_grid import SampleGrid, posed_cell
 
-__all__ = ["even_rows", "facing_mask", "grid_icp", "icp_refine", "point_to_plane_icp"]
+__all__ = [
+    "even_rows", "facing_mask", "grid_icp", "icp_refine", "kernel_array", "load_kernels",
+    "point_to_plane_icp",
+]  # fmt: skip
 
 
 def even_rows(n_max: int, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -25,6 +27,21 @@ def even_rows(n_max: int, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
         return arrays
     sel = np.linspace(0, n - 1, n_max).astype(int)
     return tuple(a[sel] for a in arrays)
+
+
+def kernel_array(a) -> np.ndarray:
+    """``a`` as float64, C-contiguous and writeable (copied if it is not): the one array type
+    the compiled kernels are compiled for. A strided or read-only array would make numba
+    compile another specialisation, seconds in the middle of a run."""
+    return np.require(a, np.float64, ("C", "W"))
+
+
+def load_kernels() -> None:
+    """Compile :func:`point_to_plane_icp`'s kernel, or load it from numba's cache (some 0.2 s;
+    :class:`ssp.parser.SceneParser` does it when built, not in its first frame)."""
+    p = np.eye(3) * 0.01
+    point_to_plane_icp(p, np.eye(3), np.eye(4), p, None, max_distance=0.01, iterations=1,
+                       n_points=3, min_pairs=1)  # fmt: skip
 
 
 def facing_mask(
@@ -84,25 +101,6 @@ def icp_refine(
     )
 
 
-def _rotvec_matrix(w: np.ndarray) -> np.ndarray:
-    """Rotation matrix ``(3, 3)`` of the rotation vector ``w (3,)`` (rad; Rodrigues, in
-    scalars: it runs once per ICP step)."""
-    x, y, z = float(w[0]), float(w[1]), float(w[2])
-    theta = math.sqrt(x * x + y * y + z * z)
-    if theta < 1e-12:
-        return np.eye(3)
-    x, y, z = x / theta, y / theta, z / theta
-    s, c = math.sin(theta), math.cos(theta)
-    C = 1.0 - c
-    return np.array(
-        [
-            [c + x * x * C, x * y * C - z * s, x * z * C + y * s],
-            [y * x * C + z * s, c + y * y * C, y * z * C - x * s],
-            [z * x * C - y * s, z * y * C + x * s, c + z * z * C],
-        ]
-    )
-
-
 def point_to_plane_icp(
     pts: np.ndarray,
     nrm: np.ndarray,
@@ -118,53 +116,226 @@ def point_to_plane_icp(
 ) -> np.ndarray:
     """Point-to-plane ICP of model samples ``pts, nrm (S, 3)`` (model frame) onto ``segment
     (K, 3)`` (world, m), from ``T_init`` (4, 4): correspondences from at most ``n_points``
-    segment points to the samples facing the camera at ``T_init`` within ``max_distance``
-    (m), damped Gauss-Newton steps about the pairs' centroid, at most ``iterations``, until a
-    step moves less than 1 um and 1 urad. Returns ``T_world_obj (4, 4)`` (``T_init`` when
-    there are fewer than ``min_pairs`` pairs).
+    segment points, evenly spaced, to the nearest sample facing the camera at ``T_init``
+    within ``max_distance`` (m, exact), damped Gauss-Newton steps about the pairs' centroid,
+    at most ``iterations``, until a step moves less than ``tolerance`` (m and rad). Returns
+    ``T_world_obj (4, 4)`` (``T_init`` when there are fewer than ``min_pairs`` pairs).
 
     Solved in the model frame, so the samples never move: a pair's Jacobian row
     ``((p - c) x n, n)`` is ``G M`` with the per-sample constants ``G = (p x n, n)`` and a
-    ``6 x 6`` matrix ``M`` of the centroid ``c``, so each step gathers ``G`` and forms ``G^T G``.
+    ``6 x 6`` matrix ``M`` of the centroid ``c``, so each step accumulates ``G^T G``.
+    Compiled (:func:`_exact_icp`): the facing samples are binned in cubic cells of side
+    ``max_distance`` once, and each point searches the 27 cells around its own, which hold
+    every sample within ``max_distance`` of it (2.6x faster than a KD-tree and numpy's
+    algebra per step, measured on the built-in models).
     """
     T = np.array(T_init, dtype=float)
     seg = np.asarray(segment, dtype=float).reshape(-1, 3)
     if len(seg) < min_pairs:
         return T
     (seg,) = even_rows(n_points, seg)
-    keep = facing_mask(pts @ T[:3, :3].T + T[:3, 3], nrm @ T[:3, :3].T, camera)
-    pts, nrm = pts[keep], nrm[keep]
-    if len(pts) < 3:
-        return T
-    tree = KDTree(np.ascontiguousarray(pts))
-    # per sample: p x n, n, p, p.n; then a zero row, which the misses (index len(pts)) gather
-    Z = np.zeros((len(pts) + 1, 10))
-    Z[:-1, :3], Z[:-1, 3:6], Z[:-1, 6:9] = np.cross(pts, nrm), nrm, pts
-    Z[:-1, 9] = (pts * nrm).sum(1)
+    return _exact_icp(
+        kernel_array(pts),
+        kernel_array(nrm),
+        T,
+        kernel_array(seg),
+        np.zeros(3) if camera is None else kernel_array(camera),
+        camera is not None,
+        float(max_distance),
+        int(iterations),
+        int(min_pairs),
+        float(tolerance) ** 2,
+        MAX_CELLS,
+    )
+
+
+#: :func:`_exact_icp` bins its samples in at most this many cells (larger cells beyond).
+MAX_CELLS = 1 << 18
+
+
+@njit
+def _facing(pts, nrm, T, cam, use_cam):
+    """Mask ``(S,)`` of the samples ``pts, nrm`` (model frame) facing ``cam`` (world) at pose
+    ``T``: ``n . (R^T (cam - t) - p) > 0``; all when not ``use_cam``."""
+    keep = np.ones(pts.shape[0], dtype=np.bool_)
+    if use_cam:
+        d = cam - T[:3, 3]
+        lc = np.zeros(3)
+        for a in range(3):
+            lc[a] = T[0, a] * d[0] + T[1, a] * d[1] + T[2, a] * d[2]
+        for j in range(pts.shape[0]):
+            keep[j] = (
+                nrm[j, 0] * (lc[0] - pts[j, 0])
+                + nrm[j, 1] * (lc[1] - pts[j, 1])
+                + nrm[j, 2] * (lc[2] - pts[j, 2])
+                > 0.0
+            )
+    return keep
+
+
+@njit
+def _gauss_newton_step(T, GtG, Gtb, csum, m, tol2):
+    """One damped Gauss-Newton step of the point-to-plane cost from the upper triangle of
+    ``G^T G (6, 6)``, ``G^T b (6,)`` and the sum of the ``m`` matched samples ``csum (3,)``
+    (model frame), about their centroid: ``T <- T [Rd, c - Rd c + v]``, in place. Returns
+    whether the step moved less than ``sqrt(tol2)`` (m and rad)."""
+    for r in range(6):
+        for q in range(r):
+            GtG[r, q] = GtG[q, r]
+    cx, cy, cz = csum[0] / m, csum[1] / m, csum[2] / m
+    # (p - c) x n = p x n + n [c]_x:  M = [[I, 0], [[c]_x, I]]
     M = np.eye(6)
-    tol2 = float(tolerance) ** 2
-    for _ in range(int(iterations)):
-        R, t = T[:3, :3], T[:3, 3]
-        q = (seg - t) @ R  # the segment in the model frame
-        _, idx = tree.query(q, k=1, distance_upper_bound=max_distance)
-        m = int(np.count_nonzero(idx < len(pts)))
+    M[3, 1], M[3, 2] = -cz, cy
+    M[4, 0], M[4, 2] = cz, -cx
+    M[5, 0], M[5, 1] = -cy, cx
+    H = M.T @ GtG @ M
+    damp = 1e-6 * np.trace(H) / 6.0 + 1e-12
+    for r in range(6):
+        H[r, r] += damp
+    x = np.linalg.solve(H, M.T @ Gtb)
+    w0, w1, w2, v0, v1, v2 = x[0], x[1], x[2], x[3], x[4], x[5]
+    theta = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+    Rd = np.eye(3)
+    if theta >= 1e-12:  # Rodrigues
+        ux, uy, uz = w0 / theta, w1 / theta, w2 / theta
+        s, co = math.sin(theta), math.cos(theta)
+        C = 1.0 - co
+        Rd[0, 0], Rd[0, 1], Rd[0, 2] = co + ux * ux * C, ux * uy * C - uz * s, ux * uz * C + uy * s
+        Rd[1, 0], Rd[1, 1], Rd[1, 2] = uy * ux * C + uz * s, co + uy * uy * C, uy * uz * C - ux * s
+        Rd[2, 0], Rd[2, 1], Rd[2, 2] = uz * ux * C - uy * s, uz * uy * C + ux * s, co + uz * uz * C
+    R = T[:3, :3].copy()
+    t = T[:3, 3].copy()
+    cen = np.array([cx, cy, cz])
+    shift = cen - Rd @ cen + np.array([v0, v1, v2])
+    T[:3, 3] = t + R @ shift
+    T[:3, :3] = R @ Rd
+    return v0 * v0 + v1 * v1 + v2 * v2 < tol2 and theta * theta < tol2
+
+
+@njit
+def _accumulate(GtG, Gtb, csum, p0, p1, p2, a0, a1, a2, e0, e1, e2):
+    """Add the pair of sample ``p`` (normal ``a``) and point ``p + e`` (model frame) to the
+    upper triangle of ``G^T G``, ``G^T b`` and the samples' sum (the row ``g = (p x a, a)``,
+    ``b = a . e``)."""
+    g0, g1, g2 = p1 * a2 - p2 * a1, p2 * a0 - p0 * a2, p0 * a1 - p1 * a0
+    g = (g0, g1, g2, a0, a1, a2)
+    b = a0 * e0 + a1 * e1 + a2 * e2
+    for r in range(6):
+        Gtb[r] += g[r] * b
+        for q in range(r, 6):
+            GtG[r, q] += g[r] * g[q]
+    csum[0] += p0
+    csum[1] += p1
+    csum[2] += p2
+
+
+@njit
+def _exact_icp(pts, nrm, T_init, seg, cam, use_cam, max_distance, iterations, min_pairs, tol2,
+               max_cells):  # fmt: skip
+    """:func:`point_to_plane_icp`, compiled. The samples facing ``cam`` at ``T_init`` are
+    sorted into cubic cells of side ``h >= max_distance`` (doubled until at most
+    ``max_cells`` cover them; a counting sort). A point's nearest
+    facing sample within ``max_distance`` (the first of equals) lies in the 27 cells around
+    the point's own; the search starts from the point's match of the last step and skips the
+    cells farther than the nearest found so far."""
+    T = T_init.copy()
+    keep = _facing(pts, nrm, T, cam, use_cam)
+    live = np.flatnonzero(keep)
+    if live.shape[0] < 3:
+        return T
+    lo = np.empty(3)
+    hi = np.empty(3)
+    for a in range(3):
+        lo[a] = pts[live, a].min()
+        hi[a] = pts[live, a].max()
+    h = max_distance
+    dims = np.empty(3, dtype=np.int64)
+    while True:
+        for a in range(3):
+            dims[a] = int((hi[a] - lo[a]) / h) + 1
+        if dims[0] * dims[1] * dims[2] <= max_cells:
+            break
+        h *= 2.0
+    inv_h = 1.0 / h
+    n_cells = dims[0] * dims[1] * dims[2]
+    cell_of = np.empty(live.shape[0], dtype=np.int64)
+    start = np.zeros(n_cells + 1, dtype=np.int64)
+    for k in range(live.shape[0]):
+        j = live[k]
+        c0 = min(int((pts[j, 0] - lo[0]) * inv_h), dims[0] - 1)
+        c1 = min(int((pts[j, 1] - lo[1]) * inv_h), dims[1] - 1)
+        c2 = min(int((pts[j, 2] - lo[2]) * inv_h), dims[2] - 1)
+        cell_of[k] = (c0 * dims[1] + c1) * dims[2] + c2
+        start[cell_of[k] + 1] += 1
+    for c in range(n_cells):
+        start[c + 1] += start[c]
+    order = np.empty(live.shape[0], dtype=np.int64)
+    fill = start[:-1].copy()
+    for k in range(live.shape[0]):
+        order[fill[cell_of[k]]] = live[k]
+        fill[cell_of[k]] += 1
+    max2 = max_distance * max_distance
+    h2 = h * h
+    prev = np.full(seg.shape[0], -1, dtype=np.int64)  # each point's match of the last step
+    GtG = np.zeros((6, 6))
+    Gtb = np.zeros(6)
+    csum = np.zeros(3)
+    for _ in range(iterations):
+        R = T[:3, :3].copy()
+        t = T[:3, 3].copy()
+        GtG[:] = 0.0
+        Gtb[:] = 0.0
+        csum[:] = 0.0
+        m = 0
+        for k in range(seg.shape[0]):
+            # the point in the model frame, R^T (s - t), and its cell (fractional)
+            d0, d1, d2 = seg[k, 0] - t[0], seg[k, 1] - t[1], seg[k, 2] - t[2]
+            q0 = R[0, 0] * d0 + R[1, 0] * d1 + R[2, 0] * d2
+            q1 = R[0, 1] * d0 + R[1, 1] * d1 + R[2, 1] * d2
+            q2 = R[0, 2] * d0 + R[1, 2] * d1 + R[2, 2] * d2
+            w0, w1, w2 = (q0 - lo[0]) * inv_h, (q1 - lo[1]) * inv_h, (q2 - lo[2]) * inv_h
+            f0, f1, f2 = math.floor(w0), math.floor(w1), math.floor(w2)
+            if f0 < -1 or f1 < -1 or f2 < -1:
+                continue  # no sample within h
+            if f0 > dims[0] or f1 > dims[1] or f2 > dims[2]:
+                continue
+            i0, i1, i2 = int(f0), int(f1), int(f2)
+            r0, r1, r2 = w0 - f0, w1 - f1, w2 - f2  # where in its cell, 0 to 1
+            best = max2
+            j = -1
+            c = prev[k]
+            if c >= 0:
+                e0, e1, e2 = q0 - pts[c, 0], q1 - pts[c, 1], q2 - pts[c, 2]
+                dd = e0 * e0 + e1 * e1 + e2 * e2
+                if dd <= max2:
+                    best = dd
+                    j = c
+            for x in range(max(i0 - 1, 0), min(i0 + 2, dims[0])):
+                g0 = 0.0 if x == i0 else (1.0 - r0 if x > i0 else r0)
+                for y in range(max(i1 - 1, 0), min(i1 + 2, dims[1])):
+                    g1 = 0.0 if y == i1 else (1.0 - r1 if y > i1 else r1)
+                    for z in range(max(i2 - 1, 0), min(i2 + 2, dims[2])):
+                        g2 = 0.0 if z == i2 else (1.0 - r2 if z > i2 else r2)
+                        if (g0 * g0 + g1 * g1 + g2 * g2) * h2 > best:
+                            continue  # the whole cell is farther than the nearest so far
+                        cell = (x * dims[1] + y) * dims[2] + z
+                        for u in range(start[cell], start[cell + 1]):
+                            c = order[u]
+                            e0, e1, e2 = q0 - pts[c, 0], q1 - pts[c, 1], q2 - pts[c, 2]
+                            dd = e0 * e0 + e1 * e1 + e2 * e2
+                            if dd < best or (dd == best and j >= 0 and c < j):
+                                best = dd
+                                j = c
+            prev[k] = j
+            if j < 0:
+                continue
+            _accumulate(GtG, Gtb, csum, pts[j, 0], pts[j, 1], pts[j, 2],
+                        nrm[j, 0], nrm[j, 1], nrm[j, 2],
+                        q0 - pts[j, 0], q1 - pts[j, 1], q2 - pts[j, 2])  # fmt: skip
+            m += 1
         if m < min_pairs:
             break
-        z = Z[idx]  # misses are zero rows: they add nothing below
-        G, n = z[:, :6], z[:, 3:6]
-        c = (np.ones(len(z)) @ z[:, 6:9]) / m  # centroid of the matched samples
-        b = np.einsum("ij,ij->i", q, n) - z[:, 9]  # n . (q - p)
-        # (p - c) x n = p x n - c x n = p x n + n [c]_x:  M = [[I, 0], [[c]_x, I]]
-        M[3:, :3] = [[0.0, -c[2], c[1]], [c[2], 0.0, -c[0]], [-c[1], c[0], 0.0]]
-        H = M.T @ (G.T @ G) @ M
-        H.flat[::7] += 1e-6 * np.trace(H) / 6.0 + 1e-12
-        x = np.linalg.solve(H, M.T @ (G.T @ b))
-        omega, v = x[:3], x[3:]
-        Rd = _rotvec_matrix(omega)
-        # about the pairs' centroid, then shifted (model frame): T <- T [Rd, c - Rd c + v]
-        T[:3, 3] += R @ (c - Rd @ c + v)
-        T[:3, :3] = R @ Rd
-        if v @ v < tol2 and omega @ omega < tol2:  # moved less than the tolerance
+        if _gauss_newton_step(T, GtG, Gtb, csum, m, tol2):
             break
     return T
 
@@ -207,8 +378,8 @@ def grid_icp(
         1.0 / grid.voxel,
         grid.shape,
         T,
-        np.ascontiguousarray(seg),
-        np.zeros(3) if camera is None else np.ascontiguousarray(camera, dtype=float),
+        kernel_array(seg),
+        np.zeros(3) if camera is None else kernel_array(camera),
         camera is not None,
         float(max_distance) ** 2,
         int(iterations),
@@ -225,19 +396,7 @@ def _grid_icp(pts, nrm, bins, bin_index, lo, inv_voxel, shape, T_init, seg, cam,
     accumulates ``G^T G``, ``G^T b`` and the matched samples' sum."""
     T = T_init.copy()
     miss = pts.shape[0]
-    R = T[:3, :3].copy()
-    t = T[:3, 3].copy()
-    # the samples facing the camera at T_init: n . (R^T (cam - t)) > n . p
-    keep = np.ones(miss, dtype=np.bool_)
-    if use_cam:
-        lc = R.T @ (cam - t)
-        for j in range(miss):
-            keep[j] = (
-                nrm[j, 0] * (lc[0] - pts[j, 0])
-                + nrm[j, 1] * (lc[1] - pts[j, 1])
-                + nrm[j, 2] * (lc[2] - pts[j, 2])
-                > 0.0
-            )
+    keep = _facing(pts, nrm, T, cam, use_cam)
     if keep.sum() < 3:
         return T
     n_bins = bin_index.shape[1]
@@ -245,13 +404,15 @@ def _grid_icp(pts, nrm, bins, bin_index, lo, inv_voxel, shape, T_init, seg, cam,
     for j in range(miss):
         if keep[j]:
             live[bins[j]] = True
+    GtG = np.zeros((6, 6))
+    Gtb = np.zeros(6)
+    csum = np.zeros(3)
     for _ in range(iterations):
         R = T[:3, :3].copy()
         t = T[:3, 3].copy()
-        GtG = np.zeros((6, 6))
-        Gtb = np.zeros(6)
-        csum = np.zeros(3)
-        g = np.zeros(6)
+        GtG[:] = 0.0
+        Gtb[:] = 0.0
+        csum[:] = 0.0
         m = 0
         for k in range(seg.shape[0]):
             cell, q0, q1, q2 = posed_cell(R, t, seg[k, 0], seg[k, 1], seg[k, 2], lo,
@@ -273,61 +434,12 @@ def _grid_icp(pts, nrm, bins, bin_index, lo, inv_voxel, shape, T_init, seg, cam,
                     j = c
             if best > max2:
                 continue
-            p0, p1, p2 = pts[j, 0], pts[j, 1], pts[j, 2]
-            e0, e1, e2 = q0 - p0, q1 - p1, q2 - p2
-            a0, a1, a2 = nrm[j, 0], nrm[j, 1], nrm[j, 2]
-            g[0], g[1], g[2] = p1 * a2 - p2 * a1, p2 * a0 - p0 * a2, p0 * a1 - p1 * a0
-            g[3], g[4], g[5] = a0, a1, a2
-            b = a0 * e0 + a1 * e1 + a2 * e2  # n . (q - p)
-            for r in range(6):
-                Gtb[r] += g[r] * b
-                for q in range(r, 6):
-                    GtG[r, q] += g[r] * g[q]
-            csum[0] += p0
-            csum[1] += p1
-            csum[2] += p2
+            _accumulate(GtG, Gtb, csum, pts[j, 0], pts[j, 1], pts[j, 2],
+                        nrm[j, 0], nrm[j, 1], nrm[j, 2],
+                        q0 - pts[j, 0], q1 - pts[j, 1], q2 - pts[j, 2])  # fmt: skip
             m += 1
         if m < min_pairs:
             break
-        for r in range(6):
-            for q in range(r):
-                GtG[r, q] = GtG[q, r]
-        cx, cy, cz = csum[0] / m, csum[1] / m, csum[2] / m
-        M = np.eye(6)
-        M[3, 1], M[3, 2] = -cz, cy
-        M[4, 0], M[4, 2] = cz, -cx
-        M[5, 0], M[5, 1] = -cy, cx
-        H = M.T @ GtG @ M
-        damp = 1e-6 * np.trace(H) / 6.0 + 1e-12
-        for r in range(6):
-            H[r, r] += damp
-        x = np.linalg.solve(H, M.T @ Gtb)
-        w0, w1, w2, v0, v1, v2 = x[0], x[1], x[2], x[3], x[4], x[5]
-        theta = math.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
-        Rd = np.eye(3)
-        if theta >= 1e-12:
-            ux, uy, uz = w0 / theta, w1 / theta, w2 / theta
-            s, co = math.sin(theta), math.cos(theta)
-            C = 1.0 - co
-            Rd[0, 0], Rd[0, 1], Rd[0, 2] = (
-                co + ux * ux * C,
-                ux * uy * C - uz * s,
-                ux * uz * C + uy * s,
-            )
-            Rd[1, 0], Rd[1, 1], Rd[1, 2] = (
-                uy * ux * C + uz * s,
-                co + uy * uy * C,
-                uy * uz * C - ux * s,
-            )
-            Rd[2, 0], Rd[2, 1], Rd[2, 2] = (
-                uz * ux * C - uy * s,
-                uz * uy * C + ux * s,
-                co + uz * uz * C,
-            )
-        cen = np.array([cx, cy, cz])
-        shift = cen - Rd @ cen + np.array([v0, v1, v2])
-        T[:3, 3] = t + R @ shift
-        T[:3, :3] = R @ Rd
-        if v0 * v0 + v1 * v1 + v2 * v2 < tol2 and theta * theta < tol2:
+        if _gauss_newton_step(T, GtG, Gtb, csum, m, tol2):
             break
     return T

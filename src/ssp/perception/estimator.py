@@ -49,7 +49,7 @@ from ssp.jit import njit
 from ssp.kdtree import KDTree
 from ssp.library.model import ObjectModel
 from ssp.perception.cleaning import robust_extent
-from ssp.registration import even_rows, facing_mask, grid_icp
+from ssp.registration import even_rows, facing_mask, grid_icp, kernel_array, load_kernels
 from ssp.sample_grid import SampleGrid
 from ssp.scene import Hypothesis
 
@@ -314,11 +314,11 @@ def _coarse_hits(R, t, cp, cn, cam, occ: _Occupancy) -> tuple[np.ndarray, np.nda
     if len(R) == 0 or len(cp) == 0:
         return np.zeros(len(R), dtype=np.int64), np.zeros(len(R), dtype=np.int64)
     return _coarse_kernel(
-        np.ascontiguousarray(R, dtype=float),
-        np.ascontiguousarray(t, dtype=float),
-        np.ascontiguousarray(cp, dtype=float),
-        np.ascontiguousarray(cn, dtype=float),
-        np.zeros(3) if cam is None else np.ascontiguousarray(cam, dtype=float),
+        kernel_array(R),
+        kernel_array(t),
+        kernel_array(cp),
+        kernel_array(cn),
+        np.zeros(3) if cam is None else kernel_array(cam),
         cam is not None,
         occ.grid.ravel(),
         occ.lo,
@@ -698,8 +698,9 @@ class HypothesisEstimator:
 
 
 def compile_kernels() -> None:
-    """Compile the estimator's kernels for the argument types it passes them, or load them
-    from numba's cache (``make install`` runs this once: a first compile takes some 30 s)."""
+    """Compile the estimator's kernels and the exact ICP's (:mod:`ssp.registration`) for the
+    argument types they are passed, or load them from numba's cache (``make install`` runs
+    this once: a first compile takes some 30 s)."""
     rng = np.random.default_rng(0)
     p = rng.normal(0.0, 0.02, (64, 3))
     n = p / np.linalg.norm(p, axis=1, keepdims=True)
@@ -711,6 +712,7 @@ def compile_kernels() -> None:
     grid = SampleGrid(p, _GRID_REACH, _GRID_VOXEL, normals=n)
     grid.within(p, 0.005, np.eye(4))
     grid_icp(grid, np.eye(4), p, np.ones(3), max_distance=0.012, iterations=2, n_points=50)
+    load_kernels()  # the exact ICP: the parser's polish and the icp baseline
 
 
 def _within(tree: KDTree, q: np.ndarray, radius: float) -> np.ndarray:
