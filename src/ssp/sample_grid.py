@@ -161,6 +161,7 @@ class SampleGrid:
         status = _within_kernel(
             q, np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]),
             self.distance, self.lo, 1.0 / self.voxel, self.shape, radius - band, radius + band,
+            self.points, self.index, self.bin_index, float(radius),
         )  # fmt: skip
         inside = status == 1
         unsure = np.flatnonzero(status == 2)
@@ -190,12 +191,16 @@ def posed_cell(R, t, x, y, z, lo, inv_voxel, shape):
 
 
 @njit
-def _within_kernel(q, R, t, distance, lo, inv_voxel, shape, sure, maybe):
+def _within_kernel(q, R, t, distance, lo, inv_voxel, shape, sure, maybe, points, index,
+                   bin_index, radius):  # fmt: skip
     """Per query of ``q (N, 3)`` moved into the grid's frame (``R^T (q - t)``): 1 when its
-    voxel centre's distance is at most ``sure``, 2 when at most ``maybe``, else 0."""
+    voxel centre's distance is at most ``sure`` or one of the voxel's stored samples (its
+    nearest, ``index``, and those of ``bin_index``'s directions) lies within ``radius`` of
+    it, else 2 when the centre's distance is at most ``maybe``, else 0."""
     out = np.zeros(q.shape[0], dtype=np.int8)
+    n_bins = bin_index.shape[1]
     for k in range(q.shape[0]):
-        cell, _, _, _ = posed_cell(R, t, q[k, 0], q[k, 1], q[k, 2], lo, inv_voxel, shape)
+        cell, q0, q1, q2 = posed_cell(R, t, q[k, 0], q[k, 1], q[k, 2], lo, inv_voxel, shape)
         if cell < 0:
             continue
         d = distance[cell]
@@ -203,6 +208,14 @@ def _within_kernel(q, R, t, distance, lo, inv_voxel, shape, sure, maybe):
             out[k] = 1
         elif d <= maybe:
             out[k] = 2
+            for b in range(-1, n_bins):  # the stored samples settle most of the band
+                j = index[cell] if b < 0 else bin_index[cell, b]
+                if j >= points.shape[0]:
+                    continue
+                e0, e1, e2 = q0 - points[j, 0], q1 - points[j, 1], q2 - points[j, 2]
+                if e0 * e0 + e1 * e1 + e2 * e2 <= radius * radius:
+                    out[k] = 1
+                    break
     return out
 
 
