@@ -21,6 +21,8 @@ Paper equations (``paper/ssp-paper.tex``, section "Scene Probability Formulation
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -250,11 +252,10 @@ def _angles_mod_axis(R_rel: np.ndarray, axis: np.ndarray | None) -> np.ndarray:
     """
     R = np.asarray(R_rel, dtype=float)
     if axis is None:
-        vee = np.stack(
-            [R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1
-        )
-        sin = np.sqrt((vee * vee).sum(axis=1))
-        cos = R[:, 0, 0] + R[:, 1, 1] + R[:, 2, 2] - 1.0
+        r = R.reshape(-1, 9).T  # rows: the matrices' entries 00, 01, ..., 22
+        v0, v1, v2 = r[7] - r[5], r[2] - r[6], r[3] - r[1]  # vee(R - R^T)
+        sin = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+        cos = r[0] + r[4] + r[8] - 1.0
         return np.arctan2(sin, cos)
     q = Rotation.from_matrix(R).as_quat()  # (k, 4), x y z w
     v, w = q[:, :3], q[:, 3]
@@ -293,9 +294,8 @@ def pose_change(
         dt = float(np.linalg.norm(T_cur[:3, 3] - T_prev[:3, 3]))
     else:
         c = np.asarray(centre, dtype=float)
-        dt = float(
-            np.linalg.norm(T_cur[:3, :3] @ c + T_cur[:3, 3] - T_prev[:3, :3] @ c - T_prev[:3, 3])
-        )
+        d = T_cur[:3, :3] @ c + T_cur[:3, 3] - T_prev[:3, :3] @ c - T_prev[:3, 3]
+        dt = math.sqrt(float(d @ d))  # np.linalg.norm's sum, without its overhead
     R_base = T_prev[:3, :3].T @ T_cur[:3, :3]
     if symmetry is None:
         return dt, float(_angles_mod_axis(R_base[None], None)[0])
