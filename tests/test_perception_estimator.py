@@ -507,3 +507,23 @@ def test_estimating_compiles_nothing_beyond_compile_kernels(lib, scene):
     icp_refine(model, T_gt, frozen, T_WC[:3, 3], max_distance=0.01, iterations=3)
     icp_refine(model, T_gt, seg[::2], list(T_WC[:3, 3]), max_distance=0.01, iterations=3)
     assert [len(k.signatures) for k in kernels] == before
+
+
+@pytest.mark.parametrize("voxel, dilate", [(0.004, 1), (0.003, 2), (0.005, 0)])
+def test_occupancy_is_the_dilated_voxel_grid(scene, voxel, dilate):
+    """The coarse score's occupancy grid is scipy's binary dilation (3^3 structure, `dilate`
+    iterations) of the segment's voxels."""
+    from scipy import ndimage
+
+    from ssp.perception.estimator import _Occupancy
+
+    p = _segment(scene, 2)
+    occ = _Occupancy(p, voxel, dilate)
+    idx = np.floor((p - occ.lo) / voxel).astype(np.int64)
+    grid = np.zeros(tuple(occ.shape), dtype=bool)
+    grid[idx[:, 0], idx[:, 1], idx[:, 2]] = True
+    if dilate:
+        grid = ndimage.binary_dilation(grid, np.ones((3, 3, 3), bool), iterations=dilate)
+    np.testing.assert_array_equal(occ.grid, grid)
+    n_voxels = len(np.unique(idx, axis=0))
+    assert (occ.grid.sum() > 2 * n_voxels) if dilate else (occ.grid.sum() == n_voxels)

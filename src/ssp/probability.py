@@ -22,7 +22,6 @@ Paper equations (``paper/ssp-paper.tex``, section "Scene Probability Formulation
 from __future__ import annotations
 
 import math
-
 from dataclasses import asdict, dataclass
 
 import numpy as np
