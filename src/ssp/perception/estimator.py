@@ -73,9 +73,10 @@ _GRID_VOXEL = 0.002
 _COARSE_SAMPLES = 96
 
 #: A class with more candidates is prescreened: every candidate is scored on a third of those
-#: samples, and only this many, the best of them, on all (twice the 40 x ``refine`` that
-#: refinement looks at; 1.3x less time on tool segments, the same recall, docs/perception.md).
-_PRESCREEN_KEEP = 400
+#: samples, and only this many, the best of them, on all (four times the 40 x ``refine`` that
+#: refinement looks at; 1.15x less time on tool segments, the same recall, docs/perception.md;
+#: 400 gave 1.3x but two fewer correct best-scored hypotheses on Table I's block segments).
+_PRESCREEN_KEEP = 800
 
 #: Occupied voxels of side v per v^2 of surface, averaged over orientations (about 1.3).
 _VOXEL_AREA_FACTOR = 1.3
