@@ -73,10 +73,11 @@ _GRID_VOXEL = 0.002
 _COARSE_SAMPLES = 96
 
 #: A class with more candidates is prescreened: every candidate is scored on a third of those
-#: samples, and only this many, the best of them, on all (three times the 40 x ``refine`` that
-#: refinement looks at; docs/perception.md: 400 lost two correct best-scored block
-#: hypotheses, 800 saved half as much time).
-_PRESCREEN_KEEP = 600
+#: samples, and only this many, the best of them, on all (four times the 40 x ``refine`` that
+#: refinement looks at). Fewer save more time but change what is refined: 400 lost two
+#: correct best-scored block hypotheses, and with 600 the parser's worst object of Table I's
+#: structures went from 10 to 20 mm (docs/perception.md).
+_PRESCREEN_KEEP = 800
 
 #: Occupied voxels of side v per v^2 of surface, averaged over orientations (about 1.3).
 _VOXEL_AREA_FACTOR = 1.3
