@@ -12,7 +12,8 @@ nearest-neighbour queries per step, always against the same model samples in the
   faces of a thin part never share a direction, so a point on the seen face is not matched to
   the hidden one.
 * :meth:`SampleGrid.within` is exact: the centre's distance bounds the query's to within that
-  half-diagonal, and only queries in the uncertain band go to the KD-tree.
+  half-diagonal; a query in that uncertain band is inside when one of its voxel's stored
+  samples is within the radius, and only the rest go to the KD-tree.
 """
 
 from __future__ import annotations
