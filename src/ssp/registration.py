@@ -10,13 +10,12 @@ import math
 
 import numpy as np
 
-from ssp.jit import njit
+from ssp.jit import kernel_array, njit
 from ssp.library.model import ObjectModel
 from ssp.sample_grid import SampleGrid, posed_cell
 
 __all__ = [
-    "even_rows", "facing_mask", "grid_icp", "icp_refine", "kernel_array", "load_kernels",
-    "point_to_plane_icp",
+    "even_rows", "facing_mask", "grid_icp", "icp_refine", "load_kernels", "point_to_plane_icp",
 ]  # fmt: skip
 
 
@@ -27,13 +26,6 @@ def even_rows(n_max: int, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
         return arrays
     sel = np.linspace(0, n - 1, n_max).astype(int)
     return tuple(a[sel] for a in arrays)
-
-
-def kernel_array(a) -> np.ndarray:
-    """``a`` as float64, C-contiguous and writeable (copied if it is not): the one array type
-    the compiled kernels are compiled for. A strided or read-only array would make numba
-    compile another specialisation, seconds in the middle of a run."""
-    return np.require(a, np.float64, ("C", "W"))
 
 
 def load_kernels() -> None:

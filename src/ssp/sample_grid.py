@@ -22,7 +22,7 @@ import math
 
 import numpy as np
 
-from ssp.jit import njit
+from ssp.jit import kernel_array, njit
 from ssp.kdtree import KDTree
 
 __all__ = ["N_BINS", "SampleGrid", "normal_bins", "posed_cell"]
@@ -107,7 +107,7 @@ class SampleGrid:
                 members = np.flatnonzero(self.bins == b)
                 if len(members) == 0:
                     continue
-                sub, _ = _fill(np.ascontiguousarray(self.points[members]), self.lo, self.voxel,
+                sub, _ = _fill(kernel_array(self.points[members]), self.lo, self.voxel,
                                shape, self.reach + self.half_diagonal)  # fmt: skip
                 found = sub < len(members)
                 self.bin_index[found, b] = members[sub[found]]
@@ -154,13 +154,13 @@ class SampleGrid:
         pose's parent frame (a model's samples at ``T_world_obj`` and world points)."""
         if radius > self.reach:
             raise ValueError(f"radius {radius} m is beyond the grid's reach {self.reach} m")
-        q = np.ascontiguousarray(q, dtype=float).reshape(-1, 3)
+        q = kernel_array(np.asarray(q, dtype=float).reshape(-1, 3))
         if len(q) == 0:
             return np.zeros(0, dtype=bool)
         T = np.eye(4) if T is None else np.asarray(T, dtype=float)
         band = self.half_diagonal + _ROUNDING
         status = _within_kernel(
-            q, np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]),
+            q, kernel_array(T[:3, :3]), kernel_array(T[:3, 3]),
             self.distance, self.lo, 1.0 / self.voxel, self.shape, radius - band, radius + band,
             self.points, self.index, self.bin_index, float(radius),
         )  # fmt: skip

@@ -44,11 +44,11 @@ import numpy as np
 
 from ssp.config import PerceptionConfig
 from ssp.errors import PerceptionError, UnknownObjectError
-from ssp.jit import njit
+from ssp.jit import kernel_array, njit
 from ssp.kdtree import KDTree
 from ssp.library.model import ObjectModel
 from ssp.perception.cleaning import robust_extent
-from ssp.registration import even_rows, facing_mask, grid_icp, kernel_array, load_kernels
+from ssp.registration import even_rows, facing_mask, grid_icp, load_kernels
 from ssp.sample_grid import SampleGrid
 from ssp.scene import Hypothesis
 
