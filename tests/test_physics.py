@@ -382,6 +382,72 @@ def test_disabled_object_quasi_static_is_exact(cube_model):
     assert np.array_equal(w.get_pose("c0"), T0)
 
 
+
+def _sleep_script(w: World) -> list[np.ndarray]:
+    """Poses after each stage of a sequence of enable/disable changes, steps and a restore."""
+    out = []
+    for i in range(3):  # a 3-cube stack, two cubes leaning on it, one floating
+        w.set_pose(f"c{i}", make_pose(rot([0, 0, 1], 5 * i), [0, 0, H / 2 + i * (H + 0.001)]))
+    w.set_pose("c3", make_pose(rot([0, 1, 0], 12), [0.052, 0, H / 2 + 0.004]))
+    w.set_pose("c4", make_pose(rot([1, 0, 0], 9), [0, 0.053, H / 2 + 0.003]))
+    w.set_pose("c5", make_pose(t=[0.3, 0, 0.2]))
+    w.set_enabled("c3", False)
+    w.set_enabled("c5", False)
+    w.step(25)
+    out.append(w.pose_array())
+    s = w.save_state()
+    w.set_enabled("c4", False)
+    w.step(10, quasi_static=False)
+    out.append(w.pose_array())
+    w.set_enabled("c3", True)  # woken: it now leans on the stack and moves
+    w.step(15)
+    out.append(w.pose_array())
+    w.set_enabled("c3", False)
+    w.set_enabled("c4", True)
+    w.contacts()
+    w.acceleration_from_rest()
+    w.step(12)
+    out.append(w.pose_array())
+    for i in range(6):
+        w.set_enabled(f"c{i}", True)
+    w.step(10)
+    out.append(w.pose_array())
+    w.restore_state(s)
+    w.step(20)
+    out.append(w.pose_array())
+    return out
+
+
+def test_disabled_objects_sleep_and_the_rest_moves_as_when_they_are_held(cube_model):
+    held = _sleep_script(cube_world(cube_model, 6, config=PhysicsConfig(sleep_disabled=False)))
+    w = cube_world(cube_model, 6)
+    slept = _sleep_script(w)
+    for a, b in zip(held, slept, strict=True):
+        assert np.array_equal(a, b)
+    assert not np.array_equal(held[1][3], held[2][3])  # c3 moved once enabled again
+    # after the restore c3 and c5 are disabled: MuJoCo skips them
+    assert list(w.data.tree_asleep[[3, 5]]) == [3, 5]
+    assert np.all(w.data.tree_asleep[[0, 1, 2, 4]] < 0) and w.data.nv_awake == 24
+    for i in range(6):
+        w.set_enabled(f"c{i}", True)
+    w.step(1)
+    assert w.data.nv_awake == 36 and np.all(w.data.tree_asleep < 0)
+
+
+def test_enabling_a_sleeping_object_restores_its_contacts_and_motion(cube_model):
+    w = cube_world(cube_model, 2)
+    w.set_pose("c1", make_pose(t=[0, 0, H / 2]))
+    w.set_pose("c0", make_pose(t=[0.2, 0, 0.1]))
+    w.set_enabled("c0", False)
+    w.step(5)
+    assert w.data.tree_asleep[0] == 0  # asleep
+    w.set_pose("c0", make_pose(t=[0, 0, 1.5 * H - 0.001]))  # into c1, while asleep
+    assert len(w.contacts().between(0, 1)) == 0
+    w.set_enabled("c0", True)
+    assert len(w.contacts().between(0, 1)) > 0
+    z = w.get_pose("c0")[2, 3]
+    w.step(20)
+    assert w.get_pose("c0")[2, 3] > z  # pushed out of c1
 # --------------------------------------------------------------------------- state
 def _busy_world(model) -> World:
     w = cube_world(model, 5)

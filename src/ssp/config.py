@@ -53,6 +53,14 @@ class PhysicsConfig(_Section):
     solver_iterations: int = Field(100, ge=1, description="Constraint solver iterations.")
     solver_tolerance: float = Field(1e-8, gt=0, description="Constraint solver tolerance.")
     noslip_iterations: int = Field(0, ge=0, description="Noslip solver iterations (0 = off).")
+    sleep_disabled: bool = Field(
+        True,
+        description=(
+            "Put disabled objects to sleep (MuJoCo's sleeping trees), so that a step skips "
+            "their dynamics; False only restores their poses after every step. Both leave a "
+            "disabled object where it is."
+        ),
+    )
     contact_margin: float | None = Field(
         None,
         ge=0,

@@ -18,7 +18,11 @@ MuJoCo-specific behaviour worth knowing:
   ``v = a dt``, then ``x += v dt``); a free-falling object thus moves ``g dt^2`` per step
   (0.245 mm at dt = 5 ms), not the ``g dt^2 / 2`` of an exact fall.
 - A disabled object keeps its pose and zero velocity exactly (restored after every step) and has
-  no contacts; enabling it restores its collisions.
+  no contacts; enabling it restores its collisions. With ``PhysicsConfig.sleep_disabled`` (the
+  default) it is also put to sleep (MuJoCo's sleeping trees, ``mjENBL_SLEEP``), so a step skips
+  its dynamics: a step then costs what the enabled objects cost, not the whole world. The enabled
+  objects never fall asleep (their countdown is reset before every step), and sleeping is off
+  while every object is enabled.
 - MuJoCo's warnings go to the ``ssp.physics.mujoco`` logger (each distinct text once per
   process), never to ``MUJOCO_LOG.TXT`` in the current folder; a contact or constraint buffer
   overflow in :meth:`World.step`, :meth:`World.contacts` or
@@ -59,6 +63,9 @@ _FATAL_WARNINGS = {
     int(_W.mjWARN_CNSTRFULL): "constraint buffer full (constraints were dropped)",
 }
 _FATAL_IDX = np.array(sorted(_FATAL_WARNINGS), dtype=int)
+_SLEEP = int(mujoco.mjtEnableBit.mjENBL_SLEEP)
+#: ``MjData.tree_asleep`` of a fully awake tree (MuJoCo counts it up to -1, "ready to sleep").
+_AWAKE = -(1 + mujoco.mjMINAWAKE)
 _world_serial = itertools.count(1)
 _mujoco_log = logging.getLogger("ssp.physics.mujoco")
 _logged_warnings: set[str] = set()
@@ -227,6 +234,12 @@ class World:
         self._enabled_ext = np.ones(n + 1, dtype=bool)  # index -1 (table) always enabled
         self._frozen_q = np.zeros(0, dtype=int)  # qpos indices of disabled objects
         self._frozen_v = np.zeros(0, dtype=int)  # qvel indices of disabled objects
+        # Sleeping trees: object k is tree k (one free body each), body k + 1.
+        self._sleep = bool(self._config.sleep_disabled) and np.array_equal(
+            m.body_treeid[1:], np.arange(n)
+        )
+        self._awake_trees = np.arange(n)  # trees kept awake: the enabled objects
+        self._sleep_synced = True
         self._state_size = mujoco.mj_stateSize(m, _STATE_SPEC)
         self._scratch = np.empty(self._state_size)
         self._forward_at_model_poses()
@@ -420,7 +433,41 @@ class World:
         self._enabled_ext[: self._n] = self._enabled
         self._frozen_q = (7 * off[:, None] + np.arange(7)).ravel()
         self._frozen_v = (6 * off[:, None] + np.arange(6)).ravel()
+        self._awake_trees = np.flatnonzero(self._enabled)
+        self._sleep_synced = False
         self._forward_current = False
+
+    def _sync_sleep(self) -> None:
+        """Make MuJoCo's sleeping trees follow the enabled flags; called before every step and
+        forward computation after the flags changed.
+
+        MuJoCo wakes a tree that feels an applied force at its next kinematics pass (and updates
+        its sleep bookkeeping), so an enabled object that sleeps is woken by a momentary
+        ``xfrc_applied`` around ``mj_kinematics`` (which changes no integration state). A
+        disabled object that is awake is marked ready to sleep (-1): MuJoCo puts it to sleep in
+        the next step before integrating, so it does not move. With every object enabled the
+        flag is off, and MuJoCo wakes every tree at the next kinematics pass.
+        """
+        if self._sleep_synced:
+            return
+        self._sleep_synced = True
+        if not self._sleep:
+            return
+        m, d = self._m, self._d
+        if self._enabled.all():
+            m.opt.enableflags &= ~_SLEEP
+            return
+        m.opt.enableflags |= _SLEEP
+        asleep = d.tree_asleep
+        wake = np.flatnonzero(self._enabled & (asleep >= 0))
+        if len(wake):
+            rows = wake + 1
+            held = d.xfrc_applied[rows].copy()
+            d.xfrc_applied[rows] = 1.0
+            mujoco.mj_kinematics(m, d)
+            d.xfrc_applied[rows] = held
+        ready = np.flatnonzero(~self._enabled & (asleep < 0))
+        asleep[ready] = -1
 
     @property
     def friction_scale(self) -> float:
@@ -497,19 +544,31 @@ class World:
         fq, fv = self._frozen_q, self._frozen_v
         step = mujoco.mj_step
         if len(fq):
+            self._sync_sleep()
             qpos = d.qpos
             held = qpos[fq].copy()
-            for _ in range(n):
+            asleep, awake = d.tree_asleep, self._awake_trees
+            sleeping = self._sleep
+            hold = True
+            for i in range(n):
                 if quasi_static:
                     qvel[:] = 0.0
+                if sleeping:
+                    asleep[awake] = _AWAKE  # an enabled object never counts down to sleep
                 step(m, d)
-                qpos[fq] = held
-                qvel[fv] = 0.0
+                if hold:
+                    qpos[fq] = held
+                    qvel[fv] = 0.0
+                    if sleeping and i == 0:
+                        # every disabled object asleep: MuJoCo leaves them where they are
+                        hold = int((asleep >= 0).sum()) != len(self._enabled) - len(awake)
         elif quasi_static:
+            self._sync_sleep()
             for _ in range(n):
                 qvel[:] = 0.0
                 step(m, d)
         else:
+            self._sync_sleep()
             step(m, d, n)
         self._forward_current = False
         self._check_health(warn0, n)
@@ -561,6 +620,7 @@ class World:
         repeats bit for bit whatever the world did before (a reused world gives the same
         results as a new one)."""
         mujoco.mj_resetData(self._m, self._d)
+        self._m.opt.enableflags &= ~_SLEEP
         if not self._enabled.all():
             self._enabled[:] = True
             self._apply_enabled()
@@ -597,6 +657,7 @@ class World:
         warm start, which mj_forward overwrites) exactly as it was."""
         m, d = self._m, self._d
         buf = self._scratch
+        self._sync_sleep()
         mujoco.mj_getState(m, d, buf, _STATE_SPEC)
         warn0 = self._warn[_FATAL_IDX].copy()
         mujoco.mj_forward(m, d)
@@ -616,6 +677,7 @@ class World:
             return np.zeros((0, 3)), np.zeros((0, 3))
         m, d = self._m, self._d
         buf = self._scratch
+        self._sync_sleep()
         mujoco.mj_getState(m, d, buf, _STATE_SPEC)
         self._qvel_flat[:] = 0.0
         warn0 = self._warn[_FATAL_IDX].copy()
