@@ -211,9 +211,11 @@ def test_max_points_subsample_close_to_full(cube):
 
 class _CountingField(SegmentField):
     calls = 0
+    sizes: list[int] = []
 
     def _nearest(self, points):
         type(self).calls += 1
+        type(self).sizes.append(len(points))
         return super()._nearest(points)
 
 
@@ -296,3 +298,93 @@ def test_matches_at_a_seen_pose_are_reused_and_the_same(cube):
     for a, b, c in zip(first, again, fresh, strict=True):
         np.testing.assert_array_equal(a, b)
         np.testing.assert_array_equal(a, c)
+
+
+# ----------------------------------------------------------------------------- compiled kernel
+def test_pairwise_sum_is_numpys_bit_for_bit():
+    """The kernel's sums are numpy's (pairwise blocks of 128, eight accumulators), including
+    the +0.0 of a sum of negative zeros."""
+    from ssp.jit import pairwise_sum
+
+    rng = np.random.default_rng(3)
+    for n in [*range(0, 300), 511, 512, 1000, 1031, 4097, 10_000]:
+        a = rng.normal(size=n) * 10.0 ** rng.uniform(-9, 3, size=n)
+        assert np.float64(pairwise_sum(a, n)).tobytes() == a.sum().tobytes(), n
+        z = -np.zeros(n)
+        assert np.float64(pairwise_sum(z, n)).tobytes() == z.sum().tobytes(), n
+
+
+def _numpy_wrenches(df: DataForces, T: np.ndarray, enabled: np.ndarray, g: float):
+    """The wrenches of ``df``'s cached targets at poses ``T``, as numpy expressions (the code
+    the compiled kernel replaced)."""
+    forces, torques = np.zeros((df.n, 3)), np.zeros((df.n, 3))
+    idx = np.flatnonzero(enabled)
+    r, cog = df._world_samples(T, idx)
+    dt = df.max_distance
+    diff = df._targets[idx] - r - cog[:, :, None]
+    dist = np.sqrt((diff * diff).sum(axis=1))
+    scale = df.gravity_fraction * float(g) * df.masses[idx] / np.maximum(df.counts[idx], 1)
+    w = np.maximum(dt - dist, 0.0) * df._matched[idx] * (scale / (dt * dt / 4.0))[:, None]
+    f = diff * w[:, None, :]
+    forces[idx] = f.sum(axis=2)
+    rx, ry, rz = r[:, 0], r[:, 1], r[:, 2]
+    fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
+    torques[idx] = np.stack(
+        [
+            (ry * fz - rz * fy).sum(axis=1),
+            (rz * fx - rx * fz).sum(axis=1),
+            (rx * fy - ry * fx).sum(axis=1),
+        ],
+        axis=1,
+    )
+    return forces, torques
+
+
+@pytest.mark.parametrize("camera", [None, (0.4, -0.3, 0.5)], ids=["no camera", "camera"])
+def test_compiled_wrenches_equal_the_numpy_formula_bit_for_bit(cube_model, make_box, camera):
+    """Objects with different sample counts (padded), disabled ones, one without a segment,
+    segments offset so that part of the samples is beyond d_t, between and on refreshes."""
+    rng = np.random.default_rng(5)
+    box = make_box("box", (0.03, 0.05, 0.02), mass=0.2)
+    box = dataclasses.replace(  # fewer samples than the cube: its rows are padded
+        box, surface_points=box.surface_points[:137], surface_normals=box.surface_normals[:137]
+    )
+    models = [cube_model, box, cube_model]
+    T0 = np.array([pose(0.0, 0.0, 0.03), pose(0.1, 0.0, 0.02, 30), pose(-0.1, 0.05, 0.03, 10)])
+    fields = [
+        SegmentField(
+            m.surface_points[::2] @ T[:3, :3].T + T[:3, 3] + rng.normal(0, 0.004, (1, 3)), DT
+        )
+        for m, T in zip(models, T0, strict=True)
+    ]
+    fields[2] = None
+    df = DataForces(models, fields, refresh_every=2, seed=1, camera_position=camera)
+    if camera is None:  # and one object pulled toward a whole pose
+        df.set_pose_target(1, pose(0.105, 0.0, 0.02, 28))
+    assert len(set(df.counts.tolist())) > 1  # padded
+    for step in range(8):
+        T = T0.copy()
+        T[:, :3, 3] += rng.normal(0, 0.006, (3, 3))
+        enabled = np.array([True, step % 3 != 1, True])
+        got = df.compute(T, G, enabled)
+        want = _numpy_wrenches(df, T, enabled, G)
+        assert np.abs(got[0]).max() > 0
+        for a, b in zip(got, want, strict=True):
+            assert a.tobytes() == b.tobytes()
+
+
+def test_only_the_samples_facing_the_camera_are_queried(cube_model):
+    """The samples facing away do not pull: leaving them out of the query changes nothing."""
+    T = pose(0.003, -0.002, 0.03, 4)[None]
+    cam = np.array([0.3, -0.4, 0.6])
+    field = self_field(cube_model, pose(0.0, 0.0, 0.03))
+    _CountingField.calls = 0
+    counting = _CountingField(field.points, DT)
+    df = DataForces([cube_model], [counting], camera_position=cam)
+    got = df.compute(T, G)
+    everything = DataForces([cube_model], [field], camera_position=cam)
+    everything._match = lambda k, pts, facing, j: everything.fields[k]._nearest(pts)
+    want = everything.compute(T, G)
+    for a, b in zip(got, want, strict=True):
+        assert a.tobytes() == b.tobytes()
+    assert 0 < _CountingField.sizes[-1] < len(cube_model.surface_points)

@@ -476,7 +476,7 @@ def test_estimating_compiles_nothing_beyond_compile_kernels(lib, scene):
     """Every kernel call uses the argument types that :func:`compile_kernels` compiles (and
     ``make install`` caches): a camera position or a segment that is a strided view, float32
     or a list must not make numba compile another specialisation in the middle of a run."""
-    from ssp import registration, sample_grid
+    from ssp import forces, jit, registration, sample_grid
     from ssp.perception import estimator
     from ssp.registration import icp_refine
 
@@ -487,6 +487,7 @@ def test_estimating_compiles_nothing_beyond_compile_kernels(lib, scene):
         registration._facing, registration._gauss_newton_step, registration._accumulate,
         sample_grid._fill,
         sample_grid._within_kernel, sample_grid.posed_cell,
+        forces._wrenches, jit.pairwise_sum, jit._pairwise, jit._block,
     ]  # fmt: skip
     before = [len(k.signatures) for k in kernels]
     seg = _segment(scene, 1)
@@ -506,6 +507,11 @@ def test_estimating_compiles_nothing_beyond_compile_kernels(lib, scene):
     frozen.flags.writeable = False
     icp_refine(model, T_gt, frozen, T_WC[:3, 3], max_distance=0.01, iterations=3)
     icp_refine(model, T_gt, seg[::2], list(T_WC[:3, 3]), max_distance=0.01, iterations=3)
+    # the data forces (the parser's search): float32 poses, a list of enabled flags
+    df = forces.DataForces([model, lib["cube"]], [forces.SegmentField(seg), None])
+    poses = np.stack([T_gt, np.eye(4)]).astype(np.float32)
+    df.compute(poses, 9.81, [True, True])
+    df.compute(poses[:, :, :], 9.81, [False, True])
     assert [len(k.signatures) for k in kernels] == before
 
 

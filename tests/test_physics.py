@@ -382,7 +382,6 @@ def test_disabled_object_quasi_static_is_exact(cube_model):
     assert np.array_equal(w.get_pose("c0"), T0)
 
 
-
 def _sleep_script(w: World) -> list[np.ndarray]:
     """Poses after each stage of a sequence of enable/disable changes, steps and a restore."""
     out = []
@@ -448,6 +447,8 @@ def test_enabling_a_sleeping_object_restores_its_contacts_and_motion(cube_model)
     z = w.get_pose("c0")[2, 3]
     w.step(20)
     assert w.get_pose("c0")[2, 3] > z  # pushed out of c1
+
+
 # --------------------------------------------------------------------------- state
 def _busy_world(model) -> World:
     w = cube_world(model, 5)

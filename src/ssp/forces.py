@@ -36,11 +36,13 @@ pykdtree is missing, scipy's cKDTree with ``workers=1`` is used.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
 
 from ssp.config import ForcesConfig
+from ssp.jit import njit, pairwise_sum
 from ssp.library.model import ObjectModel
 
 try:  # pragma: no branch
@@ -49,7 +51,15 @@ except ImportError:  # pragma: no cover - pykdtree is a dependency; scipy is the
     _PyKDTree = None
 from scipy.spatial import cKDTree
 
-__all__ = ["DataForces", "SegmentField", "point_pair_forces"]
+__all__ = ["DataForces", "SegmentField", "load_kernels", "point_pair_forces"]
+
+
+def load_kernels() -> None:
+    """Compile the wrench kernel of :meth:`DataForces.compute`, or load it from numba's cache
+    (:class:`ssp.parser.SceneParser` does it when built, not in its first frame)."""
+    z = np.zeros
+    _wrenches(z((1, 3, 1)), z((1, 1)), z((1, 3, 1)), z((1, 3)), z(1, dtype=np.int64), z(1),
+              0.02, z((1, 3)), z((1, 3)), z((6, 1)))  # fmt: skip
 
 
 def point_pair_forces(p_c: np.ndarray, p_d: np.ndarray, max_distance: float) -> np.ndarray:
@@ -229,6 +239,7 @@ class DataForces:
         self._active = np.array([f is not None and len(f) > 0 for f in fields], dtype=bool)
         self._targets = np.zeros((n, 3, mmax))
         self._matched = np.zeros((n, mmax))  # 1.0 where the cached target is a real match
+        self._pairs = np.zeros((6, mmax))  # the kernel's per-pair forces and torques
         self._calls = 0
 
     def __repr__(self) -> str:
@@ -306,7 +317,7 @@ class DataForces:
             pts = np.ascontiguousarray((r[j, :, :mk] + cog[j, :, None]).T)
             hit = self._by_pose.get((k, "nearest", pose))
             if hit is None:
-                hit = self._by_pose[(k, "nearest", pose)] = self.fields[k]._nearest(pts)
+                hit = self._by_pose[(k, "nearest", pose)] = self._match(k, pts, facing, j)
             tgt, dist = hit
             self._targets[k, :, :mk] = tgt.T
             ok = np.isfinite(dist)
@@ -322,6 +333,21 @@ class DataForces:
                     self._filter_cache[k] = keep
                 ok &= keep
             self._matched[k, :mk] = ok
+
+    def _match(self, k: int, pts: np.ndarray, facing: np.ndarray | None, j: int) -> tuple:
+        """``fields[k]._nearest`` of the samples ``pts`` (M, 3) that face the camera (row ``j``
+        of ``facing``; all without a camera). The others, which do not pull, keep their own
+        position as target and an infinite distance, as an unmatched sample does."""
+        if facing is None:
+            return self.fields[k]._nearest(pts)
+        sel = np.flatnonzero(facing[j, : len(pts)])
+        if len(sel) == len(pts):
+            return self.fields[k]._nearest(pts)
+        tgt = pts.copy()
+        dist = np.full(len(pts), np.inf)
+        if len(sel):
+            tgt[sel], dist[sel] = self.fields[k]._nearest(np.ascontiguousarray(pts[sel]))
+        return tgt, dist
 
     def _check_poses(self, T_world_obj) -> np.ndarray:
         T = np.asarray(T_world_obj, dtype=float)
@@ -352,23 +378,46 @@ class DataForces:
         self._calls += 1
 
         dt = self.max_distance
-        diff = self._targets[idx] - r - cog[:, :, None]  # (m, 3, M): p_d - p_c
-        dist = np.sqrt((diff * diff).sum(axis=1))  # (m, M)
         # Per-pair weight: kernel (d_t - r)/(d_t^2/4) times F_max / M, zero beyond d_t.
         scale = (
             self.gravity_fraction * float(g) * self.masses[idx] / np.maximum(self.counts[idx], 1)
         )
-        w = np.maximum(dt - dist, 0.0) * self._matched[idx] * (scale / (dt * dt / 4.0))[:, None]
-        f = diff * w[:, None, :]  # (m, 3, M)
-        forces[idx] = f.sum(axis=2)
-        rx, ry, rz = r[:, 0], r[:, 1], r[:, 2]
-        fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
-        torques[idx] = np.stack(
-            [
-                (ry * fz - rz * fy).sum(axis=1),
-                (rz * fx - rx * fz).sum(axis=1),
-                (rx * fy - ry * fx).sum(axis=1),
-            ],
-            axis=1,
-        )
+        _wrenches(
+            self._targets, self._matched, r, cog, idx, scale / (dt * dt / 4.0), dt,
+            forces, torques, self._pairs,
+        )  # fmt: skip
         return forces, torques
+
+
+@njit
+def _wrenches(targets, matched, r, cog, idx, coef, dt, forces, torques, pairs):
+    """Eq. ``total_data_force`` of the objects ``idx``: ``forces[k]``, ``torques[k]`` (3,) from
+    their samples' offsets ``r`` (m, 3, M) from the COMs ``cog`` (m, 3), the cached targets
+    (n, 3, M), the match flags (n, M) and the per-object ``coef`` (m,) = F_max / M / (d_t^2/4).
+    Each pair's arithmetic and the sums' order (numpy's, :func:`ssp.jit.pairwise_sum`, over
+    all M padded samples) are those of the numpy expressions it replaced, so the wrenches are
+    bit-identical to them. ``pairs`` (6, M) is scratch."""
+    mmax = r.shape[2]
+    for j in range(idx.shape[0]):
+        k = idx[j]
+        c = coef[j]
+        c0, c1, c2 = cog[j, 0], cog[j, 1], cog[j, 2]
+        for e in range(mmax):
+            rx, ry, rz = r[j, 0, e], r[j, 1, e], r[j, 2, e]
+            dx = (targets[k, 0, e] - rx) - c0
+            dy = (targets[k, 1, e] - ry) - c1
+            dz = (targets[k, 2, e] - rz) - c2
+            v = dt - math.sqrt((dx * dx + dy * dy) + dz * dz)
+            if v < 0.0:
+                v = 0.0
+            w = (v * matched[k, e]) * c
+            fx, fy, fz = dx * w, dy * w, dz * w
+            pairs[0, e] = fx
+            pairs[1, e] = fy
+            pairs[2, e] = fz
+            pairs[3, e] = ry * fz - rz * fy
+            pairs[4, e] = rz * fx - rx * fz
+            pairs[5, e] = rx * fy - ry * fx
+        for a in range(3):
+            forces[k, a] = pairwise_sum(pairs[a], mmax)
+            torques[k, a] = pairwise_sum(pairs[3 + a], mmax)

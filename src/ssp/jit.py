@@ -1,5 +1,6 @@
 """Numba's ``njit`` for the few compiled kernels (the ICPs, the estimator's coarse scoring,
-the sample grids), and the one array type they are compiled for.
+the sample grids, the data forces), the one array type they are compiled for, and numpy's
+summation order.
 
 Compiled with ``cache=True``: the first call of a process compiles, or loads the machine code
 cached beside the module by an earlier process. Numba compiles one machine code per argument
@@ -14,7 +15,7 @@ from collections.abc import Callable
 import numba
 import numpy as np
 
-__all__ = ["kernel_array", "njit"]
+__all__ = ["kernel_array", "njit", "pairwise_sum"]
 
 
 def njit(function: Callable) -> Callable:
@@ -27,3 +28,79 @@ def kernel_array(a) -> np.ndarray:
     the compiled kernels are compiled for. A strided or read-only array would make numba
     compile another specialisation, seconds in the middle of a run."""
     return np.require(a, np.float64, ("C", "W"))
+
+
+@njit
+def pairwise_sum(a, n):
+    """Sum of ``a[:n]`` (float64) in numpy's order (``numpy.add.reduce`` of a contiguous axis:
+    pairwise halves down to blocks of at most 128, each summed with eight accumulators), so a
+    kernel's sums equal the numpy code's bit for bit (numpy adds them to 0.0, so a sum of
+    negative zeros is +0.0)."""
+    return 0.0 + _pairwise(a, 0, n)
+
+
+@njit
+def _block(a, s, n):
+    """numpy's sum of ``a[s:s + n]`` for n <= 128."""
+    if n < 8:
+        res = 0.0
+        for i in range(s, s + n):
+            res += a[i]
+        return res
+    r0, r1, r2, r3 = a[s], a[s + 1], a[s + 2], a[s + 3]
+    r4, r5, r6, r7 = a[s + 4], a[s + 5], a[s + 6], a[s + 7]
+    i = 8
+    end = n - n % 8
+    while i < end:
+        r0 += a[s + i]
+        r1 += a[s + i + 1]
+        r2 += a[s + i + 2]
+        r3 += a[s + i + 3]
+        r4 += a[s + i + 4]
+        r5 += a[s + i + 5]
+        r6 += a[s + i + 6]
+        r7 += a[s + i + 7]
+        i += 8
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        res += a[s + i]
+        i += 1
+    return res
+
+
+@njit
+def _pairwise(a, s, n):
+    """numpy's recursion (halves rounded down to a multiple of 8, down to blocks of at most
+    128), unrolled onto a stack: numba's cache cannot hold a recursive function."""
+    if n <= 128:
+        return _block(a, s, n)
+    start = np.empty(64, dtype=np.int64)
+    size = np.empty(64, dtype=np.int64)
+    stage = np.zeros(64, dtype=np.int64)
+    left = np.empty(64)
+    top = 0
+    start[0], size[0] = s, n
+    ret = 0.0
+    while True:
+        half = size[top] // 2
+        half -= half % 8
+        if stage[top] == 0:
+            if size[top] <= 128:
+                ret = _block(a, start[top], size[top])
+                top -= 1
+                if top < 0:
+                    return ret
+                continue
+            stage[top] = 1
+            top += 1
+            start[top], size[top], stage[top] = start[top - 1], half, 0
+        elif stage[top] == 1:
+            left[top] = ret
+            stage[top] = 2
+            top += 1
+            start[top], size[top], stage[top] = start[top - 1] + half, size[top - 1] - half, 0
+        else:
+            ret = left[top] + ret
+            top -= 1
+            if top < 0:
+                return ret

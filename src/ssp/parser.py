@@ -56,6 +56,7 @@ from ssp.config import SSPConfig, TemporalConfig
 from ssp.errors import InvalidPoseError, PhysicsError, SSPError, UnknownObjectError
 from ssp.estimate import ObjectEstimate, Rejected, SceneEstimate, SupportEdge
 from ssp.forces import SegmentField
+from ssp.forces import load_kernels as load_force_kernels
 from ssp.geometry import validate_pose
 from ssp.library.library import ObjectLibrary
 from ssp.library.model import ObjectInstance, ObjectModel
@@ -63,7 +64,7 @@ from ssp.library.symmetry import Symmetry
 from ssp.physics import World
 from ssp.polish import polish
 from ssp.probability import pose_change
-from ssp.registration import load_kernels
+from ssp.registration import load_kernels as load_icp_kernels
 from ssp.retention import REMOVABLE, Triage, support_retained, triage
 from ssp.scene import Frame, FrameError, Hypothesis, TransitionMode
 from ssp.scoring import SceneScore, SceneScorer
@@ -213,7 +214,9 @@ class SceneParser:
         self._last_stamp: float | None = None
         self._world: World | None = None
         self._world_key: tuple[tuple[str, str], ...] | None = None
-        load_kernels()  # the polish's compiled ICP, loaded here rather than in the first frame
+        # the compiled data forces and the polish's ICP, loaded here rather than in a frame
+        load_force_kernels()
+        load_icp_kernels()
 
     def __repr__(self) -> str:
         return f"SceneParser({len(self._known)} objects, {self._frame_index} frames)"

@@ -44,6 +44,7 @@ import numpy as np
 
 from ssp.config import PerceptionConfig
 from ssp.errors import PerceptionError, UnknownObjectError
+from ssp.forces import load_kernels as load_force_kernels
 from ssp.jit import kernel_array, njit
 from ssp.kdtree import KDTree
 from ssp.library.model import ObjectModel
@@ -718,9 +719,9 @@ class HypothesisEstimator:
 
 
 def compile_kernels() -> None:
-    """Compile the estimator's kernels and the exact ICP's (:mod:`ssp.registration`) for the
-    argument types they are passed, or load them from numba's cache (``make install`` runs
-    this once: a first compile takes some 30 s)."""
+    """Compile the estimator's kernels, the exact ICP's (:mod:`ssp.registration`) and the data
+    forces' (:mod:`ssp.forces`) for the argument types they are passed, or load them from
+    numba's cache (``make install`` runs this once: a first compile takes some 30 s)."""
     rng = np.random.default_rng(0)
     p = rng.normal(0.0, 0.02, (64, 3))
     n = p / np.linalg.norm(p, axis=1, keepdims=True)
@@ -733,6 +734,7 @@ def compile_kernels() -> None:
     grid.within(p, 0.005, np.eye(4))
     grid_icp(grid, np.eye(4), p, np.ones(3), max_distance=0.012, iterations=2, n_points=50)
     load_kernels()  # the exact ICP: the parser's polish and the icp baseline
+    load_force_kernels()  # the parser's data forces
 
 
 def _within(tree: KDTree, q: np.ndarray, radius: float) -> np.ndarray:
