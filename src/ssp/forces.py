@@ -27,6 +27,9 @@ towards a fixed scene point, an ICP-like spring, rather than towards the nearest
 segment, so sliding along the segment's surface is slightly resisted, and samples that were
 farther than d_t at the last refresh feel nothing until the next one. With the quasi-static
 stepping of the simulation (about 0.1-0.3 mm per step) a cadence of a few steps changes little.
+With a camera, only the samples facing it are queried (the others never pull). The wrench of
+the matched pairs is one compiled call (``_wrenches``), bit-identical to the numpy expressions
+it replaced: the same arithmetic per pair and numpy's summation order.
 
 The KD-tree is pykdtree (measured 2-3x faster than scipy's cKDTree for 500 queries into 0.5k-20k
 points, and 3x faster to build); OpenMP threading makes small queries 10-20x slower on few cores,
