@@ -17,10 +17,11 @@ MuJoCo-specific behaviour worth knowing:
   rest that feels a net acceleration ``a`` moves by ``a dt^2`` per step (semi-implicit Euler:
   ``v = a dt``, then ``x += v dt``); a free-falling object thus moves ``g dt^2`` per step
   (0.245 mm at dt = 5 ms), not the ``g dt^2 / 2`` of an exact fall.
-- A disabled object keeps its pose and zero velocity exactly (restored after every step) and has
-  no contacts; enabling it restores its collisions. With ``PhysicsConfig.sleep_disabled`` (the
-  default) it is also put to sleep (MuJoCo's sleeping trees, ``mjENBL_SLEEP``), so a step skips
-  its dynamics: a step then costs what the enabled objects cost, not the whole world. The enabled
+- A disabled object keeps its pose and zero velocity exactly and has no contacts; enabling it
+  restores its collisions. With ``PhysicsConfig.sleep_disabled`` (the default) it is put to
+  sleep (MuJoCo's sleeping trees, ``mjENBL_SLEEP``), so a step skips its dynamics and costs what
+  the enabled objects cost, not the whole world; a disabled object that cannot sleep (a wrench
+  is applied to it), or every one with sleeping off, is restored after every step. The enabled
   objects never fall asleep (their countdown is reset before every step), and sleeping is off
   while every object is enabled.
 - MuJoCo's warnings go to the ``ssp.physics.mujoco`` logger (each distinct text once per
@@ -409,9 +410,9 @@ class World:
     def set_enabled(self, oid: str, enabled: bool) -> None:
         """Enable or disable object ``oid``.
 
-        A disabled object neither collides nor moves (its pose and zero velocity are restored
-        after every step; wrenches on it have no effect) and is left out of :meth:`contacts`
-        and :meth:`acceleration_from_rest`. Enabling it restores its collisions.
+        A disabled object neither collides nor moves (it sleeps, or its pose and zero velocity
+        are restored after every step; wrenches on it have no effect) and is left out of
+        :meth:`contacts` and :meth:`acceleration_from_rest`. Enabling it restores its collisions.
         """
         k = self.index(oid)
         enabled = bool(enabled)
