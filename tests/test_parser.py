@@ -464,7 +464,7 @@ def test_first_guess_is_the_previous_pose_when_any_hypothesis_agrees(lib):
     starts where it was when another hypothesis agrees; an object that moved starts at its best
     hypothesis; a new object too."""
     from ssp.config import TemporalConfig
-    from ssp.parser import first_guess
+    from ssp.first_guess import first_guess
 
     cfg = TemporalConfig()
     sym = lib["block"].symmetry
@@ -480,7 +480,7 @@ def test_first_guess_is_the_previous_pose_when_any_hypothesis_agrees(lib):
 
 
 def test_best_first_guess_weighs_the_previous_pose_with_the_hypotheses():
-    from ssp.parser import best_first_guess
+    from ssp.first_guess import best_first_guess
 
     T_prev, a, b = (make_pose(t=[x, 0.0, 0.0125]) for x in (0.0, 0.03, 0.06))
     hyps = [Hypothesis("block", a, 0.9), Hypothesis("block", b, 0.4)]

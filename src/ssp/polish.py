@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Mapping
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -23,7 +24,17 @@ from ssp.registration import icp_refine
 from ssp.search import Simulator
 from ssp.timing import StageTimer
 
-__all__ = ["ICP_ITERATIONS", "ICP_TOLERANCE", "MAX_JUMP_DEG", "MAX_JUMP_M", "polish"]
+if TYPE_CHECKING:
+    from ssp.frame_context import FrameContext
+
+__all__ = [
+    "ICP_ITERATIONS",
+    "ICP_TOLERANCE",
+    "MAX_JUMP_DEG",
+    "MAX_JUMP_M",
+    "polish",
+    "polish_scene",
+]
 
 log = logging.getLogger(__name__)
 
@@ -82,3 +93,17 @@ def polish(
         world.restore_state(state)
     for k in range(len(world.ids)):
         forces.set_pose_target(k, None)
+
+
+def polish_scene(ctx: FrameContext) -> None:
+    """Stage *polish*: :func:`polish` of the objects with data (``forces.final_icp``), then the
+    scene scored again (also after the unchanged shortcut, whose settle left no score).
+
+    Updates ``score``.
+    """
+    cfg, sim = ctx.config, ctx.sim
+    if cfg.forces.final_icp:
+        segments = {oid: ctx.segments[oid] for oid in sim.with_data}
+        polish(sim.world, sim.simulator, segments, sim.camera_position, cfg, ctx.timer)
+    if ctx.unchanged or cfg.forces.final_icp:
+        ctx.score = sim.scorer.evaluate(sim.world, ctx.timer)

@@ -34,6 +34,8 @@ from __future__ import annotations
 import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from enum import Enum
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -44,19 +46,46 @@ from ssp.physics import World
 from ssp.verification import Evidence, evidence, still_visible
 from ssp.visibility import CameraView
 
-__all__ = ["REMOVABLE", "Triage", "carries_load", "support_retained", "triage"]
+if TYPE_CHECKING:
+    from ssp.frame_context import FrameContext
+
+__all__ = [
+    "REMOVABLE",
+    "Triage",
+    "TriageState",
+    "carries_load",
+    "retain_or_remove",
+    "support_retained",
+    "triage",
+    "triage_undetected",
+]
 
 log = logging.getLogger(__name__)
 
+
+class TriageState(str, Enum):
+    """What became of an undetected known object (module docstring); the value is its name in
+    words (it compares equal to that string)."""
+
+    VISIBLE = "visible"
+    REPLACED = "replaced"
+    SEEN_EMPTY = "seen_empty"
+    EPHEMERAL = "ephemeral"
+    UNSEEN = "unseen"
+
+    def __str__(self) -> str:
+        return self.value
+
+
 #: Triage states whose objects are removed (``unseen`` ones unless they hold others up).
-REMOVABLE = ("seen_empty", "unseen")
+REMOVABLE = (TriageState.SEEN_EMPTY, TriageState.UNSEEN)
 
 
 @dataclass(frozen=True)
 class Triage:
     """The state of an undetected known object (module docstring) and the reason, in words."""
 
-    state: str
+    state: TriageState
     reason: str
     evidence: Evidence | None = None
 
@@ -88,7 +117,7 @@ def triage(
         ev = evidence(model, T, segments.get(oid), view, config, own_label=owner.get(oid))
         if still_visible(ev, config):  # the data says it is there: no hypothesis overrules it
             reason = f"undetected but still visible: explains {100 * ev.fit:.0f} % of its surface"
-            out[oid] = Triage("visible", reason, ev)
+            out[oid] = Triage(TriageState.VISIBLE, reason, ev)
             continue
         if det_ids:
             members = [oid, *det_ids]
@@ -99,16 +128,18 @@ def triage(
                 pairs=[(0, j) for j in range(1, len(members))],
             )[0]
             if frac >= t.replaced_overlap:
-                out[oid] = Triage("replaced", f"another object fills {100 * frac:.0f} % of it")
+                out[oid] = Triage(
+                    TriageState.REPLACED, f"another object fills {100 * frac:.0f} % of it"
+                )
                 continue
         if view is not None and ev.seen_empty(config):
             reason = f"its volume is seen empty ({100 * ev.seen_through:.0f} % seen through)"
-            out[oid] = Triage("seen_empty", reason, ev)
+            out[oid] = Triage(TriageState.SEEN_EMPTY, reason, ev)
         elif view is not None and ev.facing and ev.occluded >= t.occluded_fraction:
             reason = f"hidden behind observed surfaces ({100 * ev.occluded:.0f} % occluded)"
-            out[oid] = Triage("ephemeral", reason, ev)
+            out[oid] = Triage(TriageState.EPHEMERAL, reason, ev)
         else:
-            out[oid] = Triage("unseen", "undetected and no data either way", ev)
+            out[oid] = Triage(TriageState.UNSEEN, "undetected and no data either way", ev)
         log.info("%s: %s", oid, out[oid].reason)
     return out
 
@@ -164,3 +195,41 @@ def carries_load(world: World, kids: Sequence[str], oid: str, config: SSPConfig)
         if np.linalg.norm(lin[i]) > lim * g or np.linalg.norm(ang[i]) > lim * a_max:
             falling.append(k)
     return falling
+
+
+# ------------------------------------------------------------------ the parser's stages
+def triage_undetected(ctx: FrameContext) -> None:
+    """Stage *triage of the undetected*: :func:`triage` of every known object without a group
+    (one whose segment an association duplicate claimed is ``visible``); the ``replaced`` ones
+    are removed.
+
+    Sets ``missing``, ``verdicts`` and ``removed``.
+    """
+    claimed = ctx.assoc.claimed
+    ctx.missing = sorted(set(ctx.known) - set(ctx.groups))
+    verdicts = triage(
+        [oid for oid in ctx.missing if oid not in claimed],
+        ctx.models, ctx.prev_pose, ctx.first, ctx.segments, ctx.owner, ctx.view, ctx.config,
+    )  # fmt: skip
+    reason = "undetected; its segment's points lie on it"
+    verdicts.update({oid: Triage(TriageState.VISIBLE, reason) for oid in claimed})
+    ctx.verdicts = verdicts
+    ctx.removed = {oid for oid, v in verdicts.items() if v.state == TriageState.REPLACED}
+
+
+def retain_or_remove(ctx: FrameContext) -> None:
+    """Stage *support-retained* (not run when nothing changed): of the undetected objects seen
+    empty or unseen, those that objects which stay would fall without (in the settled
+    first-guess scene, :func:`support_retained`; only ``unseen`` ones qualify) stay; the others
+    are disabled and removed.
+
+    Sets ``retained``; updates ``removed``.
+    """
+    world = ctx.sim.world
+    assert ctx.first_score is not None, "after the first guess"
+    unseen = [o for o, v in ctx.verdicts.items() if v.state == TriageState.UNSEEN]
+    ctx.retained = support_retained(world, ctx.first_score.graph, unseen, ctx.config)
+    for oid in sorted(o for o, v in ctx.verdicts.items() if v.state in REMOVABLE):
+        if oid not in ctx.retained:
+            world.set_enabled(oid, False)
+            ctx.removed.add(oid)

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
+from enum import IntEnum
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -41,10 +42,21 @@ from ssp.segments import SegmentTrees
 from ssp.support import SupportGraph, build_support_graph
 from ssp.timing import StageTimer
 
-__all__ = ["TERM_NAMES", "SceneScore", "SceneScorer", "contact_overlaps"]
+__all__ = ["TERM_NAMES", "SceneScore", "SceneScorer", "Term", "contact_overlaps"]
+
+
+class Term(IntEnum):
+    """The columns of :attr:`SceneScore.terms`: the log-probability terms of paper eqs. (4)-(6)."""
+
+    STABILITY = 0
+    COLLISION = 1
+    SUPPORT = 2
+    DATA = 3
+    TRANSITION = 4
+
 
 #: Column order of :attr:`SceneScore.terms`.
-TERM_NAMES = ("stability", "collision", "support", "data", "transition")
+TERM_NAMES = tuple(t.name.lower() for t in Term)
 
 
 def contact_overlaps(
@@ -213,7 +225,7 @@ class SceneScorer:
         if len(idx) == 0:
             return SceneScore(self.ids, on, terms, fit, graph, poses)
 
-        terms[idx, 0] = log_stability(
+        terms[idx, Term.STABILITY] = log_stability(
             lin[idx], ang[idx], self.alpha_max[idx], self.g, cfg.stability
         )
 
@@ -223,16 +235,16 @@ class SceneScorer:
         if deep.any():
             frac = self._overlaps(contacts, poses, deep)
         e_c = collision_severity(depth[idx], frac[idx], self.diameters[idx])
-        terms[idx, 1] = log_collision(e_c, cfg.collision)
+        terms[idx, Term.COLLISION] = log_collision(e_c, cfg.collision)
 
-        terms[idx, 2] = log_support(graph.support_sums()[idx], cfg.support)
+        terms[idx, Term.SUPPORT] = log_support(graph.support_sums()[idx], cfg.support)
 
         for i in idx:
             fit[i] = self.fit_fraction(i, poses[i])
-        terms[idx, 3] = log_data(fit[idx], cfg.data)
+        terms[idx, Term.DATA] = log_data(fit[idx], cfg.data)
 
         for i in idx:
-            terms[i, 4] = log_transition_from_poses(
+            terms[i, Term.TRANSITION] = log_transition_from_poses(
                 self.previous[i],
                 poses[i],
                 cfg.transition,

@@ -20,19 +20,35 @@ from __future__ import annotations
 import logging
 from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass, field
+from enum import Enum
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ssp.config import SSPConfig
 from ssp.errors import PhysicsError
-from ssp.forces import DataForces
+from ssp.forces import DataForces, SegmentField
+from ssp.frame_context import Simulation
 from ssp.geometry import hull_box
 from ssp.lanes import ForkLanes
 from ssp.physics import World, WorldState
+from ssp.retention import TriageState
 from ssp.scoring import SceneScore, SceneScorer
 from ssp.timing import StageTimer
 
-__all__ = ["Candidate", "SearchResult", "Simulator", "TestResult", "layered_search"]
+if TYPE_CHECKING:
+    from ssp.frame_context import FrameContext
+
+__all__ = [
+    "Candidate",
+    "CandidateSource",
+    "SearchResult",
+    "Simulator",
+    "TestResult",
+    "layered_search",
+    "prepare_world",
+    "search_scene",
+]
 
 log = logging.getLogger(__name__)
 
@@ -41,13 +57,34 @@ log = logging.getLogger(__name__)
 TestResult = tuple[float | None, WorldState | None, str | None]
 
 
+class CandidateSource(str, Enum):
+    """Where the pose an object was given came from (:attr:`ssp.estimate.ObjectEstimate.source`);
+    the value is its name in words (it compares equal to that string)."""
+
+    #: one of the frame's hypotheses
+    HYPOTHESIS = "hypothesis"
+    #: its pose in the previous frame
+    PREVIOUS = "previous"
+    #: where the search found it (the incumbent)
+    CURRENT = "current"
+    #: its previous pose, untested (``ssp.static.settled_objects``)
+    SETTLED = "previous (settled)"
+    #: nothing changed: the previous scene, settled (``search.unchanged_shortcut``)
+    UNCHANGED = "unchanged"
+    #: put back at its best hypothesis (``ssp.verification.fall_back_to_data``)
+    DATA_FALLBACK = "hypothesis (data fallback)"
+
+    def __str__(self) -> str:
+        return self.value
+
+
 @dataclass(frozen=True, eq=False)
 class Candidate:
-    """One pose to test for an object: ``T_world_obj`` (4x4, m) and where it came from
-    (``"hypothesis"``, ``"previous"``, ``"current"``), with the detector score if any."""
+    """One pose to test for an object: ``T_world_obj`` (4x4, m) and where it came from, with
+    the detector score if any."""
 
     T_world_obj: np.ndarray
-    source: str
+    source: CandidateSource
     score: float = 0.0
 
 
@@ -246,7 +283,8 @@ def layered_search(
         children: object index -> indices of the objects it supports (first-guess graph).
         timer: stage timer.
         settled: object indices that keep their current pose untested, in their layer
-            (:func:`ssp.static.settled_objects`; ``chosen`` says ``"previous (settled)"``).
+            (:func:`ssp.static.settled_objects`; ``chosen`` says ``"previous (settled)"``,
+            :attr:`CandidateSource.SETTLED`).
         processes: test an object's candidates in this many processes at once
             (:class:`ssp.lanes.ForkLanes`); the choices are the same for any number.
 
@@ -289,10 +327,11 @@ def layered_search(
             for i in sorted(layer, key=lambda k: ids[k]):
                 oid = ids[i]
                 if i in settled:
-                    chosen[oid] = "previous (settled)"
+                    chosen[oid] = CandidateSource.SETTLED
                     continue
                 kids = [c for c in children.get(i, ()) if not world.is_enabled(ids[c])]
-                tests = [Candidate(world.get_pose(oid), "current"), *candidates.get(oid, ())]
+                current = Candidate(world.get_pose(oid), CandidateSource.CURRENT)
+                tests = [current, *candidates.get(oid, ())]
                 # Objects out of reach of every candidate (and of the children) that hold up
                 # none of the others are set aside for this object's tests, so a test costs
                 # about the same in a scene of 5 or 50 objects; the candidates are compared on
@@ -303,7 +342,7 @@ def layered_search(
                 base = world.save_state()
                 kid_poses = {ids[c]: world.get_pose(ids[c]) for c in kids}
                 results = lanes.run(base, [(oid, tuple(kids), c.T_world_obj) for c in tests])
-                best_total, best_state, best_source = -np.inf, None, "current"
+                best_total, best_state, best_source = -np.inf, None, CandidateSource.CURRENT
                 for cand, (total, state, error) in zip(tests, results, strict=True):
                     tested += 1
                     if total is None:
@@ -332,3 +371,92 @@ def layered_search(
         world.restore_state(chosen_state)
     score = scorer.evaluate(world, timer)
     return SearchResult(score=score, chosen=chosen, tested=tested, failed=failed)
+
+
+# ------------------------------------------------------------------ the parser's stages
+def prepare_world(ctx: FrameContext) -> None:
+    """Stage *world*: the frame's physics world (every object not removed, reset so that a
+    reused world behaves exactly as a new one), its data forces (detected objects and
+    undetected ones still seen; only the samples the camera could see when
+    ``forces.visible_samples_only``, and not those other objects hide) and its scorer.
+
+    Sets ``simulation``.
+    """
+    cfg, frame, segments, owner, view = ctx.config, ctx.frame, ctx.segments, ctx.owner, ctx.view
+    present = [oid for oid in sorted(ctx.classes) if oid not in ctx.removed]
+    world = ctx.world_for({oid: ctx.classes[oid] for oid in present})
+    ids = world.ids
+    world.reset()  # a reused world must behave exactly as a new one (determinism)
+    see = cfg.forces.visible_samples_only and frame.T_world_cam is not None
+    cam = frame.T_world_cam[:3, 3] if see and frame.T_world_cam is not None else None
+    sample_filter = None
+    if see and frame.labels is not None and owner and view is not None:
+        own = [owner.get(oid) for oid in ids]
+        hiding = view
+
+        def sample_filter(k: int, pts: np.ndarray, _normals: np.ndarray) -> np.ndarray:
+            label = own[k]
+            if label is None:
+                return np.ones(len(pts), dtype=bool)
+            return ~hiding.hidden_by_others(pts, label)
+
+    # data forces and fit: detected objects and undetected ones still seen
+    with_data = {
+        oid for oid in ids if oid in ctx.groups or ctx.verdicts[oid].state == TriageState.VISIBLE
+    }
+    fields = [
+        SegmentField(segments[oid], cfg.forces.max_distance)
+        if oid in with_data and len(segments[oid])
+        else None
+        for oid in ids
+    ]
+    simulator = Simulator.for_world(
+        world, fields, cfg, ctx.timer, camera_position=cam, sample_filter=sample_filter
+    )
+    scorer = SceneScorer(
+        world,
+        cfg,
+        {oid: segments[oid] for oid in ids if oid in with_data},
+        {oid: ctx.prev_pose.get(oid) for oid in ids},
+        camera_position=cam,
+        trees=ctx.segment_trees,
+    )
+    ctx.simulation = Simulation(world, simulator, scorer, with_data, cam)
+
+
+def search_scene(ctx: FrameContext) -> None:
+    """Stage *search* (not run when nothing changed): :func:`layered_search` over the layers
+    of the settled first-guess scene's support graph (Alg. 2), without the removed objects;
+    each object's candidates are its hypotheses (none for a static object unless
+    ``search.retest_static``) and its previous pose (``search.previous_candidates``, or when
+    undetected). The removed objects stay disabled.
+
+    Sets ``score``, ``chosen`` and ``tested``.
+    """
+    cfg, sim, prev_pose = ctx.config, ctx.sim, ctx.prev_pose
+    world, ids = sim.world, sim.world.ids
+    assert ctx.first_score is not None, "after the first guess"
+    graph0 = ctx.first_score.graph
+    index = {oid: i for i, oid in enumerate(ids)}
+    gone = {index[oid] for oid in ctx.removed if oid in index}
+    layers = [[i for i in layer if i not in gone] for layer in graph0.layers()]
+    layers = [layer for layer in layers if layer]
+    children = {i: [c for c in graph0.children(i) if c not in gone] for i in range(len(ids))}
+    candidates: dict[str, list[Candidate]] = {}
+    for oid in ids:
+        # without retest_static, an unchanged object near a change tests only where it was
+        # and its first guess (the best of that and its hypotheses by data fit and transition)
+        static = oid in ctx.static and not cfg.search.retest_static
+        hyps = [] if static else ctx.groups.get(oid, [])
+        cands = [Candidate(h.T_world_obj, CandidateSource.HYPOTHESIS, h.score) for h in hyps]
+        if oid in prev_pose and (cfg.search.previous_candidates or oid not in ctx.groups):
+            cands.append(Candidate(prev_pose[oid], CandidateSource.PREVIOUS))
+        candidates[oid] = cands
+    result = layered_search(
+        world, sim.simulator, sim.scorer, candidates, layers, children, ctx.timer,
+        settled={index[oid] for oid in ctx.settled}, processes=cfg.search.processes,
+    )  # fmt: skip
+    ctx.score, ctx.chosen, ctx.tested = result.score, result.chosen, result.tested
+    for oid in ctx.removed:
+        if oid in index:
+            world.set_enabled(oid, False)

@@ -28,6 +28,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Collection, Mapping, Sequence
 from functools import cache
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -36,8 +37,19 @@ from ssp.geometry import transform_points
 from ssp.kdtree import KDTree
 from ssp.library.model import ObjectModel
 from ssp.scene import Frame
+from ssp.visibility import CameraView
 
-__all__ = ["SegmentTrees", "explained_fraction", "object_segments", "point_spacing"]
+if TYPE_CHECKING:
+    from ssp.frame_context import FrameContext
+
+__all__ = [
+    "SegmentTrees",
+    "explained_fraction",
+    "object_segments",
+    "point_spacing",
+    "segment_frame",
+    "segment_verdicts",
+]
 
 log = logging.getLogger(__name__)
 
@@ -278,3 +290,69 @@ def explained_fraction(
     local = (points[near] - t) @ R  # R^T (p - t): the points in the model frame
     dist, _ = model.surface_tree.query(local, k=1, distance_upper_bound=radius)
     return float(np.count_nonzero(np.isfinite(dist))) / len(points)
+
+
+def segment_frame(ctx: FrameContext) -> None:
+    """Stage *segments*: each object's segment (:func:`object_segments`, gathered around its
+    provisional pose and its hypotheses, or its previous pose when undetected; the instance
+    segment its hypotheses came from, or the one an undetected object took, is its own), the
+    camera's view of the frame (:class:`ssp.visibility.CameraView`, when the frame has a camera
+    pose) and the segments' KD-trees.
+
+    Sets ``cand_poses``, ``segments``, ``owner``, ``members``, ``view`` and ``trees``.
+    """
+    cfg, frame, groups, models = ctx.config, ctx.frame, ctx.groups, ctx.models
+    cand_poses = {oid: [ctx.first[oid], *(h.T_world_obj for h in groups[oid])] for oid in groups}
+    cand_poses.update({oid: [T] for oid, T in ctx.prev_pose.items() if oid not in groups})
+    # the segment each object's hypotheses came from, and those undetected objects took
+    segment_labels = {oid: hyps[0].segment for oid, hyps in groups.items()}
+    own_labels = {oid: s for oid, s in segment_labels.items() if s is not None}
+    own_labels.update(ctx.assoc.claimed)
+    members: dict[str, int] = {}
+    segments, owner = object_segments(
+        frame,
+        {oid: (models[oid], cand_poses[oid]) for oid in cand_poses},
+        radius=cfg.forces.max_distance,
+        table=ctx.table,
+        labels=own_labels,
+        members=members,
+        known=set(ctx.known),
+    )
+    if frame.T_world_cam is not None:
+        ctx.view = CameraView(
+            frame.points,
+            frame.T_world_cam,
+            labels=frame.labels,
+            depth_tolerance=cfg.temporal.depth_tolerance,
+        )
+    ctx.cand_poses, ctx.segments, ctx.owner, ctx.members = cand_poses, segments, owner, members
+    ctx.trees = SegmentTrees(segments)
+
+
+def segment_verdicts(ctx: FrameContext, kept: set[str]) -> dict[int, str]:
+    """Label -> what became of it: the object it is (``ctx.members``: the label each object
+    lies in; ``kept``: the output's ids), or why none, for every label of the cloud that is not
+    the table or background."""
+    frame, old_of = ctx.frame, ctx.old_of
+    if frame.labels is None:
+        return {}
+    held: dict[int, set[str]] = {}
+    for oid, label in ctx.members.items():
+        out_id = old_of.get(oid, oid)
+        if out_id in kept:
+            held.setdefault(int(label), set()).add(out_id)
+    out: dict[int, str] = {
+        label: ("object " if len(ids) == 1 else "objects ") + ", ".join(sorted(ids))
+        for label, ids in held.items()
+    }
+    said: dict[int, list[str]] = {}
+    for r in sorted(ctx.rejected.values(), key=lambda r: r.id):
+        # the segment its hypotheses came from, else the one it took (a cluster, a class mask)
+        label = r.segment if r.segment is not None else ctx.members.get(r.id)
+        if label is not None and int(label) not in out:
+            said.setdefault(int(label), []).append(f"rejected {r.class_name} {r.id}: {r.reason}")
+    out.update({label: "; ".join(texts) for label, texts in said.items()})
+    for label in np.unique(np.asarray(frame.labels)):
+        if label >= 0 and int(label) not in out:
+            out[int(label)] = "no object: no hypothesis was given for it"
+    return dict(sorted(out.items()))

@@ -17,6 +17,7 @@ changed in it, not with the size of the scene.
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -26,8 +27,20 @@ from ssp.library.model import ObjectModel
 from ssp.probability import pose_change
 from ssp.scene import Hypothesis
 from ssp.scoring import SceneScorer
+from ssp.search import CandidateSource
 
-__all__ = ["SETTLE_MOVED_DEG", "SETTLE_MOVED_M", "is_unchanged", "settle_moved", "settled_objects"]
+if TYPE_CHECKING:
+    from ssp.frame_context import FrameContext
+
+__all__ = [
+    "SETTLE_MOVED_DEG",
+    "SETTLE_MOVED_M",
+    "find_static",
+    "is_unchanged",
+    "keep_unchanged",
+    "settle_moved",
+    "settled_objects",
+]
 
 #: A settled object that the first-guess settle moved more than this (m, deg at the centre of
 #: mass) is searched after all.
@@ -98,3 +111,50 @@ def settle_moved(objects: Mapping[str, tuple[np.ndarray, np.ndarray, ObjectModel
         if dt > SETTLE_MOVED_M or np.degrees(dth) > SETTLE_MOVED_DEG:
             out.add(oid)
     return out
+
+
+# ------------------------------------------------------------------ the parser's stages
+def find_static(ctx: FrameContext) -> None:
+    """Stage *static objects*: the detected known objects that are unchanged
+    (:func:`is_unchanged`), and whether the whole frame is (``search.unchanged_shortcut``:
+    every known object detected and unchanged, none new, none missing).
+
+    Sets ``static`` and ``unchanged``.
+    """
+    cfg, known, groups, sim = ctx.config, ctx.known, ctx.groups, ctx.sim
+    detected = sorted(groups)
+    ctx.static = {
+        oid
+        for oid in detected
+        if oid in known
+        and is_unchanged(
+            sim.scorer,
+            sim.world.index(oid),
+            known[oid].T_world_obj,
+            known[oid].fit,
+            groups[oid],
+            ctx.models[oid],
+            cfg,
+        )  # fmt: skip
+    }
+    ctx.unchanged = (
+        cfg.search.unchanged_shortcut
+        and bool(known)
+        and not ctx.missing
+        and set(detected) == set(known)
+        and ctx.static == set(detected)
+    )
+
+
+def keep_unchanged(ctx: FrameContext) -> None:
+    """Stage *unchanged shortcut* (run only when nothing changed, instead of the first guess
+    and the search): every object back at its previous pose, settled with data forces
+    (``search.final_settle``) unless the polish follows.
+
+    Sets ``chosen``.
+    """
+    sim, ids = ctx.sim, ctx.sim.world.ids
+    sim.world.set_poses({oid: ctx.prev_pose[oid] for oid in ids})
+    if not ctx.config.forces.final_icp:
+        sim.simulator.settle(ctx.config.search.final_settle, with_forces=True)
+    ctx.chosen = {oid: CandidateSource.UNCHANGED for oid in ids}

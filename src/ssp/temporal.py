@@ -14,9 +14,11 @@ they belong to the scene parser, which passes its verdict to :func:`classify`.
 from __future__ import annotations
 
 import itertools
+import logging
 import math
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import replace
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -24,22 +26,35 @@ from scipy.spatial.transform import Rotation
 
 from ssp.config import TemporalConfig
 from ssp.errors import DuplicateObjectError, SSPError
+from ssp.first_guess import first_guess
 from ssp.library.symmetry import Symmetry
 from ssp.overlap import same_volume
 from ssp.probability import pose_change
-from ssp.scene import Hypothesis, TransitionMode
+from ssp.retention import TriageState
+from ssp.scene import FrameError, Hypothesis, TransitionMode
+from ssp.segments import explained_fraction
+
+if TYPE_CHECKING:
+    from ssp.frame_context import FrameContext
 
 __all__ = [
+    "CLASS_MARGIN",
+    "Association",
     "association_gates",
     "associate",
+    "associate_frame",
+    "counted_id_factory",
     "classify",
     "default_id_factory",
     "duplicates_of_undetected",
     "one_object_per_segment",
     "reidentify",
+    "reidentify_moved",
     "same_volume_test",
     "snap_symmetric",
 ]
+
+log = logging.getLogger(__name__)
 
 #: Cost of a forbidden (gated-out) pair in the assignment matrix.
 _FORBIDDEN = 1e6
@@ -500,3 +515,178 @@ def snap_symmetric(T_prev: np.ndarray, T_cur: np.ndarray, symmetry: Symmetry | N
         if angle < best_angle - 1e-9:
             best_T, best_angle = T, angle
     return best_T
+
+
+# ------------------------------------------------------------------ the association stage
+#: A known object keeps its class on its segment unless another class accounts for this much
+#: more of the segment's points (a fraction).
+CLASS_MARGIN = 0.05
+
+
+@dataclass
+class Association:
+    """What the association stage found: the groups per object id, the id counters after it,
+    the segments undetected objects took, and the groups dropped (class confusions,
+    duplicates)."""
+
+    groups: dict[str, list[Hypothesis]]
+    counters: dict[str, int]
+    #: undetected known object -> the instance label whose points lie on it
+    claimed: dict[str, int]
+    #: dropped group -> the object whose segment it is
+    confused: dict[str, str]
+    #: dropped new group -> the undetected object it duplicates
+    duplicates: dict[str, str]
+
+
+def counted_id_factory(counters: dict[str, int], taken: set[str]) -> Callable[[str], str]:
+    """``new_id(class_name)``: ``f"{class_name}_{k}"`` with ``k`` from ``counters`` (advanced in
+    place, so ids are never reused across frames), skipping the ids in ``taken`` (extended)."""
+
+    def new_id(class_name: str) -> str:
+        while True:
+            k = counters.get(class_name, 0)
+            counters[class_name] = k + 1
+            candidate = f"{class_name}_{k}"
+            if candidate not in taken:
+                taken.add(candidate)
+                return candidate
+
+    return new_id
+
+
+def associate_frame(ctx: FrameContext) -> None:
+    """Stage *association*: the frame's hypotheses grouped per object (:func:`associate`,
+    :func:`one_object_per_segment`, :func:`duplicates_of_undetected`; paper section V-C), the
+    best ``search.hypotheses_per_object`` kept per object; every object's class and model,
+    the known objects' previous poses and each detected object's provisional pose
+    (:func:`ssp.first_guess.first_guess`).
+
+    Sets ``association``, ``groups``, ``classes``, ``models``, ``prev_pose``, ``first``.
+
+    Raises:
+        FrameError: an instance id given to a hypothesis of another class than its object's.
+    """
+    assoc = _associate(ctx)
+    cfg, known = ctx.config, ctx.known
+    groups = assoc.groups
+    classes = {oid: hyps[0].class_name for oid, hyps in groups.items()}
+    classes.update({oid: k.class_name for oid, k in known.items() if oid not in groups})
+    models = {oid: ctx.library[c] for oid, c in classes.items()}
+    prev_pose = {oid: known[oid].T_world_obj for oid in known}
+    # Provisional pose per detected object (segment vote, triage of undetected objects);
+    # replaced by the first guess once the scorer can weigh the candidates.
+    first = {
+        oid: first_guess(
+            hyps,
+            prev_pose.get(oid),
+            models[oid].symmetry,
+            cfg.temporal,
+            models[oid].center_of_mass,
+        )  # fmt: skip
+        for oid, hyps in groups.items()
+    }
+    ctx.association, ctx.groups, ctx.classes = assoc, groups, classes
+    ctx.models, ctx.prev_pose, ctx.first = models, prev_pose, first
+
+
+def _associate(ctx: FrameContext) -> Association:
+    """The groups per object (:func:`associate_frame`)."""
+    cfg, frame, library, known = ctx.config, ctx.frame, ctx.library, ctx.known
+    previous = {oid: (k.class_name, k.T_world_obj) for oid, k in known.items()}
+    counters = dict(ctx.counters)
+    taken = set(previous) | {h.instance_id for h in frame.hypotheses if h.instance_id}
+    groups = associate(
+        frame.hypotheses,
+        previous,
+        {n: m.symmetry for n, m in library.items()},
+        max_distance=association_gates(library, cfg.temporal),
+        same_volume=same_volume_test(library, cfg.temporal.merge_overlap),
+        new_id=counted_id_factory(counters, taken),
+        centres={n: m.center_of_mass for n, m in library.items()},
+    )
+    for oid, hyps in groups.items():
+        k = known.get(oid)
+        if k is not None and k.class_name != hyps[0].class_name:
+            raise FrameError(
+                f"instance id {oid!r} is a {k.class_name!r} but this frame's "
+                f"hypothesis calls it a {hyps[0].class_name!r}"
+            )
+    k_max = cfg.search.hypotheses_per_object
+    labels = None if frame.labels is None else np.asarray(frame.labels)
+    # a scene point on the surface lies up to about one sample spacing from a sample
+    radius = cfg.data.inlier_radius + cfg.library.surface_spacing
+
+    def rank(oid: str, hyps: list[Hypothesis]) -> tuple:
+        """Which class a segment is: the group that accounts for most of its points (a
+        known object's with a margin: its class is not given up for a near tie)."""
+        if labels is None or hyps[0].segment is None:
+            return (oid in known, float(hyps[0].score))
+        points = frame.points[labels == hyps[0].segment]
+        model = library[hyps[0].class_name]
+        best = max(explained_fraction(points, model, h.T_world_obj, radius) for h in hyps[:k_max])
+        return (best + (CLASS_MARGIN if oid in known else 0.0), float(hyps[0].score))
+
+    groups, confused = one_object_per_segment(groups, rank)
+    groups = {oid: hyps[:k_max] for oid, hyps in groups.items()}
+    claimed: dict[str, int] = {}
+    duplicates: dict[str, str] = {}
+    if labels is not None:
+
+        def explained(u: str, points: np.ndarray) -> float:
+            k = known[u]
+            return explained_fraction(points, library[k.class_name], k.T_world_obj, radius)
+
+        groups, claimed, duplicates = duplicates_of_undetected(
+            groups,
+            previous,
+            lambda seg: frame.points[labels == seg],
+            explained,
+            cfg.temporal.explained_fraction,
+        )
+        for oid, u in duplicates.items():
+            log.info("new %s: its segment lies on %s where it was; a duplicate", oid, u)
+    for oid, winner in confused.items():
+        log.info("%s dropped: its segment is %s's (one object per segment)", oid, winner)
+    return Association(groups, counters, claimed, confused, duplicates)
+
+
+def reidentify_moved(ctx: FrameContext) -> None:
+    """Stage *re-identification*: a new object where a known one of its class just vanished
+    (replaced or seen empty) is that object, moved; so is one beside a known object that the
+    depth contradicts (seen through): the known object's pose was wrong, and the new one is
+    where it really is (:func:`reidentify`). The contradicted objects found again leave the
+    output (``superseded``); the scene is scored again without what leaves it.
+
+    Sets ``old_of``, ``moved_away`` and ``superseded``; updates ``gone`` and ``score``.
+    """
+    cfg, score, models, prev_pose = ctx.config, ctx.scene_score, ctx.models, ctx.prev_pose
+    ids, gone = score.ids, ctx.gone
+    left = (TriageState.REPLACED, TriageState.SEEN_EMPTY)
+    vanished = {
+        oid: (models[oid].name, prev_pose[oid])
+        for oid in ctx.removed
+        if oid in ctx.verdicts and ctx.verdicts[oid].state in left
+    }
+    contradicted = {
+        oid: (models[oid].name, score.poses[ids.index(oid)])
+        for oid in ids
+        if oid in prev_pose and oid not in gone and ctx.evidence[oid].seen_empty(cfg)
+    }
+    added = {
+        oid: (models[oid].name, ctx.placed.get(oid, score.poses[ids.index(oid)]))
+        for oid in ids
+        if oid not in gone and oid not in prev_pose
+    }
+    renamed = reidentify(
+        {**vanished, **contradicted},
+        added,
+        {oid: models[oid].diameter for oid in contradicted},  # beside it, not elsewhere
+    )
+    ctx.old_of = dict(renamed)  # new id -> old id
+    ctx.moved_away = set(renamed.values())
+    ctx.superseded = ctx.moved_away & set(contradicted)  # their new pose replaces them
+    gone |= ctx.superseded
+    dropped = [oid for oid in ids if oid in gone and oid not in ctx.removed]
+    if dropped:  # the output's terms and support without what is not in it
+        ctx.score = ctx.rescore_without(dropped)

@@ -31,6 +31,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -40,6 +41,7 @@ from ssp.estimate import Rejected
 from ssp.geometry import transform_points
 from ssp.library.model import ObjectModel
 from ssp.scene import Hypothesis
+from ssp.scoring import Term
 from ssp.segments import SegmentTrees, explained_fraction, point_spacing
 from ssp.visibility import (
     BEHIND_OWN,
@@ -51,6 +53,9 @@ from ssp.visibility import (
     CameraView,
 )
 
+if TYPE_CHECKING:
+    from ssp.frame_context import FrameContext
+
 log = logging.getLogger(__name__)
 
 __all__ = [
@@ -59,12 +64,16 @@ __all__ = [
     "check_new",
     "data_fallbacks",
     "evidence",
+    "fall_back_to_data",
     "held_up",
+    "judge_final",
     "may_hold_up",
+    "place_new",
     "still_visible",
     "verify_and_place",
     "verify_final",
     "verify_new",
+    "verify_new_objects",
 ]
 
 
@@ -445,7 +454,7 @@ def verify_and_place(
             view,
             cfg,
             own_label=owner.get(oid),
-            stability=float(score.terms[i, 0]),
+            stability=float(score.terms[i, Term.STABILITY]),
             segment_spacing=segments.spacing(oid),
         )
     to_place = [oid for oid, v in verdicts.items() if v.keep and v.T_world_obj is not None]
@@ -466,7 +475,7 @@ def verify_and_place(
         searched = world.get_pose(oid)
         world.set_enabled(oid, True)
         world.set_pose(oid, verdicts[oid].T_world_obj)
-        collision = float(scorer.evaluate(world, timer).terms[world.index(oid), 1])
+        collision = float(scorer.evaluate(world, timer).terms[world.index(oid), Term.COLLISION])
         own = verdicts[oid].evidence.explained is not None  # it accounts for its segment
         if collision >= cfg.verification.fallback_collision or own:
             placed[oid] = verdicts[oid].T_world_obj
@@ -490,3 +499,126 @@ def verify_and_place(
     for oid in unverified + to_place:
         world.set_enabled(oid, True)
     return verdicts, placed
+
+
+# ------------------------------------------------------------------ the parser's stages
+def verify_new_objects(ctx: FrameContext) -> None:
+    """Stage *verification of the new*: :func:`verify_new` on the objects not seen before; a
+    rejected one leaves the frame (its group, provisional pose and class).
+
+    Sets ``rejected``; updates ``groups``, ``first`` and ``classes``.
+    """
+    new = [oid for oid in ctx.groups if oid not in ctx.known]
+    ctx.rejected = verify_new(
+        new, ctx.groups, ctx.models, ctx.segment_trees, ctx.owner, ctx.view, ctx.config
+    )
+    for oid in ctx.rejected:
+        del ctx.groups[oid], ctx.first[oid], ctx.classes[oid]
+
+
+def fall_back_to_data(ctx: FrameContext) -> None:
+    """Stage *fallbacks*: data wins over physics for objects new in this frame, or held by
+    their data before (an established object keeps its physically consistent pose): those the
+    search moved off their data (:func:`data_fallbacks`) go back to their best hypothesis,
+    unless there they would be inside another object (``verification.fallback_collision``).
+
+    Sets ``fallbacks``; updates ``score`` and ``chosen``.
+    """
+    cfg, known, sim = ctx.config, ctx.known, ctx.sim
+    world, scorer = sim.world, sim.scorer
+    may_fall_back = {oid for oid in ctx.groups if oid not in known or known[oid].held}
+    fallbacks = data_fallbacks(
+        ctx.scene_score, scorer, {oid: ctx.groups[oid] for oid in may_fall_back}, cfg
+    )
+    if fallbacks:
+        searched = {oid: world.get_pose(oid) for oid in fallbacks}
+        world.set_poses({oid: T for oid, (T, _) in fallbacks.items()})
+        moved = scorer.evaluate(world, ctx.timer)
+        # data wins over physics only where it does not put one object into another
+        clash = {
+            oid
+            for oid in fallbacks
+            if moved.terms[world.index(oid), Term.COLLISION] < cfg.verification.fallback_collision
+        }
+        for oid in clash:
+            world.set_pose(oid, searched[oid])
+            del fallbacks[oid]
+        ctx.score = scorer.evaluate(world, ctx.timer) if clash else moved
+        ctx.chosen.update({oid: "hypothesis (data fallback)" for oid in fallbacks})
+    ctx.fallbacks = fallbacks
+
+
+def place_new(ctx: FrameContext) -> None:
+    """Stage *placement*: every new object verified at its final pose
+    (:func:`verify_and_place`; those kept at a hypothesis are put there), and every object's
+    :func:`evidence` at its final pose.
+
+    Sets ``final_verdicts``, ``placed`` and ``evidence``; updates ``score``.
+    """
+    cfg, sim, trees = ctx.config, ctx.sim, ctx.segment_trees
+    world, scorer = sim.world, sim.scorer
+    ctx.final_verdicts, ctx.placed = verify_and_place(
+        world, scorer, ctx.scene_score, ctx.models, ctx.groups, trees, ctx.owner, ctx.view,
+        set(ctx.prev_pose) | set(ctx.removed), cfg, ctx.timer,
+    )  # fmt: skip
+    if ctx.placed:
+        ctx.score = scorer.evaluate(world, ctx.timer)
+    score = ctx.scene_score
+    ctx.evidence = {
+        oid: evidence(
+            ctx.models[oid],
+            score.poses[world.index(oid)],
+            trees.tree(oid),
+            ctx.view,
+            cfg,
+            own_label=ctx.owner.get(oid),
+            segment_spacing=trees.spacing(oid),
+        )  # fmt: skip
+        for oid in world.ids
+        if oid not in ctx.removed
+    }
+
+
+def judge_final(ctx: FrameContext) -> None:
+    """Stage *final verdicts*: a new object that failed at its final pose stays if it holds up
+    an object that stays and the camera does not see through it (:func:`held_up`,
+    :func:`may_hold_up`; kept with a warning), else it is rejected, with what rests on it
+    named. Unverified objects holding up only each other, or only rejected ones, go together.
+
+    Sets ``warnings`` (the fallbacks', the placed objects', the held-up ones'), ``reasons``
+    and ``gone``; updates ``rejected``.
+    """
+    cfg, score, models = ctx.config, ctx.scene_score, ctx.models
+    ids = score.ids
+    warnings = [f"{oid}: {note}" for oid, (_, note) in sorted(ctx.fallbacks.items())]
+    rejected = dict(ctx.rejected)
+    failed: dict[str, Verdict] = {}
+    for oid, verdict in ctx.final_verdicts.items():
+        if verdict.keep:
+            ctx.reasons[oid] = verdict.reason
+            if oid in ctx.placed:  # kept where its data puts it
+                warnings.append(f"{oid}: {verdict.reason}")
+        else:
+            failed[oid] = verdict
+    holds = held_up(
+        [oid for oid, v in failed.items() if may_hold_up(v, cfg)],
+        [oid for oid in ids if oid not in ctx.removed and oid not in failed | rejected.keys()],
+        lambda oid: [ids[c] for c in score.graph.children(ids.index(oid))],
+    )
+    for oid, verdict in failed.items():
+        i = ids.index(oid)
+        if oid in holds:
+            ctx.reasons[oid] = f"unverified ({verdict.reason}) but holds up {', '.join(holds[oid])}"
+            warnings.append(f"{oid}: {ctx.reasons[oid]}")
+            continue
+        seg = ctx.groups[oid][0].segment if oid in ctx.groups else None
+        why = verdict.reason
+        on_it = [ids[c] for c in score.graph.children(i) if ids[c] not in ctx.removed]
+        if on_it:
+            why += f" (what rests on it, {', '.join(on_it)}, does not keep it)"
+        rejected[oid] = Rejected(
+            oid, models[oid].name, score.poses[i].copy(), why, verdict.evidence.as_dict(), seg,
+        )  # fmt: skip
+        log.info("%s (%s) rejected at its final pose: %s", oid, models[oid].name, why)
+    ctx.warnings, ctx.rejected = warnings, rejected
+    ctx.gone = set(ctx.removed) | set(rejected)

@@ -1,0 +1,185 @@
+"""The frame's outcome: each object's transition mode and reason, and the scene estimate.
+
+The last stages of :meth:`ssp.parser.SceneParser.update`. :func:`transition_modes` gives every
+object that stays its output pose (the symmetric equivalent closest to its previous one,
+:func:`ssp.temporal.snap_symmetric`), its transition mode (paper section V-C:
+:func:`ssp.temporal.classify`), its reason in words and the frame's per-object warnings;
+:func:`scene_estimate` adds the removed objects, the support edges and every segment's
+verdict, and builds the :class:`~ssp.estimate.SceneEstimate`. What the next frame remembers
+(:attr:`FrameContext.next_known`) is committed by the parser.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+from dataclasses import replace
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from ssp.estimate import ObjectEstimate, SceneEstimate, SupportEdge
+from ssp.frame_context import Known
+from ssp.retention import TriageState
+from ssp.scene import TransitionMode
+from ssp.search import CandidateSource
+from ssp.segments import segment_verdicts
+from ssp.support import GROUND
+from ssp.temporal import classify, snap_symmetric
+
+if TYPE_CHECKING:
+    from ssp.frame_context import FrameContext
+
+__all__ = ["TABLE", "report_moved", "scene_estimate", "transition_modes"]
+
+log = logging.getLogger(__name__)
+
+#: Name of the ground in support edges.
+TABLE = "table"
+
+
+def transition_modes(ctx: FrameContext) -> None:
+    """Stage *transition modes*: every object that stays, at its output pose, with its mode,
+    reason and terms; a warning for each one the camera sees through (not placed by its data)
+    or that would fall (``verification.fall_stability``).
+
+    Sets ``objects`` and ``next_known``; updates ``warnings``.
+    """
+    cfg, score, models = ctx.config, ctx.scene_score, ctx.models
+    for i, oid in enumerate(score.ids):
+        if oid in ctx.gone:
+            continue
+        model = models[oid]
+        T = ctx.placed.get(oid, score.poses[i])
+        out_id = ctx.old_of.get(oid, oid)
+        prev = ctx.prev_pose.get(out_id)
+        if prev is not None:
+            T = snap_symmetric(prev, T, model.symmetry)
+        v = ctx.verdicts.get(oid)
+        ephemeral = v is not None and v.state == TriageState.EPHEMERAL
+        retained = oid in ctx.retained or (ephemeral and bool(score.graph.children(i)))
+        mode = classify(prev, T, model.symmetry, cfg.temporal, retained, model.center_of_mass)
+        terms = score.object_terms(i)
+        ev = ctx.evidence.get(oid)
+        if oid not in ctx.placed and ev is not None and ev.seen_empty(cfg):
+            ctx.warnings.append(
+                f"{out_id}: the camera sees through {100 * ev.seen_through:.0f} % of it"
+            )
+        if terms.stability < cfg.verification.fall_stability:
+            ctx.warnings.append(f"{out_id}: would fall (stability term {terms.stability:.1f})")
+        verdict = ctx.final_verdicts.get(oid)
+        ctx.objects.append(
+            ObjectEstimate(
+                out_id,
+                model.name,
+                T,
+                mode,
+                ephemeral=ephemeral,
+                terms=terms,
+                source=ctx.chosen.get(oid, CandidateSource.CURRENT),
+                fit=float(score.fit[i]),
+                reason=_reason(ctx, oid, T, prev),
+                evidence=verdict.evidence.as_dict() if verdict is not None else None,
+            )
+        )
+        ctx.next_known[out_id] = Known(
+            model.name, T, ephemeral, float(score.fit[i]), held=oid in ctx.fallbacks
+        )
+
+
+def _reason(ctx: FrameContext, oid: str, T: np.ndarray, prev: np.ndarray | None) -> str:
+    """Why object ``oid`` (at its output pose ``T``; ``prev``: its previous pose) is in the
+    scene, in words."""
+    out_id = ctx.old_of.get(oid, oid)
+    if oid in ctx.old_of and out_id in ctx.superseded:
+        return (
+            f"found again where the depth puts it (re-identified: {oid} is {out_id}, "
+            "whose pose the camera saw through)"
+        )
+    if oid in ctx.old_of:
+        assert prev is not None, "a re-identified object has a previous pose"
+        dist = np.linalg.norm(T[:3, 3] - prev[:3, 3])
+        return f"moved {1000 * dist:.0f} mm (re-identified: {oid} is {out_id})"
+    if oid in ctx.retained:
+        return f"support-retained: holds up {', '.join(ctx.retained[oid])}"
+    v = ctx.verdicts.get(oid)
+    if v is not None:
+        return v.reason
+    if oid in ctx.reasons:
+        return ctx.reasons[oid]
+    src = ctx.chosen.get(oid, CandidateSource.CURRENT)
+    return f"detected; the search kept its {src} pose"
+
+
+def scene_estimate(ctx: FrameContext) -> None:
+    """Stage *outcome*: the :class:`~ssp.estimate.SceneEstimate`: the objects, the removed
+    ones (not found again elsewhere) with their reasons, the rejected ones, every segment's
+    verdict (:func:`ssp.segments.segment_verdicts`), the warnings (also logged), the support
+    edges among what stays and the scene's log-probability.
+
+    Sets ``estimate``.
+    """
+    score, models = ctx.scene_score, ctx.models
+    removed = tuple(
+        ObjectEstimate(
+            oid,
+            models[oid].name,
+            ctx.prev_pose[oid],
+            TransitionMode.REMOVED,
+            source="removed",
+            reason=ctx.verdicts[oid].reason if oid in ctx.verdicts else "",
+        )  # fmt: skip
+        for oid in sorted(ctx.removed)
+        if oid not in ctx.moved_away
+    )
+    ids, old_of, g = score.ids, ctx.old_of, score.graph
+    support = []
+    for a, b, f in zip(g.supporter, g.supported, g.edge_fraction, strict=True):
+        if ids[b] in ctx.gone or (a != GROUND and ids[a] in ctx.gone):
+            continue
+        sup = TABLE if a == GROUND else old_of.get(ids[a], ids[a])
+        support.append(SupportEdge(sup, old_of.get(ids[b], ids[b]), float(f)))
+    objects = tuple(ctx.objects)
+    ctx.estimate = SceneEstimate(
+        stamp=ctx.frame.stamp,
+        frame_index=ctx.frame_index,
+        objects=objects,
+        removed=removed,
+        rejected=tuple(ctx.rejected[k] for k in sorted(ctx.rejected)),
+        segments=segment_verdicts(ctx, {o.id for o in objects}),
+        warnings=tuple(ctx.warnings),
+        support=tuple(support),
+        log_prob=float(sum(o.log_prob for o in objects)),
+        hypotheses_tested=ctx.tested,
+        unchanged=ctx.unchanged,
+    )
+    for w in ctx.warnings:
+        log.warning("frame %d: %s", ctx.frame_index, w)
+
+
+def report_moved(
+    estimate: SceneEstimate, moved: Mapping[str, np.ndarray | None], gone: Mapping[str, Known]
+) -> SceneEstimate:
+    """The estimate with :attr:`Frame.moved` said: a moved object that is still in the scene
+    is ``perturbed``, with the reason; one that left is among the removed objects."""
+    note = "moved by the caller (Frame.moved)"
+    objects = tuple(
+        replace(o, mode=TransitionMode.PERTURBED, reason=f"{o.reason}; {note}")
+        if o.id in moved and o.mode == TransitionMode.STATIC
+        else replace(o, reason=f"{o.reason}; {note}")
+        if o.id in moved
+        else o
+        for o in estimate.objects
+    )
+    removed = estimate.removed + tuple(
+        ObjectEstimate(
+            oid,
+            k.class_name,
+            k.T_world_obj.copy(),
+            TransitionMode.REMOVED,
+            source="removed",
+            reason="left the scene (Frame.moved: None)",
+        )  # fmt: skip
+        for oid, k in sorted(gone.items())
+    )
+    return replace(estimate, objects=objects, removed=removed)
