@@ -1,4 +1,6 @@
-"""The first guess: where each object starts before the search (paper Alg. 3's initial scene).
+"""The first guess: where each object starts before the search (DESIGN section 1, step 3).
+
+Alg. 3 of the paper takes a support graph as given; it does not say which scene it comes from.
 
 Before the search tests any candidate, every object is put at one pose and the scene is
 settled with data forces; the support graph of that settled scene gives the search its layers
@@ -93,10 +95,12 @@ def first_guess_scene(ctx: FrameContext) -> None:
         if oid in settled:
             ctx.first[oid] = prev_pose[oid]
             continue
-        ctx.first[oid] = best_first_guess(
-            ctx.groups[oid], prev_pose.get(oid), lambda T, i=i: scorer.unsimulated(i, T)
-        )
-    world.set_poses({oid: ctx.first.get(oid, prev_pose.get(oid)) for oid in ids})
+
+        def unsimulated(T: np.ndarray, i: int = i) -> float:
+            return scorer.unsimulated(i, T)
+
+        ctx.first[oid] = best_first_guess(ctx.groups[oid], prev_pose.get(oid), unsimulated)
+    world.set_poses({oid: ctx.first[oid] if oid in ctx.first else prev_pose[oid] for oid in ids})
     base = world.save_state()
     try:
         sim.simulator.settle(cfg.search.initial_settle, with_forces=True)

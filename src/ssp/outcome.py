@@ -2,7 +2,7 @@
 
 The last stages of :meth:`ssp.parser.SceneParser.update`. :func:`transition_modes` gives every
 object that stays its output pose (the symmetric equivalent closest to its previous one,
-:func:`ssp.temporal.snap_symmetric`), its transition mode (paper section V-C:
+:func:`ssp.temporal.snap_symmetric`), its transition mode (paper section IV-C:
 :func:`ssp.temporal.classify`), its reason in words and the frame's per-object warnings;
 :func:`scene_estimate` adds the removed objects, the support edges and every segment's
 verdict, and builds the :class:`~ssp.estimate.SceneEstimate`. What the next frame remembers
@@ -79,7 +79,7 @@ def transition_modes(ctx: FrameContext) -> None:
                 source=ctx.chosen.get(oid, CandidateSource.CURRENT),
                 fit=float(score.fit[i]),
                 reason=_reason(ctx, oid, T, prev),
-                evidence=verdict.evidence.as_dict() if verdict is not None else None,
+                evidence=verdict.judged.as_dict() if verdict is not None else None,
             )
         )
         ctx.next_known[out_id] = Known(

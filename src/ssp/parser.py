@@ -223,17 +223,7 @@ class SceneParser:
                 )
             known_before = dict(self._known)
             gone = self._apply_moved(frame.moved or {})
-            ctx = FrameContext(
-                frame=frame,
-                library=self.library,
-                config=self.config,
-                table=self.table,
-                known=dict(self._known),
-                counters=dict(self._counters),
-                frame_index=self._frame_index,
-                timer=timer,
-                world_for=self._world_for,
-            )
+            ctx = self.frame_context(frame, timer)
             try:
                 run_stages(ctx, STAGES)
             except BaseException:
@@ -249,6 +239,21 @@ class SceneParser:
         if frame.moved:
             estimate = report_moved(estimate, frame.moved, gone)
         return replace(estimate, timings=dict(timer.seconds))
+
+    def frame_context(self, frame: Frame, timer: StageTimer | None = None) -> FrameContext:
+        """A fresh context for the validated ``frame`` over the parser's remembered scene (what
+        :meth:`update` runs :data:`STAGES` on; for running or testing stages by hand)."""
+        return FrameContext(
+            frame=frame,
+            library=self.library,
+            config=self.config,
+            table=self.table,
+            known=dict(self._known),
+            counters=dict(self._counters),
+            frame_index=self._frame_index,
+            timer=timer if timer is not None else StageTimer(),
+            world_for=self._world_for,
+        )
 
     def _world_for(self, objects: Mapping[str, str]) -> World:
         """The physics world of ``{id: class}``: the last one while the objects stay."""

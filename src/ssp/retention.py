@@ -1,4 +1,4 @@
-"""Known objects without a hypothesis this frame: kept, or removed, and why (paper V-C).
+"""Known objects without a hypothesis this frame: kept, or removed, and why (paper IV-C).
 
 An estimator misses objects: hidden ones, and visible ones too (a dropout). :func:`triage`
 decides, for each undetected known object at its previous pose, in this order:

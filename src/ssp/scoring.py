@@ -1,7 +1,8 @@
 """The scene probability of a simulated world state: every term of every enabled object.
 
-``log Pr(s | C, D) = sum_objects (log P_B + log P_C + log P_S + log P_D + log P_T)`` (paper Eq. 3,
-4-10; DESIGN section 4), read from the physics world after a simulation window:
+``log Pr(s | C, D) = sum_objects (log P_B + log P_C + log P_S + log P_D + log P_T)``: the
+paper's Eq. 4 with Eq. 5, 6 and the terms of Eq. 9-12 (DESIGN section 4), read from the
+physics world after a simulation window:
 
 * stability ``P_B``: the acceleration from rest under gravity and contacts alone (data forces
   are cleared first: a hovering object held by its data force is still unstable);
@@ -46,7 +47,7 @@ __all__ = ["TERM_NAMES", "SceneScore", "SceneScorer", "Term", "contact_overlaps"
 
 
 class Term(IntEnum):
-    """The columns of :attr:`SceneScore.terms`: the log-probability terms of paper eqs. (4)-(6)."""
+    """The columns of :attr:`SceneScore.terms`: the log-probability terms of the paper's Eq. 4."""
 
     STABILITY = 0
     COLLISION = 1
@@ -62,7 +63,7 @@ TERM_NAMES = tuple(t.name.lower() for t in Term)
 def contact_overlaps(
     models, contacts, poses: np.ndarray, deep: np.ndarray, min_depth: float
 ) -> np.ndarray:
-    """(n,) volume fraction ``v_c / v_t`` (Eq. 8) of each object flagged in ``deep`` ((n,)
+    """(n,) volume fraction ``v_c / v_t`` (Eq. 10) of each object flagged in ``deep`` ((n,)
     bool) inside the objects it penetrates by more than ``min_depth`` (m), or below the table
     (:func:`ssp.overlap.overlap_fractions`); 0 for the others. ``models`` and ``poses``
     ((n, 4, 4)) are in the contacts' id order."""
@@ -188,7 +189,7 @@ class SceneScorer:
 
     def unsimulated(self, i: int, T_world_obj: np.ndarray) -> float:
         """``log P_D + log P_T`` of object ``i`` at a pose: its terms that need no simulation
-        (Eq. 4 and 10). Used to pick the first-guess pose among an object's candidates."""
+        (Eq. 6 and 12). Used to pick the first-guess pose among an object's candidates."""
         cfg = self.config
         log_d = float(log_data(np.array([self.fit_fraction(i, T_world_obj)]), cfg.data)[0])
         return log_d + log_transition_from_poses(
@@ -240,7 +241,7 @@ class SceneScorer:
         terms[idx, Term.SUPPORT] = log_support(graph.support_sums()[idx], cfg.support)
 
         for i in idx:
-            fit[i] = self.fit_fraction(i, poses[i])
+            fit[i] = self.fit_fraction(int(i), poses[i])
         terms[idx, Term.DATA] = log_data(fit[idx], cfg.data)
 
         for i in idx:

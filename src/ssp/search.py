@@ -1,7 +1,7 @@
 """Hypothesis evaluation: simulate a candidate scene (Alg. 1) and the layered search (Alg. 3).
 
 :class:`Simulator` is ``SimulateWorld`` of Alg. 1: quasi-static steps under gravity, contacts and
-the data-guiding forces (Eq. 9-10 of the algorithms section), then a window without the forces
+the data-guiding forces (paper Eq. 13-14), then a window without the forces
 so that what remains is what physics alone holds up. Wrenches are recomputed every
 ``force_refresh_every`` steps (their nearest-neighbour targets too) and held in between.
 
@@ -332,36 +332,62 @@ def layered_search(
                 kids = [c for c in children.get(i, ()) if not world.is_enabled(ids[c])]
                 current = Candidate(world.get_pose(oid), CandidateSource.CURRENT)
                 tests = [current, *candidates.get(oid, ())]
-                # Objects out of reach of every candidate (and of the children) that hold up
-                # none of the others are set aside for this object's tests, so a test costs
-                # about the same in a scene of 5 or 50 objects; the candidates are compared on
-                # the same set of objects, as the scores require.
-                far = _out_of_reach(world, i, [c.T_world_obj for c in tests], kids, reach, parents)
-                for k in far:
-                    world.set_enabled(ids[k], False)
-                base = world.save_state()
-                kid_poses = {ids[c]: world.get_pose(ids[c]) for c in kids}
-                results = lanes.run(base, [(oid, tuple(kids), c.T_world_obj) for c in tests])
-                best_total, best_state, best_source = -np.inf, None, CandidateSource.CURRENT
-                for cand, (total, state, error) in zip(tests, results, strict=True):
-                    tested += 1
-                    if total is None:
-                        log.warning(
-                            "candidate %s of %s failed in simulation: %s", cand.source, oid, error
-                        )
-                        failed.append((oid, cand.source))
-                        continue
-                    if total > best_total:  # ties keep the earlier candidate
-                        best_total, best_state, best_source = total, state, cand.source
-                world.restore_state(best_state if best_state is not None else base)
-                for kid, T in kid_poses.items():  # children are tested in their own layer
-                    world.set_pose(kid, T)
-                    world.set_enabled(kid, False)
-                for k in far:
-                    world.set_enabled(ids[k], True)
-                chosen[oid] = best_source
+                chosen[oid] = _test_candidates(world, i, tests, kids, reach, parents, lanes, failed)
+                tested += len(tests)
     for i in in_search:
         world.set_enabled(ids[i], True)
+    score = _final_settle(world, sim, scorer, timer)
+    return SearchResult(score=score, chosen=chosen, tested=tested, failed=failed)
+
+
+def _test_candidates(
+    world: World,
+    i: int,
+    tests: Sequence[Candidate],
+    kids: Sequence[int],
+    reach: float,
+    parents: Mapping[int, list[int]],
+    lanes: ForkLanes,
+    failed: list[tuple[str, str]],
+) -> CandidateSource:
+    """Alg. 3's inner loop for object ``i``: each of its candidate ``tests`` simulated with its
+    children ``kids`` added back, from the same state; the world is left in the best test's
+    end state with the children set aside again. Returns the source of the best candidate
+    (ties keep the earlier); failed simulations are appended to ``failed``."""
+    ids = world.ids
+    oid = ids[i]
+    # Objects out of reach of every candidate (and of the children) that hold up none of the
+    # others are set aside for this object's tests, so a test costs about the same in a scene
+    # of 5 or 50 objects; the candidates are compared on the same set of objects, as the
+    # scores require.
+    far = _out_of_reach(world, i, [c.T_world_obj for c in tests], kids, reach, parents)
+    for k in far:
+        world.set_enabled(ids[k], False)
+    base = world.save_state()
+    kid_poses = {ids[c]: world.get_pose(ids[c]) for c in kids}
+    results = lanes.run(base, [(oid, tuple(kids), c.T_world_obj) for c in tests])
+    best_total, best_state, best_source = -np.inf, None, CandidateSource.CURRENT
+    for cand, (total, state, error) in zip(tests, results, strict=True):
+        if total is None:
+            log.warning("candidate %s of %s failed in simulation: %s", cand.source, oid, error)
+            failed.append((oid, cand.source))
+            continue
+        if total > best_total:  # ties keep the earlier candidate
+            best_total, best_state, best_source = total, state, cand.source
+    world.restore_state(best_state if best_state is not None else base)
+    for kid, T in kid_poses.items():  # children are tested in their own layer
+        world.set_pose(kid, T)
+        world.set_enabled(kid, False)
+    for k in far:
+        world.set_enabled(ids[k], True)
+    return best_source
+
+
+def _final_settle(
+    world: World, sim: Simulator, scorer: SceneScorer, timer: StageTimer
+) -> SceneScore:
+    """The searched scene settled ``search.final_settle`` with forces (kept as the search left
+    it if that fails), and its score."""
     sim.forces.reset()
     chosen_state = world.save_state()
     try:
@@ -369,8 +395,7 @@ def layered_search(
     except PhysicsError as exc:  # pragma: no cover - the states before it were all stable
         log.warning("final settle failed (%s); keeping the scene as the search left it", exc)
         world.restore_state(chosen_state)
-    score = scorer.evaluate(world, timer)
-    return SearchResult(score=score, chosen=chosen, tested=tested, failed=failed)
+    return scorer.evaluate(world, timer)
 
 
 # ------------------------------------------------------------------ the parser's stages

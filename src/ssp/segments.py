@@ -1,6 +1,6 @@
 """Each object's own part of the scene cloud (its "segment"), prepared once per frame.
 
-The data forces (Eq. 9-10 of the algorithms section) and the data-fit term (Eq. 10) compare an
+The data forces (paper Eq. 13-14) and the data-fit term (Eq. 12) compare an
 object's model with the scene points that belong to it. Where those come from, in order:
 
 1. ``frame.segments[instance_id]``: the caller segmented the cloud per object;
@@ -276,7 +276,7 @@ def explained_fraction(
 ) -> float:
     """Fraction of ``points`` ``(K, 3)`` (world, m) within ``radius`` (m) of the model's surface
     samples at ``T_world_obj``: how much of a segment the object at that pose accounts for
-    (the data-to-model direction; the data fit c of Eq. 10 is model-to-data). 0 for no points.
+    (the data-to-model direction; the data fit c of Eq. 12 is model-to-data). 0 for no points.
     """
     points = np.asarray(points, dtype=float).reshape(-1, 3)
     if not len(points):
@@ -348,9 +348,9 @@ def segment_verdicts(ctx: FrameContext, kept: set[str]) -> dict[int, str]:
     said: dict[int, list[str]] = {}
     for r in sorted(ctx.rejected.values(), key=lambda r: r.id):
         # the segment its hypotheses came from, else the one it took (a cluster, a class mask)
-        label = r.segment if r.segment is not None else ctx.members.get(r.id)
-        if label is not None and int(label) not in out:
-            said.setdefault(int(label), []).append(f"rejected {r.class_name} {r.id}: {r.reason}")
+        its = r.segment if r.segment is not None else ctx.members.get(r.id)
+        if its is not None and int(its) not in out:
+            said.setdefault(int(its), []).append(f"rejected {r.class_name} {r.id}: {r.reason}")
     out.update({label: "; ".join(texts) for label, texts in said.items()})
     for label in np.unique(np.asarray(frame.labels)):
         if label >= 0 and int(label) not in out:

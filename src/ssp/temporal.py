@@ -1,4 +1,4 @@
-"""Between frames: data association, transition modes, symmetry snapping (paper section V-C).
+"""Between frames: data association, transition modes, symmetry snapping (paper section IV-C).
 
 * :func:`associate` gives every hypothesis of a frame an object instance id: the id it carries,
   else the id of the previous object it matches (Hungarian assignment), else a fresh one.
@@ -194,29 +194,57 @@ def associate(
         DuplicateObjectError: ``new_id`` returned an id already in use.
     """
     given_ids = {h.instance_id for h in hypotheses if h.instance_id is not None}
+    gate = _gate(max_distance)
+    if new_id is None:
+        new_id = default_id_factory([*previous, *given_ids])
+    at = _centre_at(centres)
+    # each hypothesis's centre, once (a cluster's best is its first member: centre[c.order])
+    centre = [tuple(at(h.class_name, h.T_world_obj).tolist()) for h in hypotheses]
+    clusters, by_id = _cluster(hypotheses, centre, gate)
+    if same_volume is not None:  # two objects cannot share a volume: merge such clusters
+        clusters = _merge_same_volume(clusters, same_volume)
+    matching = _Matching(previous, symmetries, centres, centre, at, gate, rotation_weight)
+    matching.name(clusters, given_ids, by_id, new_id)
+    return _groups(clusters)
+
+
+def _gate(max_distance: float | Mapping[str, float]) -> Callable[[str], float]:
+    """``gate(class_name)``: the clustering radius and matching gate of a class, m."""
     if isinstance(max_distance, Mapping):
         gates = dict(max_distance)
 
         def gate(class_name: str) -> float:
             return float(gates.get(class_name, 0.05))
-    else:
-        radius = float(max_distance)
 
-        def gate(class_name: str) -> float:
-            return radius
+        return gate
+    radius = float(max_distance)
 
-    if new_id is None:
-        new_id = default_id_factory([*previous, *given_ids])
-    centres = dict(centres or {})
+    def fixed(class_name: str) -> float:
+        return radius
+
+    return fixed
+
+
+def _centre_at(
+    centres: Mapping[str, np.ndarray] | None,
+) -> Callable[[str, np.ndarray], np.ndarray]:
+    """``at(class_name, T)``: the world position (3,) of the class's centre at pose ``T``."""
+    points = dict(centres or {})
 
     def at(class_name: str, T: np.ndarray) -> np.ndarray:
-        """World position of the class's centre at pose ``T``."""
         T = np.asarray(T, dtype=float)
-        c = centres.get(class_name)
+        c = points.get(class_name)
         return T[:3, 3] if c is None else T[:3, :3] @ np.asarray(c, dtype=float) + T[:3, 3]
 
-    # each hypothesis's centre, once (a cluster's best is its first member: centre[c.order])
-    centre = [tuple(at(h.class_name, h.T_world_obj).tolist()) for h in hypotheses]
+    return at
+
+
+def _cluster(
+    hypotheses: list[Hypothesis], centre: list[tuple], gate: Callable[[str], float]
+) -> tuple[list[_Cluster], dict[str, _Cluster]]:
+    """Steps 1-2 of :func:`associate`: the given ids' groups, then every other hypothesis (best
+    score first) joins the nearest cluster of its class within the gate (or its instance
+    segment's), or starts one. Returns the clusters and those with a given id, by id."""
     order = sorted(range(len(hypotheses)), key=lambda i: (-float(hypotheses[i].score), i))
     clusters: list[_Cluster] = []
     by_id: dict[str, _Cluster] = {}
@@ -254,69 +282,108 @@ def associate(
             clusters.append(_Cluster(h, i))
         else:
             best.add(h, i)
+    return clusters, by_id
 
-    if same_volume is not None:  # two objects cannot share a volume: merge such clusters
-        kept: list[_Cluster] = []
-        for c in clusters:
-            target = None
-            if c.instance_id is None:
-                target = next(
-                    (
-                        k
-                        for k in kept
-                        if k.best.class_name == c.best.class_name
-                        and k.accepts(c.segment)
-                        and same_volume(k.best, c.best)
-                    ),
-                    None,
-                )
-            if target is None:
-                kept.append(c)
-            else:
-                for h, index in zip(c.members, c.indices, strict=True):
-                    target.add(h, index)
-        clusters = kept
 
-    free = [c for c in clusters if c.instance_id is None]
-    for class_name in sorted({c.best.class_name for c in free}):
-        rows = [c for c in free if c.best.class_name == class_name]
-        rows.sort(key=lambda c: (-float(c.best.score), c.order))
-        cols = sorted(
-            k for k, (cls, _) in previous.items() if cls == class_name and k not in given_ids
-        )
-        if cols:
-            sym = symmetries.get(class_name)
-            c_model = centres.get(class_name)
-            radius_c = gate(class_name)
-            p_prev = {k: at(class_name, previous[k][1]) for k in cols}
-            cost = np.full((len(rows), len(cols)), _FORBIDDEN)
-            for r, c in enumerate(rows):
-                at_members = np.array([centre[i] for i in c.indices])
-                for j, k in enumerate(cols):
-                    T_prev = previous[k][1]
-                    near = np.linalg.norm(at_members - p_prev[k], axis=1) <= radius_c
-                    # the gated-out members skip the (costlier) symmetric rotation
-                    for m in np.flatnonzero(near):
-                        h = c.members[m]
-                        dt, dth = pose_change(T_prev, h.T_world_obj, sym, c_model)
-                        if dt <= radius_c:
-                            cost[r, j] = min(cost[r, j], dt + rotation_weight * dth)
-            for r, j in zip(*linear_sum_assignment(cost), strict=True):
-                if cost[r, j] < _FORBIDDEN:
-                    rows[r].instance_id = cols[j]
-        for c in rows:
-            if c.instance_id is None:
-                ident = new_id(class_name)
-                if ident in previous or ident in given_ids or ident in by_id:
-                    raise DuplicateObjectError(f"new_id returned {ident!r}, which is in use")
-                c.instance_id = ident
-                by_id[ident] = c
+def _merge_same_volume(
+    clusters: list[_Cluster], same_volume: Callable[[Hypothesis, Hypothesis], bool]
+) -> list[_Cluster]:
+    """Step 2b of :func:`associate`: a cluster without a given id whose best hypothesis shares
+    the volume of an earlier cluster's best (same class, segments not different) joins it."""
+    kept: list[_Cluster] = []
+    for c in clusters:
+        target = None
+        if c.instance_id is None:
+            target = next(
+                (
+                    k
+                    for k in kept
+                    if k.best.class_name == c.best.class_name
+                    and k.accepts(c.segment)
+                    and same_volume(k.best, c.best)
+                ),
+                None,
+            )
+        if target is None:
+            kept.append(c)
+        else:
+            for h, index in zip(c.members, c.indices, strict=True):
+                target.add(h, index)
+    return kept
 
-    clusters.sort(key=lambda c: c.first_index)
+
+class _Matching:
+    """Steps 3-4 of :func:`associate`: clusters to previous objects, then new ids."""
+
+    def __init__(
+        self, previous, symmetries, centres, centre, at, gate, rotation_weight: float
+    ) -> None:
+        self.previous, self.symmetries, self.centre, self.at = previous, symmetries, centre, at
+        self.centres, self.gate = dict(centres or {}), gate
+        self.rotation_weight = rotation_weight
+
+    def name(
+        self,
+        clusters: list[_Cluster],
+        given_ids: set[str],
+        by_id: dict[str, _Cluster],
+        new_id: Callable[[str], str],
+    ) -> None:
+        """Give every cluster without an id one: a previous object's (:meth:`assign`, class by
+        class), else ``new_id(class_name)`` (class name, then decreasing best score, then
+        input order). DuplicateObjectError when ``new_id`` returns an id in use."""
+        previous = self.previous
+        free = [c for c in clusters if c.instance_id is None]
+        for class_name in sorted({c.best.class_name for c in free}):
+            rows = [c for c in free if c.best.class_name == class_name]
+            rows.sort(key=lambda c: (-float(c.best.score), c.order))
+            cols = sorted(
+                k for k, (cls, _) in previous.items() if cls == class_name and k not in given_ids
+            )
+            if cols:
+                self.assign(class_name, rows, cols)
+            for c in rows:
+                if c.instance_id is None:
+                    ident = new_id(class_name)
+                    if ident in previous or ident in given_ids or ident in by_id:
+                        raise DuplicateObjectError(f"new_id returned {ident!r}, which is in use")
+                    c.instance_id = ident
+                    by_id[ident] = c
+
+    def assign(self, class_name: str, rows: list[_Cluster], cols: list[str]) -> None:
+        """Give each cluster of ``rows`` the id of the previous object of ``cols`` it is
+        assigned to (globally optimal on ``dt + rotation_weight * dtheta``, gated)."""
+        sym = self.symmetries.get(class_name)
+        c_model = self.centres.get(class_name)
+        radius_c = self.gate(class_name)
+        p_prev = {k: self.at(class_name, self.previous[k][1]) for k in cols}
+        cost = np.full((len(rows), len(cols)), _FORBIDDEN)
+        for r, c in enumerate(rows):
+            at_members = np.array([self.centre[i] for i in c.indices])
+            for j, k in enumerate(cols):
+                T_prev = self.previous[k][1]
+                near = np.linalg.norm(at_members - p_prev[k], axis=1) <= radius_c
+                # the gated-out members skip the (costlier) symmetric rotation
+                for m in np.flatnonzero(near):
+                    h = c.members[m]
+                    dt, dth = pose_change(T_prev, h.T_world_obj, sym, c_model)
+                    if dt <= radius_c:
+                        cost[r, j] = min(cost[r, j], dt + self.rotation_weight * dth)
+        for r, j in zip(*linear_sum_assignment(cost), strict=True):
+            if cost[r, j] < _FORBIDDEN:
+                rows[r].instance_id = cols[j]
+
+
+def _groups(clusters: list[_Cluster]) -> dict[str, list[Hypothesis]]:
+    """The clusters as ``id -> hypotheses`` (best score first; input order on ties), in the
+    order of each cluster's first hypothesis in the input."""
+    clusters = sorted(clusters, key=lambda c: c.first_index)
     out: dict[str, list[Hypothesis]] = {}
     for c in clusters:
+        ident = c.instance_id
+        assert ident is not None, "every cluster has an id by now"
         members = sorted(c.members, key=lambda h: -float(h.score))  # stable: input order on ties
-        out[c.instance_id] = [replace(h, instance_id=c.instance_id) for h in members]
+        out[ident] = [replace(h, instance_id=ident) for h in members]
     return out
 
 
@@ -557,7 +624,7 @@ def counted_id_factory(counters: dict[str, int], taken: set[str]) -> Callable[[s
 
 def associate_frame(ctx: FrameContext) -> None:
     """Stage *association*: the frame's hypotheses grouped per object (:func:`associate`,
-    :func:`one_object_per_segment`, :func:`duplicates_of_undetected`; paper section V-C), the
+    :func:`one_object_per_segment`, :func:`duplicates_of_undetected`; paper section IV-C), the
     best ``search.hypotheses_per_object`` kept per object; every object's class and model,
     the known objects' previous poses and each detected object's provisional pose
     (:func:`ssp.first_guess.first_guess`).

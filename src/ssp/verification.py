@@ -13,7 +13,7 @@ at a pose, :func:`evidence` compares the model's surface samples with the frame:
   (observed depth behind it: that space is empty), or *unknown* (no depth along its ray);
 * ``fit``: of the samples the camera could have seen (seen, seen through, or behind its own
   surface), the fraction with a point of the object's segment within the inlier radius, or
-  within 0.75 point spacings of a sparser cloud (model to data; Eq. 10's ``c`` on the visible
+  within 0.75 point spacings of a sparser cloud (model to data; Eq. 12's ``c`` on the visible
   surface only, so a cube in full view scores near 1 and a half-hidden one too, and a cube
   proposed inside a ball does not);
 * ``explained``: the fraction of the segment's points within the inlier radius plus the sample
@@ -125,6 +125,14 @@ class Verdict:
     evidence: Evidence | None = None
     T_world_obj: np.ndarray | None = None
     searched: Verdict | None = None
+
+    @property
+    def judged(self) -> Evidence:
+        """The evidence the verdict was reached on (:func:`check_new` and :func:`verify_final`
+        always give it)."""
+        if self.evidence is None:
+            raise ValueError(f"a verdict without evidence: {self.reason}")
+        return self.evidence
 
 
 #: A surface sample counts as explained within this many point spacings of the segment (at
@@ -268,6 +276,7 @@ def verify_new(
                 best = (key, ev, h)
             if key[0]:  # one hypothesis the data supports keeps the object
                 break
+        assert best is not None, "every group has a hypothesis"
         _, ev, h = best
         verdict = check_new(ev, config, loose=True)
         if not verdict.keep:
@@ -317,7 +326,7 @@ def verify_final(
                 model, T, tree, view, config, own_label=own_label, segment_spacing=spacing
             )
             hv = check_new(ev_h, config)
-            e = hv.evidence
+            e = hv.judged
             strength = e.fit if e.explained is None else e.explained
             if hv.keep and (best is None or strength > best[0]):
                 best = (strength, np.asarray(T, dtype=float), hv)
@@ -382,7 +391,7 @@ def held_up(
 
 def data_fallbacks(score, scorer, groups, config: SSPConfig) -> dict[str, tuple[np.ndarray, str]]:
     """No worse than the evidence: the detected objects whose searched pose explains much
-    less of their visible surface (data fit ``c``, Eq. 10) than their best hypothesis does,
+    less of their visible surface (data fit ``c``, Eq. 12) than their best hypothesis does,
     by more than ``verification.fallback_fit_drop``: the search moved them off their data,
     typically because what holds them up is not in the scene (an undetected object, a
     distractor) and physics let them fall or tilt. ``id -> (that hypothesis's pose, the
@@ -460,7 +469,7 @@ def verify_and_place(
     to_place = [oid for oid, v in verdicts.items() if v.keep and v.T_world_obj is not None]
 
     def strength(oid: str) -> float:
-        e = verdicts[oid].evidence
+        e = verdicts[oid].judged
         return -(e.fit if e.explained is None else e.explained)
 
     placed: dict[str, np.ndarray] = {}
@@ -473,12 +482,14 @@ def verify_and_place(
         world.set_enabled(oid, False)
     for oid in sorted(to_place, key=lambda o: (strength(o), o)):
         searched = world.get_pose(oid)
+        target = verdicts[oid].T_world_obj
+        assert target is not None, "to_place holds the verdicts with a pose"
         world.set_enabled(oid, True)
-        world.set_pose(oid, verdicts[oid].T_world_obj)
+        world.set_pose(oid, target)
         collision = float(scorer.evaluate(world, timer).terms[world.index(oid), Term.COLLISION])
-        own = verdicts[oid].evidence.explained is not None  # it accounts for its segment
+        own = verdicts[oid].judged.explained is not None  # it accounts for its segment
         if collision >= cfg.verification.fallback_collision or own:
-            placed[oid] = verdicts[oid].T_world_obj
+            placed[oid] = target
             if collision < cfg.verification.fallback_collision:
                 # its own instance segment says it is there: kept, with the doubt said
                 v = verdicts[oid]
@@ -490,6 +501,7 @@ def verify_and_place(
         world.set_pose(oid, searched)
         world.set_enabled(oid, False)
         v = verdicts[oid]
+        assert v.searched is not None, "a verdict kept at a hypothesis has the searched one"
         verdicts[oid] = Verdict(
             False,
             f"{v.searched.reason}; at its best hypothesis it would be inside another object "
@@ -617,7 +629,7 @@ def judge_final(ctx: FrameContext) -> None:
         if on_it:
             why += f" (what rests on it, {', '.join(on_it)}, does not keep it)"
         rejected[oid] = Rejected(
-            oid, models[oid].name, score.poses[i].copy(), why, verdict.evidence.as_dict(), seg,
+            oid, models[oid].name, score.poses[i].copy(), why, verdict.judged.as_dict(), seg,
         )  # fmt: skip
         log.info("%s (%s) rejected at its final pose: %s", oid, models[oid].name, why)
     ctx.warnings, ctx.rejected = warnings, rejected
