@@ -28,6 +28,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+import ssp.parser
 from ssp.cli import app
 from ssp.config import load_config
 from ssp.errors import (
@@ -42,7 +43,8 @@ from ssp.io.clouds import write_cloud
 from ssp.io.hypotheses import write_hypotheses
 from ssp.parser import SceneEstimate, SceneParser, parse_sequence
 from ssp.perception import segmentation
-from ssp.runner import TIMING_KEYS, run
+from ssp.pipeline.run import run
+from ssp.pipeline.summary import TIMING_KEYS
 from ssp.scene import Frame, FrameError
 from ssp.sim.bop import simulate_to_disk
 from ssp.sim.generate import generate_sequence
@@ -855,16 +857,16 @@ def test_bad_python_frame_is_a_frame_error_and_the_sequence_goes_on(case, lib, s
 def test_parse_sequence_contains_a_bug_in_one_frame(lib, api_ref, monkeypatch):
     (f0, f1), estimates, state = api_ref
     parser = SceneParser(lib)
-    real = SceneParser._update
+    real = ssp.parser.run_stages
     calls = []
 
-    def buggy(self, frame, timer):
-        calls.append(frame.stamp)
-        if frame.stamp == 1.5:
+    def buggy(ctx, stages):
+        calls.append(ctx.frame.stamp)
+        if ctx.frame.stamp == 1.5:
             raise ZeroDivisionError("a bug")
-        return real(self, frame, timer)
+        return real(ctx, stages)
 
-    monkeypatch.setattr(SceneParser, "_update", buggy)
+    monkeypatch.setattr(ssp.parser, "run_stages", buggy)
     results = list(parse_sequence(parser, [f0, replace(f1, stamp=1.5), f1]))
     assert isinstance(results[1][1], ZeroDivisionError)
     assert [_strip(results[k][1].to_dict()) for k in (0, 2)] == estimates
@@ -1109,7 +1111,7 @@ def test_ssp_baseline_contains_a_bug_in_one_frame(lib, api_ref, monkeypatch):
     method = SSPMethod(lib)
     first = method.update(f0)
     assert first
-    monkeypatch.setattr(SceneParser, "_update", lambda self, frame, timer: 1 / 0)
+    monkeypatch.setattr(ssp.parser, "run_stages", lambda ctx, stages: 1 / 0)
     again = method.update(f1)  # answered with the previous output
     assert [(d.class_name, d.T_world_obj.tolist()) for d in again] == [
         (d.class_name, d.T_world_obj.tolist()) for d in first

@@ -142,12 +142,12 @@ def test_an_interrupt_a_library_swallows_stops_the_run_at_the_next_frame():
     import os
     import signal
 
-    from ssp.cli import _restore_signals, _stop_on_sigterm, _stopped
+    from ssp.cli.common import restore_signals, stop_on_sigterm, stopped
 
     before = signal.getsignal(signal.SIGINT)  # SIG_IGN in a background job
-    previous = _stop_on_sigterm()
+    previous = stop_on_sigterm()
     try:
-        _stopped()  # nothing asked yet
+        stopped()  # nothing asked yet
         try:
             os.kill(os.getpid(), signal.SIGINT)
             for _ in range(1000):  # the handler runs between bytecodes
@@ -155,7 +155,7 @@ def test_an_interrupt_a_library_swallows_stops_the_run_at_the_next_frame():
         except BaseException:  # what such a library does
             pass
         with pytest.raises(KeyboardInterrupt):
-            _stopped()
+            stopped()
     finally:
-        _restore_signals(previous)
+        restore_signals(previous)
     assert signal.getsignal(signal.SIGINT) == before

@@ -1,5 +1,5 @@
-"""``ssp.executor``: serial, process and Ray runs give the serial results, in input order, and
-name the item that failed; the benchmarks and ``ssp run`` of many inputs through it.
+"""``ssp.pipeline.executor``: serial, process and Ray runs give the serial results, in input
+order, and name the item that failed; the benchmarks and ``ssp run`` of many inputs through it.
 
 One local Ray (2 CPUs) is started for the module; the executor uses it as it is.
 """
@@ -18,8 +18,8 @@ from ssp.config import SSPConfig
 from ssp.errors import ArgumentError
 from ssp.eval import tower
 from ssp.eval.table1 import SequenceSpec, run_table1
-from ssp.executor import ItemError, ItemFailure, Parallel, map_items
-from ssp.runner import TIMING_KEYS
+from ssp.pipeline.executor import ItemError, ItemFailure, Parallel, map_items
+from ssp.pipeline.summary import TIMING_KEYS
 
 SERIAL = Parallel()
 PROCESSES = Parallel("processes", 2)

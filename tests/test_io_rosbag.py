@@ -1,4 +1,4 @@
-"""ROS 1 / ROS 2 bags and MCAP files in and out (ssp.io.rosbag, ssp.inputs_bag), on small
+"""ROS 1 / ROS 2 bags and MCAP files in and out (ssp.io.rosbag, ssp.pipeline.bag), on small
 synthetic scenes rendered by the simulator and written with rosbags' own writers."""
 
 from __future__ import annotations
@@ -20,7 +20,6 @@ from rosbags.rosbag2 import Writer as Writer2  # noqa: E402
 
 from ssp.errors import InputError  # noqa: E402
 from ssp.geometry import invert  # noqa: E402
-from ssp.inputs_bag import write_run_results_bag  # noqa: E402
 from ssp.io.rosbag import (  # noqa: E402
     BagOptions,
     TfBuffer,
@@ -29,7 +28,8 @@ from ssp.io.rosbag import (  # noqa: E402
     parse_class_map,
     typestore,
 )
-from ssp.runner import run  # noqa: E402
+from ssp.pipeline.bag import write_run_results_bag  # noqa: E402
+from ssp.pipeline.run import run  # noqa: E402
 from ssp.sim.bop import open_bop, read_bop, simulate_to_disk  # noqa: E402
 
 BASE_S = 1_700_000_000  # bag stamps: this + the scene's stamp

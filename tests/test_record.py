@@ -13,8 +13,8 @@ from typer.testing import CliRunner
 from ssp.cli import app
 from ssp.estimate import ObjectEstimate, SceneEstimate, SupportEdge
 from ssp.geometry import make_pose
+from ssp.pipeline.run import run
 from ssp.probability import ObjectTerms
-from ssp.runner import run
 from ssp.scene import Frame, Hypothesis, TransitionMode
 from ssp.sim.bop import simulate_to_disk
 from ssp.viz.record import (

@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 from ssp.cli import app
 from ssp.errors import InputError
 from ssp.io.results import read_bop_csv
-from ssp.refine import estimate, evaluate, refine, refined_method
+from ssp.pipeline.refine import estimate, evaluate, refine, refined_method
 from ssp.sim.bop import simulate_to_disk
 
 runner = CliRunner()
@@ -147,7 +147,7 @@ def test_cli_refine_and_evaluate(dataset, tmp_path):
 
 def test_bop_options_are_refused_on_other_inputs(lib, tmp_path):
     from ssp.errors import ArgumentError
-    from ssp.runner import run
+    from ssp.pipeline.run import run
 
     (tmp_path / "in").mkdir()
     with pytest.raises(ArgumentError, match="options of a BOP scene input"):
@@ -155,7 +155,7 @@ def test_bop_options_are_refused_on_other_inputs(lib, tmp_path):
 
 
 def test_run_on_a_published_scene_with_gt_masks(lib, dataset, tmp_path):
-    from ssp.runner import run
+    from ssp.pipeline.run import run
 
     root, est = dataset
     pub = _published(root, tmp_path / "pub")

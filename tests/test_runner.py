@@ -12,7 +12,7 @@ from ssp.geometry import invert
 from ssp.io.clouds import write_cloud
 from ssp.io.hypotheses import write_hypotheses
 from ssp.io.results import read_bop_csv
-from ssp.runner import run
+from ssp.pipeline.run import run
 from ssp.scene import Hypothesis
 from ssp.sim.bop import simulate_to_disk
 from ssp.sim.generate import generate_sequence

@@ -9,7 +9,7 @@ hypotheses and instance labels. Cycles are generated one at a time: the sequence
 memory, so memory growth is the parser's (or the runner's).
 
 Per frame: wall seconds (:meth:`SceneParser.update`; with ``runner=True`` the time between two
-progress calls of :func:`ssp.runner.run`, which reads the frame's files, perceives it with the
+progress calls of :func:`ssp.pipeline.run.run`, which reads the frame's files, perceives it with the
 given hypotheses, parses it and writes its crash-safe outputs), the resident set size after
 it (``VmRSS`` of ``/proc/self/status``; where there is no ``/proc``, the peak of
 :func:`resource.getrusage`), the objects in the scene and whether the unchanged-scene shortcut
@@ -149,7 +149,7 @@ def bench_soak(
         seed: seed of the first cycle.
         stride: render every ``stride``-th pixel (4: 160 x 120).
         config: ssp's settings.
-        runner: go through :func:`ssp.runner.run` (files in, files out) instead of calling
+        runner: go through :func:`ssp.pipeline.run.run` (files in, files out) instead of calling
             the parser directly; the input folder and the run's outputs are written under
             ``work_dir`` (a temporary folder, deleted, when None).
         progress: ``progress(done, total)`` after each frame.
@@ -205,7 +205,7 @@ def _soak_parser(library, cfg, frames, seed, stride, progress) -> list[dict[str,
 
 
 def _soak_runner(library, cfg, frames, seed, stride, work_dir, progress) -> list[dict[str, Any]]:
-    from ssp.runner import run
+    from ssp.pipeline.run import run
 
     root = Path(work_dir) if work_dir is not None else Path(tempfile.mkdtemp(prefix="ssp-soak-"))
     src = root / "input"

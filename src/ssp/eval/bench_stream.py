@@ -20,7 +20,7 @@ from pathlib import Path
 from ssp.config import SSPConfig
 from ssp.eval.estimated import estimate_sequence
 from ssp.eval.stream_stats import stream_records, summarize_stream
-from ssp.executor import Parallel, done_messages, map_items
+from ssp.pipeline.executor import Parallel, done_messages, map_items
 from ssp.sim.generate import generate_sequence
 from ssp.sim.realistic import RealisticNoise, RealisticStream
 
@@ -39,7 +39,8 @@ def run_stream_calibration(
     """Both sources' statistics on the sequences of ``seeds`` (module docstring).
 
     ``progress`` gets a message per seed as it starts (serial) or ends (in parallel);
-    ``parallel``: how the seeds are run (:mod:`ssp.executor`), the result is the serial one.
+    ``parallel``: how the seeds are run (:mod:`ssp.pipeline.executor`), the result is the serial
+    one.
     """
     cfg = config if config is not None else SSPConfig()
     noise = noise if noise is not None else RealisticNoise()

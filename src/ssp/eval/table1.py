@@ -58,9 +58,9 @@ from ssp.eval.metrics import (
     summarize,
 )
 from ssp.eval.tracking import IdSwitches
-from ssp.executor import Parallel, done_messages, map_items
 from ssp.library.model import ObjectInstance
 from ssp.physics import World
+from ssp.pipeline.executor import Parallel, done_messages, map_items
 from ssp.sim.sequence import SimSequence
 from ssp.support import build_support_graph
 
@@ -73,6 +73,7 @@ __all__ = [
     "merge_table1",
     "run_table1",
     "run_table1_parts",
+    "table1_report",
     "write_table1",
 ]
 
@@ -359,8 +360,9 @@ def run_table1(
             after the ``ssp`` method's update, with the parser's input and its last
             :class:`ssp.estimate.SceneEstimate` (that of an earlier frame when this one failed;
             e.g. to record the run, :mod:`ssp.viz.record`); serial only.
-        parallel: how the sequences are run (:mod:`ssp.executor`; default serial). The result
-            is the serial one but for the wall times (``sec`` and ``sec_per_frame``).
+        parallel: how the sequences are run (:mod:`ssp.pipeline.executor`; default serial).
+            The result is the serial one but for the wall times (``sec`` and
+            ``sec_per_frame``).
     """
     methods = _check_methods(methods)
     parts = run_table1_parts(
@@ -396,7 +398,7 @@ def run_table1_parts(
     ``on_sequence(done, total)`` after each sequence).
 
     Raises:
-        ItemError: a sequence failed (:mod:`ssp.executor`; named by its index and seed).
+        ItemError: a sequence failed (:mod:`ssp.pipeline.executor`; named by its index and seed).
     """
     config = config if config is not None else SSPConfig()
     methods = _check_methods(methods)
@@ -658,6 +660,41 @@ def merge_table1(
         "match_gate_mm": 1000.0 * gate,
         "records": records,
     }
+
+
+def table1_report(
+    parts: Sequence[SequencePart],
+    methods: Sequence[str],
+    *,
+    hypotheses: str,
+    noise: str,
+    command: dict | None = None,
+) -> dict:
+    """The result ``ssp bench table1`` writes: :func:`merge_table1` of the parts, with the
+    hypotheses (``noisy`` or ``estimated``) and noise (``paper`` or ``realistic``) settings;
+    for ``realistic``, the realistic protocol's settings and each sequence's events; for
+    estimated hypotheses, the estimator's summary and records
+    (:func:`ssp.eval.estimated.summarize_estimator`); and the ``command`` that ran it."""
+    from ssp.sim.realistic import RealisticNoise, SceneRealism
+
+    result = merge_table1(parts, methods)
+    records = [{"sequence": p.index, **r} for p in parts for r in p.estimator_records]
+    result["hypotheses"] = hypotheses
+    result["noise"] = noise
+    if noise == "realistic":
+        result["protocol_settings"] = {
+            "estimator": RealisticNoise().to_dict(),
+            "scene": SceneRealism().to_dict(),
+            "events": [p.info.get("events") for p in parts],
+            "events_skipped": [p.info.get("events_skipped") for p in parts],
+        }
+    if records:
+        from ssp.eval.estimated import summarize_estimator
+
+        result["estimator"] = summarize_estimator(records)
+        result["estimator_records"] = records
+    result["command"] = command
+    return result
 
 
 # ------------------------------------------------------------------------------ report

@@ -77,10 +77,10 @@ from ssp.eval.metrics import (
     precision_deviations,
     summarize,
 )
-from ssp.executor import Parallel, done_messages, map_items
 from ssp.geometry import yaw_pose
 from ssp.library.model import ObjectInstance, ObjectModel
 from ssp.physics.world import World
+from ssp.pipeline.executor import Parallel, done_messages, map_items
 from ssp.probability import pose_change
 from ssp.sim.distractors import distractor_models
 from ssp.sim.generate import observe_static_scene
@@ -598,8 +598,8 @@ def run_tower(
 
     ``progress`` gets a message per stack (serial) or per finished trial (in parallel);
     ``on_trial(method, trial, result)`` is called as each trial finishes. ``parallel``: how
-    the method-trial pairs are run (:mod:`ssp.executor`; each pair is independent and seeded
-    by ``seed`` and the trial); the result is the serial one but for the wall times
+    the method-trial pairs are run (:mod:`ssp.pipeline.executor`; each pair is independent and
+    seeded by ``seed`` and the trial); the result is the serial one but for the wall times
     (``wall_s``, ``sec_per_frame``).
     """
     if hypotheses not in HYPOTHESES:

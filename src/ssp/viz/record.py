@@ -473,7 +473,7 @@ class Recorder:
 
 
 class RunRecording:
-    """The recording of an :func:`ssp.runner.run` (``path`` None: none, and rerun is not
+    """The recording of an :func:`ssp.pipeline.run.run` (``path`` None: none, and rerun is not
     imported). A recording that fails part way (a full disk, a bug) is logged and stopped; the
     run goes on without it."""
 

@@ -1,9 +1,9 @@
-"""``ssp run`` over many inputs: one :func:`ssp.runner.run` per input, in parallel.
+"""``ssp run`` over many inputs: one :func:`ssp.pipeline.run.run` per input, in parallel.
 
 Each input ``IN`` gets its own output folder ``OUT/<IN's folder name>/`` holding the files of a
-single run (``docs/formats.md``); the runs are independent (:mod:`ssp.executor` maps them),
-so each one's files are those it would write alone. One input that cannot be run at all (a
-missing folder, no frames) is reported in its place and the others go on; bad frames are
+single run (``docs/formats.md``); the runs are independent (:mod:`ssp.pipeline.executor` maps
+them), so each one's files are those it would write alone. One input that cannot be run at all
+(a missing folder, no frames) is reported in its place and the others go on; bad frames are
 handled inside each run as usual.
 """
 
@@ -16,8 +16,10 @@ from typing import Any
 
 from ssp.config import SSPConfig
 from ssp.errors import ArgumentError
-from ssp.executor import ItemFailure, Parallel, map_items
-from ssp.runner import RunSummary, check_out_dir, run
+from ssp.pipeline.executor import ItemFailure, Parallel, map_items
+from ssp.pipeline.manifest import check_out_dir
+from ssp.pipeline.run import run
+from ssp.pipeline.summary import RunSummary
 
 __all__ = ["input_out_dirs", "run_inputs"]
 
@@ -57,17 +59,17 @@ def run_inputs(
     progress: Callable[[int, int, str], None] | None = None,
     **options: Any,
 ) -> list[RunSummary | ItemFailure]:
-    """:func:`ssp.runner.run` of every input into ``out_dir/<input name>``, in input order.
+    """:func:`ssp.pipeline.run.run` of every input into ``out_dir/<input name>``, in input order.
 
     Args:
         inputs: input folders (clouds or BOP scenes), with distinct folder names.
         library: the object library (sent once to each worker).
         out_dir: the parent of the runs' output folders.
         config: ssp's settings.
-        parallel: how the runs are spread (:mod:`ssp.executor`; default serial).
+        parallel: how the runs are spread (:mod:`ssp.pipeline.executor`; default serial).
         overwrite: clear earlier runs' files in the output folders first.
         progress: ``progress(done, total, input)`` after each input.
-        options: the other keyword arguments of :func:`ssp.runner.run` (``hypotheses``,
+        options: the other keyword arguments of :func:`ssp.pipeline.run.run` (``hypotheses``,
             ``classes``, ``method``, ``models``, ...), the same for every input.
 
     Returns:

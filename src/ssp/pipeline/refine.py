@@ -3,13 +3,14 @@ dataset as the toolkit publishes it (:mod:`ssp.io.bop`).
 
 * :func:`refine`: an estimator's output (a BOP19 results CSV or another format of
   :mod:`ssp.io.estimators`, camera frame) becomes ssp's refined BOP19 CSV. Each scene is one
-  :func:`ssp.runner.run` (per-frame JSON, summary, resume) in ``OUT/scenes/<scene_id>/``; the
+  :func:`ssp.pipeline.run.run` (per-frame JSON, summary, resume) in ``OUT/scenes/<scene_id>/``; the
   scenes' rows are gathered in ``OUT/<method>_<dataset>-<split>.csv``, where ``method`` is the
   input's method name (from its BOP file name) with ``-ssp`` appended.
 * :func:`estimate`: the built-in estimator (:mod:`ssp.perception`) over a dataset, every
   hypothesis of every object written as a BOP19 CSV: a stand-in for the user's estimator.
 * :func:`evaluate`: the BOP19 average recall (:mod:`ssp.eval.bop_metrics`) of result CSVs
   against the dataset's ground truth, side by side.
+* :func:`dataset_models`: the object models of a dataset, when none are given.
 
 The world frame (gravity, the table) is the scene's ``cam_R_w2c`` when it has one, else fitted
 to the depth of each frame; never taken from the ground truth.
@@ -17,6 +18,7 @@ to the depth of each frame; never taken from the ground truth.
 
 from __future__ import annotations
 
+import json
 import logging
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -39,7 +41,15 @@ from ssp.io.results import (
     read_bop_csv,
 )
 
-__all__ = ["RefineSummary", "estimate", "evaluate", "refine", "refined_method"]
+__all__ = [
+    "DatasetModelsError",
+    "RefineSummary",
+    "dataset_models",
+    "estimate",
+    "evaluate",
+    "refine",
+    "refined_method",
+]
 
 log = logging.getLogger(__name__)
 
@@ -107,31 +117,71 @@ def refine(
         fmt: the estimates' format (``auto``: detected).
         scene_ids: only these scenes (default: every scene of the split).
         method: the output's BOP method name (default :func:`refined_method`).
-        masks, period: as for :func:`ssp.runner.run`.
+        masks, period: as for :func:`ssp.pipeline.run.run`.
         progress: ``progress(done, total, message)`` after each frame of each scene.
 
     Raises:
         InputError: no scene, an unreadable estimates file, classes not in the library.
         ArgumentError: bad options or output folder.
     """
-    from ssp.io.estimators import read_estimates
-    from ssp.runner import run
-
     cfg = config if config is not None else SSPConfig()
+    scenes = _select_scenes(dataset, split, scene_ids)
+    name, split_name = _dataset_name(scenes)
+    method = method or refined_method(estimates_path)
+    out = Path(out_dir)
+    _check_out(out, resume, overwrite)
+    summary = RefineSummary(out / bop_csv_name(name, method, split_name), method)
+    _refine_scenes(summary, scenes, estimates_path, library, out, cfg, fmt=fmt, masks=masks,
+                   period=period, resume=resume, overwrite=overwrite, models=models,
+                   progress=progress)  # fmt: skip
+    _gather(summary, out)
+    write_json(out / REFINE_JSON, {"format": "ssp-refine", "version": 1,
+                                   "estimates": str(Path(estimates_path).resolve()),
+                                   **summary.to_dict()})  # fmt: skip
+    return summary
+
+
+def _select_scenes(
+    dataset: str | Path, split: str | None, scene_ids: Sequence[int] | None
+) -> list[Path]:
+    """The scene folders of ``dataset`` (its ``split``), only those of ``scene_ids`` if given.
+
+    Raises:
+        InputError: no scene (with one of ``scene_ids``).
+    """
     scenes = bop_scenes(dataset, split)
     if scene_ids is not None:
         wanted = {int(s) for s in scene_ids}
         scenes = [s for s in scenes if s.name.isdigit() and int(s.name) in wanted]
         if not scenes:
             raise InputError(f"{dataset}: no scene with id {sorted(wanted)}")
-    name, split_name = _dataset_name(scenes)
-    method = method or refined_method(estimates_path)
-    out = Path(out_dir)
-    _check_out(out, resume, overwrite)
-    csv_path = out / bop_csv_name(name, method, split_name)
+    return scenes
+
+
+def _refine_scenes(
+    summary: RefineSummary,
+    scenes: Sequence[Path],
+    estimates_path: str | Path,
+    library: Mapping,
+    out: Path,
+    cfg: SSPConfig,
+    *,
+    fmt: str,
+    masks: str,
+    period: float | None,
+    resume: bool,
+    overwrite: bool,
+    models: str | None,
+    progress: Callable[[int, int, str], None] | None,
+) -> None:
+    """One run per scene into ``out/scenes/<scene>`` (a scene a resumed refine finished is
+    kept), each recorded in ``summary.scenes``."""
+    from ssp.io.estimators import read_estimates
+    from ssp.pipeline.manifest import read_run
+    from ssp.pipeline.run import run  # the parser: only when refining
+
     first = open_bop(scenes[0])
     est = None
-    summary = RefineSummary(csv_path, method)
     total = len(scenes)
     for n, scene_path in enumerate(scenes):
         scene = first if n == 0 else open_bop(scene_path)
@@ -142,8 +192,6 @@ def refine(
         sub = out / "scenes" / scene_path.name
         sub_resume = resume and (sub / "run.json").exists()
         if resume and sub_resume and _finished(sub):
-            from ssp.runner import read_run
-
             log.info("%s: scene %s finished before; kept", out, scene_path.name)
             summary.scenes.append({"scene": scene_path.name, "status": "finished",
                                    "out": str(sub), "input": read_run(sub)["input"]})  # fmt: skip
@@ -159,7 +207,7 @@ def refine(
             sub,
             cfg,
             hypotheses="given",
-            method=method,
+            method=summary.method,
             scene_id=scene.scene_id,
             progress=report,
             resume=sub_resume,
@@ -172,11 +220,6 @@ def refine(
         summary.scenes.append({"scene": scene_path.name, "status": s.status, "out": str(sub),
                                "input": s.input, "frames": s.frames, "done": len(s.done),
                                "failed": len(s.failed)})  # fmt: skip
-    _gather(summary, out)
-    write_json(out / REFINE_JSON, {"format": "ssp-refine", "version": 1,
-                                   "estimates": str(Path(estimates_path).resolve()),
-                                   **summary.to_dict()})  # fmt: skip
-    return summary
 
 
 def _check_out(out: Path, resume: bool, overwrite: bool) -> None:
@@ -199,8 +242,7 @@ def _check_out(out: Path, resume: bool, overwrite: bool) -> None:
 
 
 def _finished(sub: Path) -> bool:
-    import json
-
+    """Whether the run in ``sub`` finished (its summary says so)."""
     try:
         return json.loads((sub / "summary.json").read_text())["status"] == "finished"
     except (OSError, ValueError, KeyError):
@@ -234,9 +276,9 @@ def estimate(
     frame, t in mm; ``time`` the image's perception seconds). A frame that fails is logged,
     reported in the returned ``failed`` list and has no rows.
 
-    ``masks`` as for :func:`ssp.runner.run`. Returns ``{csv, images, rows, failed}``.
+    ``masks`` as for :func:`ssp.pipeline.run.run`. Returns ``{csv, images, rows, failed}``.
     """
-    from ssp.runner import _bop_ids, _open_bop_input
+    from ssp.pipeline.bop import BopSource  # the perception front end: only when estimating
 
     cfg = config if config is not None else SSPConfig()
     mask_source(masks, True)  # a bad mode fails before any work
@@ -250,28 +292,28 @@ def estimate(
     with BopCsvWriter(path, method) as csv:
         for scene_path in scenes:
             # the frames exactly as ssp run perceives them (world frame, masks, estimator)
-            inp = _open_bop_input(scene_path, library, cfg, classes, "estimated", masks=masks)
-            ids = _bop_ids(scene_path, library)
+            source = BopSource(scene_path, library, cfg, classes, "estimated", masks=masks)
+            ids = source.object_ids()
             scene_id = open_bop(scene_path).scene_id
-            for k, source in enumerate(inp.sources(0)):
+            for k, frame in enumerate(source.frames(0)):
                 t0 = time.perf_counter()
                 try:
-                    res, warnings = source.perceive()
+                    res, warnings = frame.perceive()
                 except SSPError as exc:
-                    error = source.where(str(exc))
-                    log.warning("scene %s image %d skipped: %s", scene_path.name, source.index,
+                    error = frame.where(str(exc))
+                    log.warning("scene %s image %d skipped: %s", scene_path.name, frame.index,
                                 error)  # fmt: skip
-                    report["failed"].append({"scene": scene_id, "im_id": source.index,
+                    report["failed"].append({"scene": scene_id, "im_id": frame.index,
                                              "error": error})  # fmt: skip
                     continue
                 for w in warnings:
-                    log.warning("scene %s image %d: %s", scene_path.name, source.index, w)
+                    log.warning("scene %s image %d: %s", scene_path.name, frame.index, w)
                 seconds = time.perf_counter() - t0
                 T_cw = invert(np.asarray(res.frame.T_world_cam, dtype=float))
                 rows = [
                     csv.format_row(
                         scene_id,
-                        source.index,
+                        frame.index,
                         ids[h.class_name],
                         float(h.score),
                         T_cw @ h.T_world_obj,
@@ -283,7 +325,7 @@ def estimate(
                 report["images"] += 1
                 report["rows"] += len(rows)
                 if progress is not None:
-                    progress(k + 1, inp.total, f"scene {scene_path.name}: {len(rows)} rows")
+                    progress(k + 1, source.total, f"scene {scene_path.name}: {len(rows)} rows")
     return report
 
 
@@ -349,3 +391,33 @@ def result_labels(paths: Sequence[Path]) -> list[str]:
     when two files share a name (two refines write the same BOP file name)."""
     names = [p.name for p in paths]
     return names if len(set(names)) == len(names) else [str(p) for p in paths]
+
+
+# ------------------------------------------------------------------------------ models
+class DatasetModelsError(ArgumentError):
+    """A BOP dataset whose object models are not found: they must be given (``--models``)."""
+
+
+def dataset_models(dataset: str | Path) -> Path | None:
+    """The object models of a BOP dataset when no model folder is given: None (the built-in
+    models) when the dataset names its objects after them (``models.json``, as ``ssp
+    simulate`` writes), else the dataset's ``models/`` folder.
+
+    Raises:
+        DatasetModelsError: the dataset has neither.
+    """
+    from ssp.library.builtin import builtin_specs
+
+    scene = bop_scenes(dataset)[0]
+    root = dataset_root(scene)
+    for folder in (scene, root):
+        mj = None if folder is None else folder / "models.json"
+        if mj is not None and mj.is_file():
+            names = set(json.loads(mj.read_text())["obj_ids"].values())
+            if names <= {spec.name for spec in builtin_specs()}:
+                return None
+    if root is not None and (root / "models").is_dir():
+        return root / "models"
+    raise DatasetModelsError(
+        f"{dataset}: no models/ folder in the dataset: give the object models with --models"
+    )

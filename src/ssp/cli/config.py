@@ -1,0 +1,26 @@
+"""``ssp dump-config``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from ssp.cli.common import ConfigOption, console, friendly, load_config
+
+__all__ = ["dump_config_cmd"]
+
+
+@friendly
+def dump_config_cmd(
+    config: Path | None = ConfigOption,
+    out: Path | None = typer.Option(None, "--out", "-o", help="Write to this file."),
+) -> None:
+    """Print the effective configuration as YAML (defaults, or --config merged over them)."""
+    from ssp.config import dump_config
+
+    text = dump_config(load_config(config), out)
+    if out is None:
+        print(text, end="")
+    else:
+        console.print(f"wrote {out}")

@@ -1,0 +1,62 @@
+"""``ssp simulate``: synthetic sequences written in the BOP layout."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from ssp.cli.common import (
+    CacheOption,
+    ConfigOption,
+    ExperimentOption,
+    FramesOption,
+    ModelsOption,
+    StagesOption,
+    StrideOption,
+    check_experiment,
+    console,
+    experiment_library,
+    friendly,
+    progress_bar,
+)
+
+__all__ = ["simulate"]
+
+
+@friendly
+def simulate(
+    out: Path = typer.Option(Path("sim-out"), "--out", "-o", help="Output folder."),
+    experiment: str = ExperimentOption,
+    sequences: int = typer.Option(1, min=1, help="Number of sequences."),
+    seed: int = typer.Option(
+        0, help="Seed of the first sequence (0-99 development, 1000+ reports)."
+    ),
+    models: Path | None = ModelsOption,
+    stages: int = StagesOption,
+    frames_per_stage: int = FramesOption,
+    stride: int = StrideOption,
+    config: Path | None = ConfigOption,
+    cache: Path | None = CacheOption,
+) -> None:
+    """Write synthetic sequences (depth, masks, ground truth, hypotheses) in BOP layout."""
+    from ssp.sim.bop import simulate_to_disk
+
+    experiment = check_experiment(experiment)
+    lib = experiment_library(experiment, models, config, cache)
+    with progress_bar() as progress:
+        task = progress.add_task(f"simulating {experiment}", total=sequences)
+        paths = simulate_to_disk(
+            experiment,
+            sequences,
+            seed,
+            None,
+            out,
+            library=lib,
+            stages=stages,
+            frames_per_stage=frames_per_stage,
+            stride=stride,
+            progress=lambda done, total, path: progress.update(task, completed=done),
+        )
+    for p in paths:
+        console.print(f"wrote [bold]{p}[/]")

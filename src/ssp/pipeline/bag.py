@@ -1,0 +1,196 @@
+"""``ssp run`` on a ROS bag or MCAP file (:mod:`ssp.io.rosbag`): a
+:class:`~ssp.pipeline.sources.FrameSource` of its frames, and the results bag written from a
+run's output folder."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import logging
+from collections.abc import Iterator, Mapping, Sequence
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ssp.config import SSPConfig
+from ssp.errors import InputError, SSPError
+from ssp.geometry import invert
+from ssp.io.results import ObjectIds
+from ssp.io.rosbag import (
+    BagOptions,
+    ResultFrame,
+    ResultObject,
+    bag_paths,
+    open_bag,
+    write_results_bag,
+)
+from ssp.perception.depth import cloud_from_depth
+from ssp.perception.pipeline import Perception, PerceptionResult
+from ssp.perception.table import TableTracker
+from ssp.pipeline.sources import InputFrame
+
+__all__ = ["BagSource", "bag_input_files", "write_run_results_bag"]
+
+log = logging.getLogger(__name__)
+
+
+class BagSource:
+    """The frames of a bag for :func:`ssp.pipeline.run.run`: named ``000000``, ``000001``, ...
+    (the position of the driving topic's message), BOP ``im_id`` = that position. Without a
+    camera pose from tf, the world frame is the table's, kept while the camera stays put.
+
+    Raises:
+        InputError: the bag cannot be opened or its topics cannot be chosen.
+    """
+
+    kind = "bag"
+
+    def __init__(
+        self,
+        path: Path,
+        library: Mapping,
+        cfg: SSPConfig,
+        classes: Sequence[str] | None,
+        mode: str,
+        options: BagOptions | Mapping[str, Any] | None = None,
+    ) -> None:
+        self.path, self.library, self.mode = path, library, mode
+        self.bag = open_bag(path, options, mode=mode, classes=list(library))
+        self.perception = Perception(library, cfg, classes)
+        self.topics = self.bag.topics
+        # no camera pose from tf: the table's frame, kept while the camera stays put
+        self.tracker = TableTracker(cfg.perception.table_distance)
+        self.total = len(self.bag)
+
+    def frames(self, start: int = 0) -> Iterator[InputFrame]:
+        """The frames from position ``start`` on (:class:`~ssp.pipeline.sources.FrameSource`);
+        the fitted world frame is brought up to ``start`` first."""
+        files = (str(self.path),)  # the bag (file or ROS 2 folder) is named in a frame's errors
+        if start > 0 and self.tracker.T_world_cam is None:
+            # a resumed run: the world frame the frames before ``start`` kept
+            for fs in itertools.islice(self.bag.frames(0), start):
+                try:
+                    f = fs.load()
+                    if f.T_world_cam is None:
+                        self.tracker.update(self._camera_points(f))
+                except SSPError:
+                    pass  # that frame failed in the run too, leaving the frame as it was
+        for fs in self.bag.frames(start):
+            yield InputFrame(f"{fs.index:06d}", fs.index, files, partial(self._perceive, fs))
+
+    def object_ids(self) -> ObjectIds:
+        """The ids of the bag's folder's ``models.json``, else in the library's order."""
+        return ObjectIds.for_input(self.path, list(self.library))
+
+    @staticmethod
+    def _camera_points(f) -> np.ndarray:
+        if f.kind == "depth":
+            return cloud_from_depth(f.depth, f.camera).points
+        return np.asarray(f.points, dtype=float)
+
+    def _world(self, f, warnings: list[str]) -> np.ndarray | None:
+        if f.T_world_cam is not None:
+            return f.T_world_cam
+        T_wc, moved = self.tracker.update(self._camera_points(f))
+        if moved:
+            warnings.append("the table plane moved: the world frame was fitted again")
+        return T_wc
+
+    def _perceive(self, fs) -> tuple[PerceptionResult, list[str]]:
+        f = fs.load()
+        warnings = list(f.warnings)
+        for w in warnings:
+            log.warning("%s", w)
+        hyps = None if self.mode == "estimated" else f.hypotheses
+        if self.mode == "given" and hyps is None:
+            topics = self.topics
+            raise InputError(
+                f"{topics.main} at {f.stamp_ns * 1e-9:.9f} s: no hypotheses message"
+                + (f" on {topics.hypotheses}" if topics.hypotheses else " (no hypotheses topic)")
+                + " and --hypotheses given"
+            )
+        if f.kind == "depth":
+            result = self.perception.from_depth(
+                f.depth,
+                f.camera,
+                stamp=f.stamp,
+                T_world_cam=self._world(f, warnings),
+                mask=f.labels,
+                hypotheses=hyps,
+                hypotheses_frame=f.hypotheses_frame,
+            )
+        else:
+            result = self.perception.from_points(
+                f.points,
+                frame="camera",
+                stamp=f.stamp,
+                T_world_cam=self._world(f, warnings),
+                labels=f.labels,
+                label_kind="instance",
+                hypotheses=hyps,
+                hypotheses_frame=f.hypotheses_frame,
+            )
+        return result, warnings
+
+
+def bag_input_files(path: Path) -> dict[str, Any]:
+    """``{relative name: [size, mtime_ns]}`` of the files a bag is read from."""
+    base = path if path.is_dir() else path.parent
+    out: dict[str, Any] = {}
+    for p in bag_paths(path):
+        st = p.stat()
+        out[str(p.relative_to(base))] = [st.st_size, st.st_mtime_ns]
+    return out
+
+
+def write_run_results_bag(
+    out_dir: str | Path,
+    bag_path: str | Path,
+    results_path: str | Path,
+    library: Mapping,
+    options: BagOptions | Mapping[str, Any] | None = None,
+) -> Path:
+    """Write the results bag of a finished (or stopped) run of ``bag_path`` in ``out_dir``:
+    per frame done, the objects of ``frames/<name>.json`` in the camera frame (the input
+    frame's ``frame_id``) with the input header stamp (:class:`ssp.io.rosbag.ResultsBagWriter`).
+    Failed frames get no message. ``library`` gives the bounding boxes; ``obj_ids.json`` the
+    ROS 1 integer class ids."""
+    out = Path(out_dir)
+    bag = open_bag(bag_path, options, mode="estimated")
+    ids_doc = json.loads((out / "obj_ids.json").read_text(encoding="utf-8"))
+    numbers = {cls: int(i) for i, cls in ids_doc.get("obj_ids", {}).items()}
+
+    def frames() -> Iterator[ResultFrame]:
+        for k, e in enumerate(bag.entries):
+            p = out / "frames" / f"{k:06d}.json"
+            if not p.is_file():
+                continue
+            rec = json.loads(p.read_text(encoding="utf-8"))
+            if rec.get("status") == "failed" or rec.get("T_world_cam") is None:
+                continue
+            T_cw = invert(np.asarray(rec["T_world_cam"], dtype=float))
+            objects = []
+            for o in rec["objects"]:
+                T_co = T_cw @ np.asarray(o["T_world_obj"], dtype=float)
+                bbox = None
+                model = library.get(o["class"]) if hasattr(library, "get") else None
+                if model is not None:
+                    lo, hi = np.asarray(model.mesh.bounds, dtype=float)
+                    T_ob = np.eye(4)
+                    T_ob[:3, 3] = (lo + hi) / 2
+                    bbox = (T_co @ T_ob, hi - lo)
+                objects.append(
+                    ResultObject(
+                        id=str(o["id"]),
+                        class_name=o["class"],
+                        T_cam_obj=T_co,
+                        score=float(o.get("fit") or 0.0),
+                        number=numbers.get(o["class"], 0),
+                        bbox=bbox,
+                    )
+                )
+            yield ResultFrame(e.stamp, e.frame_id, objects)
+
+    return write_results_bag(results_path, frames())

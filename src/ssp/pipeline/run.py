@@ -1,0 +1,380 @@
+"""``ssp run``: the whole pipeline over recorded frames, with files in and files out.
+
+Inputs (``docs/formats.md``): a folder of PLY/PCD clouds (:func:`ssp.io.folder.open_folder`),
+a BOP scene folder written by ``ssp simulate`` (:func:`ssp.sim.bop.open_bop`), or a ROS bag /
+MCAP file (:class:`ssp.pipeline.bag.BagSource`), each a :class:`ssp.pipeline.sources.FrameSource`
+(:mod:`ssp.pipeline.inputs`). All are read frame by frame: a frame's files are read when its
+turn comes, so one unreadable frame fails alone and a long input is never in memory at once.
+Each frame goes through the perception front end (:class:`ssp.perception.Perception`; given
+hypotheses replace its estimator) and the scene parser. Outputs in ``out``:
+
+* ``frames/<name>.json``: the parser's estimate (:func:`ssp.io.results.frame_record`) plus the
+  front end's timings and hypothesis count, or the error of a failed frame;
+* ``<method>_<dataset>-test.csv``: BOP19 results (poses in the camera frame, t in mm; in the
+  world frame when the camera pose is unknown, as the frame's ``poses_in`` says);
+* ``obj_ids.json``: class name -> BOP ``obj_id``;
+* ``summary.json``: frames done and failed (with the reason), warnings, objects, times;
+* ``run.json``: what the run reads (input files, models, config, options), to check a resume;
+* ``state.json``: the parser's state after the last finished frame, and where to go on;
+* ``tum/<object id>.txt``: each object's trajectory in the TUM format (:mod:`ssp.io.tum`),
+  written when the run ends (finished or stopped).
+
+**Containment.** Any exception in one frame (reading, perception, parser, formatting its
+results) is logged (with its traceback when it is not an :class:`SSPError`: a bug) and the
+frame is reported failed in its JSON and in the summary, which counts the unexpected errors
+apart; the run goes on with the parser state of the last good frame. ``KeyboardInterrupt``
+and ``SystemExit`` stop the run (the outputs stay consistent).
+
+**Crash safety.** Per frame, in this order: its JSON (atomic replace), its CSV rows (fsynced),
+then ``state.json`` (atomic; the commit: the frame counts as finished from here), then
+``summary.json``. ``summary.json`` and ``obj_ids.json`` exist from the start. A run stopped at
+any point (SIGKILL included) is continued by ``run(..., resume=True)`` (``ssp run --resume
+OUT``): the CSV is cut back to the size recorded at the last commit, frame JSONs of frames not
+committed are deleted, the parser resumes from its saved state, and the results are those of
+an uninterrupted run (only the wall times differ: :data:`ssp.pipeline.summary.TIMING_KEYS`).
+The output folder's files and checks: :mod:`ssp.pipeline.manifest`.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ssp.config import SSPConfig
+from ssp.errors import ArgumentError, SSPError
+from ssp.geometry import invert
+from ssp.io._files import atomic_write_text, fsync_dir, to_jsonable
+from ssp.io.results import BopCsvWriter, ObjectIds, bop_csv_name, frame_record, write_json
+from ssp.io.tum import TUM_DIR, write_tum
+from ssp.parser import SceneParser
+from ssp.pipeline.inputs import input_kind, open_source
+from ssp.pipeline.manifest import (
+    FORMAT_VERSION,
+    FRAMES_DIR,
+    OBJ_IDS_JSON,
+    RUN_JSON,
+    STATE_FORMAT,
+    STATE_JSON,
+    SUMMARY_JSON,
+    prepare_fresh,
+    prepare_resume,
+    run_manifest,
+)
+from ssp.pipeline.sources import HYPOTHESES_MODES, FrameSource, InputFrame
+from ssp.pipeline.summary import RunSummary
+
+__all__ = ["run"]
+
+log = logging.getLogger(__name__)
+
+
+def run(
+    input_path: str | Path,
+    library: Mapping,
+    out_dir: str | Path,
+    config: SSPConfig | None = None,
+    *,
+    hypotheses: str = "auto",
+    classes: Sequence[str] | None = None,
+    method: str = "ssp",
+    scene_id: int = 1,
+    progress: Callable[[int, int, str], None] | None = None,
+    resume: bool = False,
+    overwrite: bool = False,
+    models: str | None = None,
+    estimates=None,
+    masks: str = "auto",
+    period: float | None = None,
+    bag: Mapping[str, Any] | None = None,
+    record: str | Path | None = None,
+) -> RunSummary:
+    """Run perception and the scene parser over every frame of ``input_path``.
+
+    Args:
+        input_path: a folder of clouds, a BOP scene folder (module docstring), or a ROS bag
+            (``.bag``, ``.mcap``, a ROS 2 bag folder: :mod:`ssp.io.rosbag`).
+        library: the object library (every class the input may contain).
+        out_dir: output folder: absent or empty, or (``resume``) a stopped run of the same
+            input, or (``overwrite``) an earlier run whose files are cleared first.
+        config: ssp's settings.
+        hypotheses: one of :data:`ssp.pipeline.sources.HYPOTHESES_MODES`.
+        classes: the estimator's candidate classes (default: the classes a BOP scene lists,
+            else the whole library; fewer classes, faster estimation).
+        method: BOP method name (no ``_``).
+        scene_id: BOP ``scene_id`` of the CSV rows.
+        progress: called as ``progress(done, total, message)`` after each frame.
+        resume: continue the run in ``out_dir`` from its saved state (every frame it finished
+            is kept; the rest are processed as an uninterrupted run would).
+        overwrite: clear an earlier run's files in ``out_dir`` (nothing else is touched).
+        models: where ``library`` came from (a model folder, None: built-in), recorded.
+        estimates: a BOP scene's hypotheses from an estimator's output file (camera frame,
+            :func:`ssp.io.estimators.read_estimates`), instead of its ``hypotheses.json``.
+        masks: a BOP scene's segmentation, one of :data:`ssp.io.bop.MASK_MODES`.
+        period: seconds between images of a published BOP scene (no stamps); default
+            :data:`ssp.io.bop.DEFAULT_PERIOD`.
+        bag: for a ROS bag / MCAP input, :class:`ssp.io.rosbag.BagOptions` as a dict.
+        record: write a 3D recording of the run to this rerun ``.rrd`` file
+            (:class:`ssp.viz.record.Recorder`; needs the ``record`` extra): each finished
+            frame's cloud, objects, hypotheses, support and terms, failed frames as error
+            lines. A resumed run records the frames it processes itself.
+
+    Raises:
+        InputError: the input as a whole cannot be used (missing folder, no frames, bad
+            ``scene.json``, classes of ``scene.json`` not in the library).
+        ArgumentError: a bad option, an output folder that holds something else, or a
+            resume whose input, models, config or options differ from the recorded ones.
+        RecordingError: ``record`` given and rerun is not installed or the file cannot be
+            written (:mod:`ssp.viz.record`).
+    """
+    cfg = config if config is not None else SSPConfig()
+    if record is not None:
+        from ssp.viz.record import check_recording
+
+        check_recording(record)  # rerun installed: checked before any output is written
+    src = Path(input_path)
+    manifest, source, ids = _open_input(
+        src, library, cfg, hypotheses=hypotheses, classes=classes, method=method,
+        scene_id=scene_id, models=models, estimates=estimates, masks=masks, period=period,
+        bag=bag,
+    )  # fmt: skip
+    out = Path(out_dir)
+    csv_path = out / manifest["csv"]
+    summary, state, parser = _start(out, csv_path, src, manifest, source, ids, library, cfg,
+                                    resume=resume, overwrite=overwrite)  # fmt: skip
+    _run_frames(out, csv_path, source, parser, summary, state, ids, library, cfg, method=method,
+                scene_id=scene_id, resume=resume, progress=progress, record=record)  # fmt: skip
+    summary.status = "finished"
+    write_tum(out)
+    write_json(out / SUMMARY_JSON, summary.to_dict())
+    return summary
+
+
+def _open_input(
+    src: Path,
+    library: Mapping,
+    cfg: SSPConfig,
+    *,
+    hypotheses: str,
+    classes: Sequence[str] | None,
+    method: str,
+    scene_id: int,
+    models: str | None,
+    estimates: Any,
+    masks: str,
+    period: float | None,
+    bag: Mapping[str, Any] | None,
+) -> tuple[dict[str, Any], FrameSource, ObjectIds]:
+    """Check the options of :func:`run`, then open its input: ``(run.json, source, ids)``."""
+    if hypotheses not in HYPOTHESES_MODES:
+        raise ArgumentError(
+            f"hypotheses must be one of {', '.join(HYPOTHESES_MODES)}, got {hypotheses!r}"
+        )
+    kind = input_kind(src)
+    if kind != "bop" and (masks != "auto" or period is not None or estimates is not None):
+        raise ArgumentError(
+            f"{src}: masks, period and estimates are options of a BOP scene input, not of a "
+            f"{'ROS bag' if kind == 'bag' else 'folder of clouds'}"
+        )
+    name = src.resolve().stem if kind == "bag" and src.is_file() else src.resolve().name
+    csv_name = bop_csv_name(name, method)  # checks the method name
+    manifest = run_manifest(
+        src, kind, library, cfg, csv_name=csv_name, hypotheses=hypotheses, classes=classes,
+        method=method, scene_id=scene_id, models=models, estimates=estimates, masks=masks,
+        period=period, bag=bag,
+    )  # fmt: skip
+    source = open_source(src, kind, library, cfg, classes, hypotheses, estimates=estimates,
+                         masks=masks, period=period, bag=bag)  # fmt: skip
+    return manifest, source, source.object_ids()
+
+
+def _start(
+    out: Path,
+    csv_path: Path,
+    src: Path,
+    manifest: dict[str, Any],
+    source: FrameSource,
+    ids: ObjectIds,
+    library: Mapping,
+    cfg: SSPConfig,
+    *,
+    resume: bool,
+    overwrite: bool,
+) -> tuple[RunSummary, dict[str, Any], SceneParser]:
+    """Make ``out`` ready for the run of ``src`` (a new one, or the resume of the one there)
+    and write the files that exist from the start: ``(summary, saved state, parser)``; the
+    saved state is empty when the run starts from its first frame."""
+    if resume:
+        state, finished = prepare_resume(out, manifest, csv_path, source)
+    else:
+        prepare_fresh(out, overwrite)
+        state, finished = {}, []
+    (out / FRAMES_DIR).mkdir(parents=True, exist_ok=True)
+    summary = RunSummary(str(src), source.kind, frames=source.total)
+    summary.files = [str(csv_path), str(out / OBJ_IDS_JSON), str(out / FRAMES_DIR),
+                     str(out / TUM_DIR)]  # fmt: skip
+    for frame_json in finished:
+        summary.add(frame_json)
+    if "parser" in state:
+        parser = SceneParser.from_state(library, state["parser"], cfg)
+    else:
+        parser = SceneParser(library, cfg)
+    if not resume:
+        write_json(out / RUN_JSON, manifest)
+    write_json(out / OBJ_IDS_JSON, ids.to_json())
+    write_json(out / SUMMARY_JSON, summary.to_dict())
+    fsync_dir(out)
+    return summary, state, parser
+
+
+def _run_frames(
+    out: Path,
+    csv_path: Path,
+    source: FrameSource,
+    parser: SceneParser,
+    summary: RunSummary,
+    state: dict[str, Any],
+    ids: ObjectIds,
+    library: Mapping,
+    cfg: SSPConfig,
+    *,
+    method: str,
+    scene_id: int,
+    resume: bool,
+    progress: Callable[[int, int, str], None] | None,
+    record: str | Path | None,
+) -> None:
+    """Parse the frames from the saved state on, committing each (module docstring); on any
+    exception, the summary says the run stopped, the trajectories are written, and the
+    exception goes on."""
+    start = int(state.get("next", 0))
+    if start:
+        log.info("%s: resuming at frame %d of %d", out, start, source.total)
+    run_state = {
+        "format": STATE_FORMAT,
+        "version": FORMAT_VERSION,
+        "total": source.total,
+        "resumes": int(state.get("resumes", -1)) + 1,
+    }
+    from ssp.viz.record import RunRecording  # rerun itself only when recording
+
+    with BopCsvWriter(csv_path, method, append=resume) as csv, RunRecording(record, library) as rec:
+        committed_parser = parser.state()
+
+        def commit(n_next: int, parser_state: dict[str, Any]) -> None:
+            """The frames before ``n_next`` are finished once this atomic write is done."""
+            doc = {**run_state, "next": n_next, "csv_bytes": csv.sync(), "parser": parser_state}
+            write_json(out / STATE_JSON, doc, indent=None)
+
+        try:
+            if not state:
+                commit(0, committed_parser)
+            for n, frame in enumerate(source.frames(start), start=start):
+                kept: dict[str, Any] = {}
+                frame_json, lines = _run_frame(frame, parser, csv, ids, scene_id, kept)
+                failed = frame_json["status"] == "failed"
+                if failed and parser.state() != committed_parser:
+                    # it failed after the parser took it: go on from the last good frame
+                    parser = SceneParser.from_state(library, committed_parser, cfg)
+                write_json(out / FRAMES_DIR / f"{frame.name}.json", frame_json)
+                csv.write_rows(lines)
+                parser_state = parser.state()
+                commit(n + 1, parser_state)
+                committed_parser = parser_state
+                done = summary.add(frame_json)
+                atomic_write_text(out / SUMMARY_JSON, summary.to_json())
+                rec.add(n, frame.name, frame_json, **kept)
+                if progress is not None:
+                    msg = done.get("error") or f"{done['objects']} objects"
+                    progress(n + 1, source.total, f"{frame.name}: {msg}")
+        except BaseException as exc:
+            # the summary holds the committed frames only; --resume continues from there
+            summary.status = "stopped" if isinstance(exc, Exception) else "interrupted"
+            try:
+                write_tum(out)  # the committed frames' trajectories
+                write_json(out / SUMMARY_JSON, summary.to_dict())
+            except Exception:  # the original error matters more
+                log.exception("could not write %s", out / SUMMARY_JSON)
+            raise
+
+
+def _run_frame(
+    source: InputFrame,
+    parser: SceneParser,
+    csv: BopCsvWriter,
+    ids: ObjectIds,
+    scene_id: int,
+    kept: dict[str, Any] | None = None,
+) -> tuple[dict[str, Any], list[str]]:
+    """Perceive and parse one frame: ``(frame JSON, CSV lines)``. Nothing is written here;
+    a failure anywhere gives a frame JSON with ``status: failed`` and no lines. ``kept``
+    receives the ``perceived`` result and the parser's ``estimate`` of a frame that succeeds."""
+    t0 = time.perf_counter()
+    warnings: list[str] = []
+    try:
+        perceived, warnings = source.perceive()
+        estimate = parser.update(perceived.frame)
+        seconds = time.perf_counter() - t0
+        if kept is not None:
+            kept.update(perceived=perceived, estimate=estimate)
+        frame = perceived.frame
+        T_cam_world = np.eye(4) if frame.T_world_cam is None else invert(frame.T_world_cam)
+        lines = [
+            csv.format_row(
+                scene_id,
+                source.index,
+                ids[obj.class_name],
+                float(obj.fit),
+                T_cam_world @ obj.T_world_obj,
+                seconds,
+            )
+            for obj in estimate.objects
+        ]
+        extra = {
+            "status": "done",
+            "perception": {
+                "hypotheses": len(frame.hypotheses),
+                "segments": len(perceived.segmentation.segment_ids),
+                "timings": perceived.timings,
+            },
+            "T_world_cam": None if frame.T_world_cam is None else frame.T_world_cam.tolist(),
+            "seconds": seconds,
+        }
+        frame_json = frame_record(estimate, name=source.name, index=source.index, extra=extra)
+        # one list of doubts: the input's and the front end's, then the parser's
+        frame_json["warnings"] = [*warnings, *frame_json["warnings"]]
+        # a segment the parser got no hypothesis for: say what the front end made of it
+        for label, verdict in perceived.verdicts.items():
+            key = str(label)
+            if frame_json["segments"].get(key, "").startswith("no object"):
+                frame_json["segments"][key] = f"no object: {verdict}"
+        return to_jsonable(frame_json), lines
+    except Exception as exc:
+        return _failure(source, exc, warnings, time.perf_counter() - t0), []
+
+
+def _failure(
+    source: InputFrame, exc: Exception, warnings: list[str], seconds: float
+) -> dict[str, Any]:
+    """The frame JSON of a frame that failed with ``exc`` (logged here)."""
+    unexpected = not isinstance(exc, SSPError)
+    message = source.where(str(exc) or repr(exc))
+    if unexpected:
+        log.error("frame %s failed with an unexpected %s", source.name, type(exc).__name__,
+                  exc_info=exc)  # fmt: skip
+    else:
+        log.warning("frame %s skipped: %s", source.name, message)
+    return {
+        "name": source.name,
+        "index": source.index,
+        "status": "failed",
+        "error": message,
+        "error_type": type(exc).__name__,
+        "unexpected": unexpected,
+        "warnings": warnings,
+        "seconds": seconds,
+    }
