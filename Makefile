@@ -5,7 +5,7 @@ PYTHON ?= python3
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.ssp-installed
 
-.PHONY: help install demo test lint bench clean
+.PHONY: help install demo test lint typecheck bench clean
 
 help:  ## this list
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | sed 's/:.*## /\t/' | expand -t 12
@@ -27,12 +27,15 @@ demo: $(STAMP)  ## run the built-in demo (writes ssp-demo/)
 test: $(STAMP)  ## run the test suite
 	$(PY) -m pytest -q
 
-lint: $(STAMP)  ## ruff
+lint: $(STAMP)  ## ruff check and ruff format --check
 	$(VENV)/bin/ruff check src tests
 	$(VENV)/bin/ruff format --check src tests
+
+typecheck: $(STAMP)  ## mypy on the scene-parsing core ([tool.mypy] in pyproject.toml)
+	$(PY) -m mypy
 
 bench: $(STAMP)  ## physics benchmark (writes bench-out/physics/results.json)
 	$(VENV)/bin/ssp bench physics --out bench-out/physics
 
 clean:  ## remove the venv and caches (not the hull cache in ~/.cache/ssp)
-	rm -rf $(VENV) .pytest_cache .ruff_cache
+	rm -rf $(VENV) .pytest_cache .ruff_cache .mypy_cache

@@ -1,22 +1,23 @@
-"""Data-guiding forces (paper, algorithms section, Eq. ``point_data_force`` and
-``total_data_force``; DESIGN section 4 "Data forces").
+"""Data-guiding forces (paper section IV-A: Eq. 13, ``eq:point_data_force``, and Eq. 14,
+``eq:total_data_force``, the ``GenForce`` of Alg. 1; DESIGN section 4 "Data forces").
 
 Every model surface sample ``p_c`` (world frame) is paired with its nearest point ``p_d`` of the
 object's own scene segment. A pair closer than ``d_t`` pulls with the kernel
 
-    f = (p_d - p_c) (d_t - r) / (d_t^2 / 4),   r = |p_d - p_c| <= d_t   (0 beyond d_t),
+    f = (p_d - p_c) (d_t - r) / (d_t^2 / 4),   r = |p_d - p_c| <= d_t   (0 beyond d_t),  (13)
 
 whose magnitude ``r (d_t - r) / (d_t^2/4)`` is 0 at r = 0, peaks at 1 for r = d_t / 2 and falls
 smoothly back to 0 at r = d_t. The pairs are combined into a force at the centre of mass and a
 torque about it,
 
-    F = F_max / M * sum_i f_i,    tau = F_max / M * sum_i (p_c,i - p_cog) x f_i,
+    F = F_max / M * sum_i f_i,    tau = F_max / M * sum_i (p_c,i - p_cog) x f_i,  (14)
 
 with M the number of (used) model samples and ``F_max = f m g`` (``ForcesConfig``:
-``gravity_fraction`` f = 0.5, ``max_distance`` d_t = 2 cm). F_max is *proportional* to the mass
-(the reference code multiplied by the inverse mass, a bug), so every object is guided with the
-same acceleration scale; ``|F| <= F_max`` always, with equality only when every sample sits
-exactly d_t / 2 from its target, all in the same direction.
+``gravity_fraction`` f, ``max_distance`` d_t = 2 cm). The paper's maximum force is one constant;
+here F_max is *proportional* to the mass (DESIGN section 4; the reference code multiplied by the
+inverse mass, a bug), so every object is guided with the same acceleration scale;
+``|F| <= F_max`` always, with equality only when every sample sits exactly d_t / 2 from its
+target, all in the same direction.
 
 Cost (notes/engines.md section 1): the nearest-neighbour queries dominate, not the arithmetic.
 So a :class:`SegmentField` (one KD-tree per segment) is built once per frame, and
@@ -41,6 +42,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
@@ -48,6 +50,10 @@ from ssp.config import ForcesConfig
 from ssp.jit import njit, pairwise_sum
 from ssp.library.model import ObjectModel
 
+if TYPE_CHECKING:
+    from ssp.kdtree import KDTree
+
+    _PyKDTree: type[KDTree] | None
 try:  # pragma: no branch
     from ssp.kdtree import KDTree as _PyKDTree
 except ImportError:  # pragma: no cover - pykdtree is a dependency; scipy is the fallback
@@ -66,7 +72,7 @@ def load_kernels() -> None:
 
 
 def point_pair_forces(p_c: np.ndarray, p_d: np.ndarray, max_distance: float) -> np.ndarray:
-    """Kernel of Eq. ``point_data_force`` for (M, 3) model points ``p_c`` and targets ``p_d``.
+    """Kernel of Eq. 13 (``point_data_force``) for (M, 3) model points ``p_c``, targets ``p_d``.
 
     Returns (M, 3) ``(p_d - p_c) (d_t - r) / (d_t^2 / 4)`` for ``r <= d_t``, else 0 (unitless;
     magnitude 1 at ``r = d_t / 2``). Non-finite targets give 0.
@@ -134,7 +140,8 @@ class SegmentField:
         if _PyKDTree is not None:
             dist, idx = self._tree.query(q, k=1, distance_upper_bound=self.max_distance)
         else:  # pragma: no cover
-            dist, idx = self._tree.query(q, k=1, distance_upper_bound=self.max_distance, workers=1)
+            tree = cast(cKDTree, self._tree)  # built by scipy when pykdtree is missing
+            dist, idx = tree.query(q, k=1, distance_upper_bound=self.max_distance, workers=1)
         dist = np.asarray(dist, dtype=float)
         idx = np.asarray(idx, dtype=np.int64)
         hit = idx < len(self.points)
@@ -194,7 +201,8 @@ class DataForces:
         # sample_filter results and segment matches by the exact pose they were computed at
         # (pure functions of it: a hit returns what the computation would): the objects a
         # test does not move start every candidate's window at the same pose
-        self._by_pose: dict[tuple[int, str, bytes], np.ndarray | tuple] = {}
+        # (a (targets, distances) pair under "nearest", a bool mask under "filter")
+        self._by_pose: dict[tuple[int, str, bytes], Any] = {}
         models = list(models)
         fields = list(fields)
         if len(models) != len(fields):
@@ -331,25 +339,30 @@ class DataForces:
                 if keep is None:  # once per reset(): visibility changes little within a window
                     keep = self._by_pose.get((k, "filter", pose))
                     if keep is None:
+                        assert nw is not None  # computed whenever there is a sample_filter
                         keep = np.asarray(self.sample_filter(k, pts, nw[j, :, :mk].T), dtype=bool)
                         self._by_pose[(k, "filter", pose)] = keep
                     self._filter_cache[k] = keep
                 ok &= keep
             self._matched[k, :mk] = ok
 
-    def _match(self, k: int, pts: np.ndarray, facing: np.ndarray | None, j: int) -> tuple:
+    def _match(
+        self, k: int, pts: np.ndarray, facing: np.ndarray | None, j: int
+    ) -> tuple[np.ndarray, np.ndarray]:
         """``fields[k]._nearest`` of the samples ``pts`` (M, 3) that face the camera (row ``j``
         of ``facing``; all without a camera). The others, which do not pull, keep their own
         position as target and an infinite distance, as an unmatched sample does."""
+        field = self.fields[k]
+        assert field is not None  # _refresh matches only the objects with data (_active)
         if facing is None:
-            return self.fields[k]._nearest(pts)
+            return field._nearest(pts)
         sel = np.flatnonzero(facing[j, : len(pts)])
         if len(sel) == len(pts):
-            return self.fields[k]._nearest(pts)
+            return field._nearest(pts)
         tgt = pts.copy()
         dist = np.full(len(pts), np.inf)
         if len(sel):
-            tgt[sel], dist[sel] = self.fields[k]._nearest(np.ascontiguousarray(pts[sel]))
+            tgt[sel], dist[sel] = field._nearest(np.ascontiguousarray(pts[sel]))
         return tgt, dist
 
     def _check_poses(self, T_world_obj) -> np.ndarray:
@@ -394,7 +407,7 @@ class DataForces:
 
 @njit
 def _wrenches(targets, matched, r, cog, idx, coef, dt, forces, torques, pairs):
-    """Eq. ``total_data_force`` of the objects ``idx``: ``forces[k]``, ``torques[k]`` (3,) from
+    """Eq. 14 (``total_data_force``) of the objects ``idx``: ``forces[k]``, ``torques[k]`` (3,) from
     their samples' offsets ``r`` (m, 3, M) from the COMs ``cog`` (m, 3), the cached targets
     (n, 3, M), the match flags (n, M) and the per-object ``coef`` (m,) = F_max / M / (d_t^2/4).
     Each pair's arithmetic and the sums' order (numpy's, :func:`ssp.jit.pairwise_sum`, over

@@ -1,4 +1,4 @@
-"""Overlap-volume estimate of the collision term (paper Eq. 8).
+"""Overlap-volume estimate of the collision term (paper Eq. 10).
 
 The collision energy of an object is ``e_C = (d / eps_d) * (v_c / v_t)``: ``d`` is its
 penetration depth, ``eps_d`` its diameter and ``v_c / v_t`` the fraction of its volume that lies
@@ -7,7 +7,8 @@ interior sample points (:attr:`ObjectModel.interior_points`, a regular grid insi
 placed at its pose, are tested against the other objects' convex parts (the shapes the physics
 engine collides with) and against the table, the half-space ``z < 0`` of the world frame (the
 table top is the plane ``z = 0``). The fraction of points found inside something is the
-estimate of ``v_c / v_t``.
+estimate of ``v_c / v_t`` (the paper suggests an oriented-bounding-box intersection; DESIGN
+section 4 allows this estimate).
 
 A point ``p`` (metres, in a model's frame) is inside a convex part with facet planes
 ``n_k . p + b_k = 0`` (outward unit normals ``n_k``) when ``n_k . p + b_k <= tol`` for every
@@ -173,7 +174,7 @@ def overlap_fraction_table(model: ObjectModel, pose: np.ndarray, *, tol: float =
         tol: margin, m: a point counts when its world ``z <= tol``.
 
     Returns:
-        Fraction in [0, 1] (the table part of ``v_c / v_t`` in Eq. 8); 0 without interior points.
+        Fraction in [0, 1] (the table part of ``v_c / v_t`` in Eq. 10); 0 without interior points.
     """
     T = _check_poses(np.asarray(pose)[None], 1)[0]
     pts = np.asarray(model.interior_points, dtype=np.float64).reshape(-1, 3)
@@ -191,7 +192,7 @@ def overlap_fractions(
     pairs: Iterable[tuple[int, int]] | None = None,
     tol: float = 0.0,
 ) -> np.ndarray:
-    """Fraction ``v_c / v_t`` (Eq. 8) of each object's volume inside other objects or the table.
+    """Fraction ``v_c / v_t`` (Eq. 10) of each object's volume inside other objects or the table.
 
     For object ``i`` it is the fraction of its interior points that lie inside a convex part of
     another object ``j`` or (``table=True``) below the table plane ``z = 0``. A point inside
@@ -234,28 +235,10 @@ def overlap_fractions(
     margin = max(tol, 0.0)
 
     # ordered (points of i, solid j) tests
-    targets: list[list[int]] = [[] for _ in range(n)]
     if pairs is None:
-        d = np.linalg.norm(p_centre[:, None, :] - h_centre[None, :, :], axis=-1)
-        ok = d <= p_radius[:, None] + h_radius[None, :] + margin
-        np.fill_diagonal(ok, False)
-        for i, j in zip(*np.nonzero(ok), strict=True):
-            targets[int(i)].append(int(j))
+        targets = _all_targets(p_centre, p_radius, h_centre, h_radius, margin)
     else:
-        seen: set[tuple[int, int]] = set()
-        for a, b in pairs:
-            a, b = int(a), int(b)
-            if not (0 <= a < n and 0 <= b < n):
-                raise IndexError(f"pair ({a}, {b}) out of range for {n} objects")
-            if a == b:
-                continue
-            for i, j in ((a, b), (b, a)):
-                if (i, j) in seen:
-                    continue
-                seen.add((i, j))
-                dist = float(np.linalg.norm(p_centre[i] - h_centre[j]))
-                if dist <= p_radius[i] + h_radius[j] + margin:
-                    targets[i].append(j)
+        targets = _pair_targets(pairs, n, p_centre, p_radius, h_centre, h_radius, margin)
 
     for i in range(n):
         pts = local[i]
@@ -265,17 +248,78 @@ def overlap_fractions(
         covered = np.zeros(k, dtype=bool)
         if table and p_centre[i, 2] - p_radius[i] <= tol:
             covered |= pts @ R[i, 2] + t[i, 2] <= tol
-        for j in targets[i]:
-            idx = np.flatnonzero(~covered)
-            if len(idx) == 0:
-                break
-            # i's points in j's frame: R_j^T (R_i p + t_i - t_j), one matmul
-            R_ji = R[j].T @ R[i]
-            t_ji = R[j].T @ (t[i] - t[j])
-            q = pts[idx] @ R_ji.T + t_ji
-            covered[idx[hulls[j].contains(q, tol)]] = True
+        _cover(covered, pts, i, targets[i], R, t, hulls, tol)
         out[i] = np.count_nonzero(covered) / k
     return out
+
+
+def _all_targets(
+    p_centre: np.ndarray,
+    p_radius: np.ndarray,
+    h_centre: np.ndarray,
+    h_radius: np.ndarray,
+    margin: float,
+) -> list[list[int]]:
+    """For each object ``i``, the other objects ``j`` whose hull sphere (``h_centre``,
+    ``h_radius``) meets ``i``'s points sphere (``p_centre``, ``p_radius``) grown by ``margin``."""
+    targets: list[list[int]] = [[] for _ in range(len(p_centre))]
+    d = np.linalg.norm(p_centre[:, None, :] - h_centre[None, :, :], axis=-1)
+    ok = d <= p_radius[:, None] + h_radius[None, :] + margin
+    np.fill_diagonal(ok, False)
+    for i, j in zip(*np.nonzero(ok), strict=True):
+        targets[int(i)].append(int(j))
+    return targets
+
+
+def _pair_targets(
+    pairs: Iterable[tuple[int, int]],
+    n: int,
+    p_centre: np.ndarray,
+    p_radius: np.ndarray,
+    h_centre: np.ndarray,
+    h_radius: np.ndarray,
+    margin: float,
+) -> list[list[int]]:
+    """:func:`_all_targets` among the unordered ``pairs`` only (each direction once)."""
+    targets: list[list[int]] = [[] for _ in range(n)]
+    seen: set[tuple[int, int]] = set()
+    for a, b in pairs:
+        a, b = int(a), int(b)
+        if not (0 <= a < n and 0 <= b < n):
+            raise IndexError(f"pair ({a}, {b}) out of range for {n} objects")
+        if a == b:
+            continue
+        for i, j in ((a, b), (b, a)):
+            if (i, j) in seen:
+                continue
+            seen.add((i, j))
+            dist = float(np.linalg.norm(p_centre[i] - h_centre[j]))
+            if dist <= p_radius[i] + h_radius[j] + margin:
+                targets[i].append(j)
+    return targets
+
+
+def _cover(
+    covered: np.ndarray,
+    pts: np.ndarray,
+    i: int,
+    targets: list[int],
+    R: np.ndarray,
+    t: np.ndarray,
+    hulls: Sequence[HullSet],
+    tol: float,
+) -> None:
+    """Mark in ``covered`` the points ``pts`` of object ``i`` (its frame) that lie inside a
+    convex part of one of the objects ``targets`` (poses ``R``, ``t``), in place."""
+    for j in targets:
+        idx = np.flatnonzero(~covered)
+        if len(idx) == 0:
+            break
+        # i's points in j's frame: R_j^T (R_i p + t_i - t_j), one matmul
+        R_ji = R[j].T @ R[i]
+        t_ji = R[j].T @ (t[i] - t[j])
+        q = pts[idx] @ R_ji.T + t_ji
+        covered[idx[hulls[j].contains(q, tol)]] = True
 
 
 def same_volume(model: ObjectModel, T_a: np.ndarray, T_b: np.ndarray, fraction: float) -> bool:

@@ -5,16 +5,23 @@ objects and terms (DESIGN section 4: "All probabilities are combined as sums of 
 Functions are pure numpy and vectorised over objects: inputs of shape ``(n, ...)`` give
 outputs of shape ``(n,)``.
 
-Paper equations (``paper/ssp-paper.tex``, section "Scene Probability Formulation"):
+Paper equations (``paper/ssp-paper.tex``, section III "Scene Probability Formulation"; the
+numbers are those of the compiled paper, docs/algorithm.md):
 
-* stability  ``P_B``  Eq. 7 (``eq:stability_probability``), with DESIGN's two corrections:
-  the logistic *decreases* with instability, and ``beta_R = |alpha| / alpha_max`` with
-  ``alpha_max = m g d_max / I_pivot`` (``ObjectModel.max_angular_acceleration``);
-* collision  ``P_C``  Eq. 8 (``eq:collision_probability``);
-* support    ``P_S``  Eq. 9 (section "Support Contribution");
-* data       ``P_D``  Eq. 10 (section "Pose Data Fitness");
-* transition ``P_T``  Eq. 4 (``eq:scene_transition_probability``; the Gaussian form is ours,
+* stability  ``P_B``  Eq. 9 (``eq:stability_probability``) of ``beta_t`` (Eq. 7) and
+  ``beta_R`` (Eq. 8), with DESIGN section 4's two corrections: the logistic *decreases* with
+  instability, and ``beta_R = |alpha| / alpha_max`` with ``alpha_max = m g d_max / I_pivot``
+  (``ObjectModel.max_angular_acceleration``; the paper's Eq. 8 inverts this ratio);
+* collision  ``P_C``  Eq. 10 (``eq:collision_probability``), decreasing in the severity as
+  DESIGN section 4 writes it (the paper's printed sign, as in Eq. 9, would make it increase);
+* support    ``P_S``  Eq. 11 (section III-C "Support Contribution");
+* data       ``P_D``  Eq. 12 (section III-D "Pose Data Fitness");
+* transition ``P_T``  Eq. 6 (``eq:scene_transition_probability``; the Gaussian form is ours,
   DESIGN section 4).
+
+Their sum over objects is the log of the scene score of Eq. 4
+(``eq:scene_probability_simplified``), Eq. 5 (``eq:physical_consistency_probability``) being
+its physical part (:mod:`ssp.scoring`).
 
 ``L(x) = 1 / (1 + e^-x)`` is the logistic function throughout.
 """
@@ -62,7 +69,7 @@ def log_logistic(x: np.ndarray | float) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------------------------
-# Stability (Eq. 5-7)
+# Stability (Eq. 7-9)
 # --------------------------------------------------------------------------------------------
 
 
@@ -73,11 +80,12 @@ def log_stability(
     g: float,
     cfg: StabilityConfig,
 ) -> np.ndarray:
-    """``log P_B`` per object, paper Eq. 7 with DESIGN section 4's sign correction.
+    """``log P_B`` per object, paper Eq. 9 with DESIGN section 4's corrections (the sign;
+    ``alpha_max`` the inverse of Eq. 8's ``beta_R_max``).
 
     ``P_B = L(-s_B (a_t beta_t - a_B)) * L(-s_B (a_R beta_R - a_B))`` with
-    ``beta_t = |a| / g`` and ``beta_R = |alpha| / alpha_max`` (both dimensionless), so the
-    probability *decreases* as the object accelerates from rest.
+    ``beta_t = |a| / g`` (Eq. 7) and ``beta_R = |alpha| / alpha_max`` (Eq. 8; both
+    dimensionless), so the probability *decreases* as the object accelerates from rest.
 
     Args:
         lin_acc: ``(n, 3)`` linear accelerations from rest, m/s^2 (a single ``(3,)`` is allowed).
@@ -108,7 +116,7 @@ def log_stability(
 
 
 # --------------------------------------------------------------------------------------------
-# Collision (Eq. 8)
+# Collision (Eq. 10)
 # --------------------------------------------------------------------------------------------
 
 
@@ -117,7 +125,7 @@ def collision_severity(
     overlap_fraction: np.ndarray | float,
     diameter: np.ndarray | float,
 ) -> np.ndarray:
-    """Collision severity ``e_C = (d / eps_d) * (v_c / v_t)`` of paper Eq. 8 (dimensionless).
+    """Collision severity ``e_C = (d / eps_d) * (v_c / v_t)`` of paper Eq. 10 (dimensionless).
 
     Args:
         depth: ``(n,)`` deepest penetration ``d`` of each object, m; negative values
@@ -139,7 +147,7 @@ def collision_severity(
 
 
 def log_collision(e_c: np.ndarray | float, cfg: CollisionConfig) -> np.ndarray:
-    """``log P_C = log L(-s_c (e_C - a_c))``, paper Eq. 8.
+    """``log P_C = log L(-s_c (e_C - a_c))``, paper Eq. 10 with DESIGN section 4's sign.
 
     Args:
         e_c: ``(n,)`` severities from :func:`collision_severity` (dimensionless).
@@ -153,12 +161,13 @@ def log_collision(e_c: np.ndarray | float, cfg: CollisionConfig) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------------------------
-# Support (Eq. 9)
+# Support (Eq. 11)
 # --------------------------------------------------------------------------------------------
 
 
 def log_support(supported_fraction_sum: np.ndarray | float, cfg: SupportConfig) -> np.ndarray:
-    """``log P_S = log L(s_s * sum_i F_S,i + a_s)``, paper Eq. 9 (DESIGN's sign for ``a_s``).
+    """``log P_S = log L(s_s * sum_i F_S,i + a_s)``, paper Eq. 11 as printed (``a_s`` an
+    offset, not a midpoint; DESIGN section 4).
 
     Args:
         supported_fraction_sum: ``(n,)`` ``sum_i F_S,i``: for each object, the sum over the
@@ -173,7 +182,7 @@ def log_support(supported_fraction_sum: np.ndarray | float, cfg: SupportConfig) 
 
 
 # --------------------------------------------------------------------------------------------
-# Data fitness (Eq. 10)
+# Data fitness (Eq. 12)
 # --------------------------------------------------------------------------------------------
 
 
@@ -182,7 +191,7 @@ def data_fit_fraction(
     segment_points: np.ndarray | cKDTree,
     radius: float,
 ) -> float:
-    """``c``: fraction of model surface samples with a segment point within ``radius`` (Eq. 10).
+    """``c``: fraction of model surface samples with a segment point within ``radius`` (Eq. 12).
 
     Args:
         surface_points_world: ``(M, 3)`` the model's surface samples placed at the hypothesis
@@ -217,7 +226,7 @@ def data_fit_fraction(
 
 
 def log_data(fit_fraction: np.ndarray | float, cfg: DataConfig) -> np.ndarray:
-    """``log P_D = log L(s_d (min(c / C_max, 1) - a_d))``, paper Eq. 10.
+    """``log P_D = log L(s_d (min(c / C_max, 1) - a_d))``, paper Eq. 12 (DESIGN section 4).
 
     ``C_max`` is the fit fraction counted as full: one camera sees at most about half of an
     object's surface, so a fit above ``C_max`` says nothing more about the pose, only about the
@@ -235,7 +244,7 @@ def log_data(fit_fraction: np.ndarray | float, cfg: DataConfig) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------------------------
-# Transition (Eq. 4)
+# Transition (Eq. 6)
 # --------------------------------------------------------------------------------------------
 
 
@@ -270,7 +279,7 @@ def pose_change(
     symmetry: Symmetry | None = None,
     centre: np.ndarray | None = None,
 ) -> tuple[float, float]:
-    """World-frame motion ``(dt, dtheta)`` between two poses of one object (for Eq. 4).
+    """World-frame motion ``(dt, dtheta)`` between two poses of one object (for Eq. 6).
 
     ``dt`` (m) is the displacement of the model point ``centre`` (model frame, m; e.g. the
     centre of mass), ``|T_cur c - T_prev c|``; without ``centre``, of the model-frame origin,
@@ -309,9 +318,10 @@ def pose_change(
 def log_transition(
     dt: np.ndarray | float, dtheta: np.ndarray | float, cfg: TransitionConfig
 ) -> np.ndarray | float:
-    """``log P_T = max(-dt^2 / (2 s_t^2) - dtheta^2 / (2 s_r^2), floor)``, paper Eq. 4
-    (DESIGN section 4) with a floor: a Gaussian mixed with a small uniform part, so that no
-    transition is impossible and the data can overturn an orientation it keeps contradicting.
+    """``log P_T = max(-dt^2 / (2 s_t^2) - dtheta^2 / (2 s_r^2), floor)``, paper Eq. 6
+    in DESIGN section 4's Gaussian form, with a floor: a Gaussian mixed with a small uniform
+    part, so that no transition is impossible and the data can overturn an orientation it
+    keeps contradicting.
 
     Args:
         dt: translation since the previous frame's best pose, m (scalar or ``(n,)``).
@@ -335,7 +345,7 @@ def log_transition_from_poses(
     symmetry: Symmetry | None = None,
     centre: np.ndarray | None = None,
 ) -> float:
-    """``log P_T`` of one object from its previous best pose (Eq. 4); 0.0 for a new object.
+    """``log P_T`` of one object from its previous best pose (Eq. 6); 0.0 for a new object.
 
     Args:
         T_prev: ``(4, 4)`` previous frame's best world pose, or None when the object is new in
@@ -368,7 +378,8 @@ class ObjectTerms:
 
     @property
     def total(self) -> float:
-        """``log P = log P_B + log P_C + log P_S + log P_D + log P_T``."""
+        """``log P = log P_B + log P_C + log P_S + log P_D + log P_T`` (the object's factor
+        of Eq. 4)."""
         return float(self.stability + self.collision + self.support + self.data + self.transition)
 
     def as_dict(self) -> dict[str, float]:

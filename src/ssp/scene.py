@@ -34,7 +34,7 @@ class FrameError(SSPError, ValueError):
 
 
 class TransitionMode(str, enum.Enum):
-    """The five transition modes of an object between two frames (paper section V-C)."""
+    """The five transition modes of an object between two frames (paper section IV-C)."""
 
     ADDED = "added"
     REMOVED = "removed"
@@ -121,53 +121,13 @@ class Frame:
                 as :class:`ssp.library.ObjectLibrary`).
         """
         stamp = _finite_float(self.stamp, "frame stamp")
-
-        points, keep = _clean_points(self.points, "frame points")
-        if len(points) == 0:
-            raise FrameError(
-                "empty cloud: the frame has no finite points"
-                + (f" (all {len(keep)} were NaN or infinite)" if len(keep) else "")
-            )
-        # the units check needs no more than an evenly strided subset of a large cloud
-        sample = points[:: max(1, len(points) // UNITS_SAMPLE)]
-        median = float(np.median(np.linalg.norm(sample, axis=1)))
-        if median > MM_CLOUD_MEDIAN:
-            raise FrameError(
-                f"cloud median distance from the origin is {median:.1f} m; points look like "
-                "millimetres (ssp works in metres): divide them by 1000"
-            )
-
+        points, keep = _validate_cloud(self.points)
         if self.label_kind not in LABEL_KINDS:
             raise FrameError(
                 f"label_kind must be one of {', '.join(LABEL_KINDS)}, got {self.label_kind!r}"
             )
-        labels = None
-        if self.labels is not None:
-            labels = np.asarray(self.labels)
-            if labels.ndim != 1 or len(labels) != len(keep):
-                raise FrameError(
-                    f"labels must have shape ({len(keep)},) (one per point), got {labels.shape}"
-                )
-            if not np.issubdtype(labels.dtype, np.integer):
-                if not (
-                    np.issubdtype(labels.dtype, np.number)
-                    and np.all(np.isfinite(labels))
-                    and np.all(labels == np.round(labels))
-                ):
-                    raise FrameError("labels must be integers (one segment label per point)")
-            labels = labels[keep].astype(np.int64)
-
-        segments = None
-        if self.segments is not None:
-            if not isinstance(self.segments, Mapping):
-                raise FrameError(
-                    "segments must be a mapping {instance id: (K, 3) points}, got "
-                    f"{type(self.segments).__name__}"
-                )
-            segments = {}
-            for key, seg in self.segments.items():
-                segments[str(key)], _ = _clean_points(seg, f"segment {key!r}", allow_empty=True)
-
+        labels = None if self.labels is None else _validate_labels(self.labels, keep)
+        segments = None if self.segments is None else _validate_segments(self.segments)
         T_world_cam = None
         if self.T_world_cam is not None:
             try:
@@ -186,6 +146,55 @@ class Frame:
             moved=_validate_moved(self.moved),
             label_kind=self.label_kind,
         )
+
+
+def _validate_cloud(raw: Any) -> tuple[np.ndarray, np.ndarray]:
+    """:attr:`Frame.points` without its non-finite rows, and the mask of the rows kept;
+    checks that some are left and that they are in metres."""
+    points, keep = _clean_points(raw, "frame points")
+    if len(points) == 0:
+        raise FrameError(
+            "empty cloud: the frame has no finite points"
+            + (f" (all {len(keep)} were NaN or infinite)" if len(keep) else "")
+        )
+    # the units check needs no more than an evenly strided subset of a large cloud
+    sample = points[:: max(1, len(points) // UNITS_SAMPLE)]
+    median = float(np.median(np.linalg.norm(sample, axis=1)))
+    if median > MM_CLOUD_MEDIAN:
+        raise FrameError(
+            f"cloud median distance from the origin is {median:.1f} m; points look like "
+            "millimetres (ssp works in metres): divide them by 1000"
+        )
+    return points, keep
+
+
+def _validate_labels(raw: Any, keep: np.ndarray) -> np.ndarray:
+    """:attr:`Frame.labels` (integer-valued, one per point) of the points ``keep`` kept."""
+    labels = np.asarray(raw)
+    if labels.ndim != 1 or len(labels) != len(keep):
+        raise FrameError(
+            f"labels must have shape ({len(keep)},) (one per point), got {labels.shape}"
+        )
+    if not np.issubdtype(labels.dtype, np.integer):
+        if not (
+            np.issubdtype(labels.dtype, np.number)
+            and np.all(np.isfinite(labels))
+            and np.all(labels == np.round(labels))
+        ):
+            raise FrameError("labels must be integers (one segment label per point)")
+    return labels[keep].astype(np.int64)
+
+
+def _validate_segments(raw: Any) -> dict[str, np.ndarray]:
+    """Checked copy of :attr:`Frame.segments` (string ids, non-finite rows dropped)."""
+    if not isinstance(raw, Mapping):
+        raise FrameError(
+            f"segments must be a mapping {{instance id: (K, 3) points}}, got {type(raw).__name__}"
+        )
+    segments = {}
+    for key, seg in raw.items():
+        segments[str(key)], _ = _clean_points(seg, f"segment {key!r}", allow_empty=True)
+    return segments
 
 
 def _validate_moved(moved: Any) -> dict[str, np.ndarray | None] | None:

@@ -7,11 +7,12 @@ a. Contacts with the table always mean the ground (index -1) supports the object
 net vertical push is below ``min_force`` (side-by-side objects, contacts within the margin that
 carry no load) get no edge.
 
-Support fractions F_S (used by the support term P_S, Eq. 9). The raw vertical force between a
-supporter and an object also carries the weight of everything stacked on that object (in a 3-cube
-tower the table pushes with 3 m g, the bottom cube with 2 m g on the middle one). So the
-fraction of b's *own* weight carried by supporter a is its share of b's upward
-support times b's net supported weight:
+Support fractions F_S (used by the support term P_S, the paper's Eq. 11). The raw vertical
+force between a supporter and an object also carries the weight of everything stacked on that
+object (in a 3-cube tower the table pushes with 3 m g, the bottom cube with 2 m g on the middle
+one). So the fraction of b's *own* weight carried by supporter a is its share of b's upward
+support times b's net supported weight (the paper says only "the percentage of object i weight
+supported by an object"):
 
     F_S(a -> b) = V_ab / U_b * (U_b - D_b) / (m_b g),
 
@@ -50,7 +51,8 @@ class SupportGraph:
         edge_fraction: (E,) F_S: fraction of the supported object's own weight carried by the
             supporter (see the module docstring).
         penetration: (n,) deepest penetration of each object over all its contacts, m
-            (0 when it has none or only gaps).
+            (0 when it has none or only gaps): the ``d`` of Eq. 10 (Alg. 2 sums the contacts'
+            depths; DESIGN section 4 takes the deepest).
         masses: (n,) kg, as given.
         gravity: m/s^2, as given.
 
@@ -96,7 +98,7 @@ class SupportGraph:
         return float(self.edge_fraction[sel].sum())
 
     def support_sum(self, i: int) -> float:
-        """Sum of F_S over the objects ``i`` carries (the input of P_S, Eq. 9)."""
+        """Sum of F_S over the objects ``i`` carries (the input of P_S, Eq. 11)."""
         return float(self.edge_fraction[self.supporter == i].sum())
 
     def support_sums(self) -> np.ndarray:
@@ -132,9 +134,10 @@ class SupportGraph:
         return depth
 
     def layers(self) -> list[list[int]]:
-        """Object indices grouped by BFS distance from the ground (layer 0: on the table),
-        each group ascending; objects with no support path from the ground come last, as one
-        extra group (absent when every object is reachable)."""
+        """Object indices grouped by BFS distance from the ground (layer 0: on the table; the
+        ``VerticesByDistance`` of Alg. 3), each group ascending; objects with no support path
+        from the ground come last, as one extra group (absent when every object is reachable:
+        DESIGN section 4)."""
         depth = self.depths()
         top = int(depth.max()) if self.n else -1
         out = [np.flatnonzero(depth == d).tolist() for d in range(top + 1)]
@@ -181,13 +184,41 @@ def build_support_graph(
     vz = nf * np.asarray(contacts.normal, dtype=float).reshape(-1, 3)[:, 2]  # push on b, up +
     depth = np.asarray(contacts.depth, dtype=float)
 
+    penetration = _penetration(a, b, depth, n)
+    sup, sud, force, up = _support_edges(a, b, nf, vz, n, float(min_force))
+    fraction = _edge_fractions(sup, sud, up, masses, g, n)
+    return SupportGraph(
+        ids=ids,
+        supporter=_frozen(sup, int),
+        supported=_frozen(sud, int),
+        edge_force=_frozen(force),
+        edge_vertical=_frozen(up),
+        edge_fraction=_frozen(fraction),
+        penetration=_frozen(penetration),
+        masses=_frozen(masses),
+        gravity=g,
+    )
+
+
+def _penetration(a: np.ndarray, b: np.ndarray, depth: np.ndarray, n: int) -> np.ndarray:
+    """(n,) deepest penetration of each object over its contacts (``a``, ``b``: the contacts'
+    objects, ``b = -1`` the table; ``depth``: their penetration depths), m."""
     penetration = np.zeros(n)
     if len(depth):
         d = np.maximum(depth, 0.0)
         np.maximum.at(penetration, a, d)
         obj_b = b >= 0
         np.maximum.at(penetration, b[obj_b], d[obj_b])
+    return penetration
 
+
+def _support_edges(
+    a: np.ndarray, b: np.ndarray, nf: np.ndarray, vz: np.ndarray, n: int, min_force: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(supporter, supported, force, vertical push)`` of the support edges, sorted by
+    supporter then supported: the contacts (objects ``a``, ``b``, normal forces ``nf``,
+    vertical pushes ``vz`` on ``b``) summed per pair, the pairs pushing up by ``min_force`` or
+    more kept."""
     # Sum per unordered pair (a < b, or b = -1 for the table; Contacts guarantees the order).
     key = (a + 1) * (n + 1) + (b + 1)
     uniq, inv = np.unique(key, return_inverse=True)
@@ -202,11 +233,17 @@ def build_support_graph(
     a_supports_b = vert > 0
     sup = np.where(table, GROUND, np.where(a_supports_b, pair_a, pair_b))
     sud = np.where(table, pair_a, np.where(a_supports_b, pair_b, pair_a))
-    keep = up >= float(min_force)
+    keep = up >= min_force
     sup, sud, force, up = sup[keep], sud[keep], force[keep], up[keep]
     order = np.lexsort((sud, sup))
-    sup, sud, force, up = sup[order], sud[order], force[order], up[order]
+    return sup[order], sud[order], force[order], up[order]
 
+
+def _edge_fractions(
+    sup: np.ndarray, sud: np.ndarray, up: np.ndarray, masses: np.ndarray, g: float, n: int
+) -> np.ndarray:
+    """Fraction of the supported object's weight each edge carries (its share of the net
+    upward push, U_b - D_b, over the weight)."""
     upward = np.bincount(sud, weights=up, minlength=n)  # U_b
     obj = sup >= 0
     downward = np.bincount(sup[obj], weights=up[obj], minlength=n)  # D_b
@@ -214,21 +251,10 @@ def build_support_graph(
     weight = masses * g
     with np.errstate(divide="ignore", invalid="ignore"):
         per_b = np.where(upward > 0, net / (upward * weight), 0.0)
-    fraction = up * per_b[sud] if len(sud) else np.zeros(0)
+    return up * per_b[sud] if len(sud) else np.zeros(0)
 
-    def frozen(x, dtype=float):
-        x = np.ascontiguousarray(x, dtype=dtype)
-        x.flags.writeable = False
-        return x
 
-    return SupportGraph(
-        ids=ids,
-        supporter=frozen(sup, int),
-        supported=frozen(sud, int),
-        edge_force=frozen(force),
-        edge_vertical=frozen(up),
-        edge_fraction=frozen(fraction),
-        penetration=frozen(penetration),
-        masses=frozen(masses),
-        gravity=g,
-    )
+def _frozen(x, dtype=float) -> np.ndarray:
+    x = np.ascontiguousarray(x, dtype=dtype)
+    x.flags.writeable = False
+    return x

@@ -11,7 +11,7 @@ label most of the pose's model samples land on).
 * ``estimator``: the best-scored hypothesis of each object (the pose estimator alone).
 * ``icp``: the estimator's pose refined by point-to-plane ICP on the object's segment.
 * ``bestfit``: among the (at most ``search.hypotheses_per_object``) hypotheses of each object,
-  the one with the best data fit (the ``c`` of Eq. 10, camera-facing samples only); no physics.
+  the one with the best data fit (the ``c`` of Eq. 12, camera-facing samples only); no physics.
 * ``temporal_filter``: the estimator smoothed over time per tracked object.
 * ``icp_filter``: ICP-refined hypotheses through a tracker with gating, median and coasting.
 * ``ssp_single``: the scene parser with memory off (each frame parsed alone).
@@ -100,7 +100,7 @@ def data_fit(
     camera_position: np.ndarray | None = None,
     n_samples: int = 1000,
 ) -> float:
-    """Data fit ``c`` (Eq. 10) of ``model`` at a pose, as :meth:`SceneScorer.fit_fraction`
+    """Data fit ``c`` (Eq. 12) of ``model`` at a pose, as :meth:`SceneScorer.fit_fraction`
     computes it: the fraction of (at most ``n_samples``, evenly chosen) camera-facing surface
     samples with a segment point within ``radius``."""
     pts, nrm = even_rows(

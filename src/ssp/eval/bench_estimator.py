@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from ssp.config import SSPConfig
-from ssp.eval.bench_parser import _cores, _tree_of
+from ssp.eval.bench_parser import available_cores, source_tree_of
 from ssp.eval.estimated import RECALL_DEG, RECALL_MM, VISIBLE, perceive_frame
 from ssp.eval.metrics import pose_error
 
@@ -144,7 +144,7 @@ def _machine() -> dict:
     return {
         "python": platform.python_version(),
         "cpu": platform.processor() or "?",
-        "cores_available": _cores(),
+        "cores_available": available_cores(),
     }
 
 
@@ -213,7 +213,7 @@ def compare_estimator(
     with tempfile.TemporaryDirectory(prefix="ssp-compare-") as tmp:
         path = Path(tmp) / "segments.pkl"
         path.write_bytes(pickle.dumps(segments))
-        src, remove = _tree_of(rev, Path(tmp) / "tree")
+        src, remove = source_tree_of(rev, Path(tmp) / "tree")
         try:
             for r in range(rounds):
                 for tag, tree in (("rev", str(src)), ("this", current)):

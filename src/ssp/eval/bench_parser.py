@@ -219,7 +219,7 @@ def _row(runs: Sequence[dict]) -> dict:
     return row
 
 
-def _cores() -> int:
+def available_cores() -> int:
     """Cores this process may run on (``taskset`` limits them)."""
     import os
 
@@ -301,7 +301,7 @@ def bench_parser(
         "machine": {
             "python": platform.python_version(),
             "cpu": platform.processor() or "?",
-            "cores_available": _cores(),
+            "cores_available": available_cores(),
             "processes": int(getattr(config.search, "processes", 1)),
         },
         "rows": rows,
@@ -408,7 +408,7 @@ print("RESULT " + json.dumps({"rows": res["rows"], "machine": res["machine"]}))
 """
 
 
-def _tree_of(rev: str, tmp: Path) -> tuple[Path, Callable[[], None]]:
+def source_tree_of(rev: str, tmp: Path) -> tuple[Path, Callable[[], None]]:
     """``src`` folder of ``rev``: a checkout folder (with ``src/ssp``) as it is, else a git
     revision of the repository ssp runs from, checked out into ``tmp`` (and the call that
     removes it)."""
@@ -476,7 +476,7 @@ def compare_parser(
     runs: dict[str, list] = {"rev": [], "this": []}
     machines: dict[str, dict] = {}
     with tempfile.TemporaryDirectory(prefix="ssp-compare-") as tmp:
-        src, remove = _tree_of(rev, Path(tmp) / "tree")
+        src, remove = source_tree_of(rev, Path(tmp) / "tree")
         try:
             for r in range(rounds):
                 for tag, tree in (("rev", str(src)), ("this", current)):

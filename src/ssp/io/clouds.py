@@ -313,7 +313,7 @@ def _read_ply(path: Path, raw: bytes) -> dict[str, np.ndarray]:
     return _ply_binary_vertex(path, raw, start, byte_order, before, vertex)
 
 
-def _parse_ply_header(path: Path, raw: bytes) -> tuple[str | None, list[_PlyElement], int]:
+def _parse_ply_header(path: Path, raw: bytes) -> tuple[str | None, list[_PlyElement], int]:  # noqa: C901
     """(byte order ``<`` / ``>``, or None for ascii; the elements; the offset of the data)."""
     nl = raw.find(b"\n", 0, 256)
     if not raw.startswith(b"ply") or (nl >= 0 and raw[:nl].strip() != b"ply"):

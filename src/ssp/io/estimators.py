@@ -46,7 +46,7 @@ from scipy.spatial.transform import Rotation
 from ssp.errors import ArgumentError, InputError
 from ssp.io._files import file_problem, read_json
 from ssp.io.folder import natural_key
-from ssp.io.hypotheses import _check_rotation
+from ssp.io.hypotheses import check_rotation
 from ssp.io.results import BOP_CSV_HEADER, ObjectIds, scan_bop_csv
 from ssp.scene import Hypothesis
 
@@ -263,7 +263,7 @@ def _rigid(T: np.ndarray) -> np.ndarray:
         raise InputError("pose contains NaN or infinite values")
     if np.abs(T[3] - [0, 0, 0, 1]).max() > 1e-9:
         raise InputError(f"pose's last row must be [0, 0, 0, 1], got {T[3].tolist()}")
-    T[:3, :3] = _check_rotation(T[:3, :3], "R")
+    T[:3, :3] = check_rotation(T[:3, :3], "R")
     return T
 
 

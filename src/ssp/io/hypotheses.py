@@ -46,6 +46,7 @@ __all__ = [
     "FRAMES",
     "ROTATION_TOL",
     "HypothesisFile",
+    "check_rotation",
     "matrix_to_quat_xyzw",
     "parse_hypotheses",
     "read_hypotheses",
@@ -151,7 +152,7 @@ def _pose(item: Mapping, what: str) -> np.ndarray:
         T = _numbers(item["T"], (4, 4), f"{what}: T")
         if np.abs(T[3] - [0, 0, 0, 1]).max() > 1e-9:
             raise InputError(f"{what}: T's last row must be [0, 0, 0, 1], got {T[3].tolist()}")
-        T[:3, :3] = _check_rotation(T[:3, :3], f"{what}: T")
+        T[:3, :3] = check_rotation(T[:3, :3], f"{what}: T")
         return T
     if "t" not in item:
         raise InputError(
@@ -174,7 +175,7 @@ def _rotation(value: Any, key: str, what: str) -> np.ndarray:
         arr = _numbers(value, None, what)
         if arr.shape not in ((3, 3), (9,)):
             raise InputError(f"{what}: expected 3x3 (or 9 numbers, row-major), got {arr.shape}")
-        return _check_rotation(arr.reshape(3, 3), what)
+        return check_rotation(arr.reshape(3, 3), what)
     q = _numbers(value, (4,), what)
     norm = float(np.linalg.norm(q))
     if norm < 1e-6:
@@ -184,7 +185,7 @@ def _rotation(value: Any, key: str, what: str) -> np.ndarray:
     return Rotation.from_quat(xyzw).as_matrix()
 
 
-def _check_rotation(R: np.ndarray, what: str) -> np.ndarray:
+def check_rotation(R: np.ndarray, what: str) -> np.ndarray:
     """``R`` re-orthonormalised, or InputError when it is not a rotation within the tolerance."""
     err = float(np.abs(R @ R.T - np.eye(3)).max())
     det = float(np.linalg.det(R))

@@ -174,23 +174,46 @@ def build_model(
     if status is not None:
         status(f"{name}: validating")
     solid = validate_mesh(mesh, name, config, scale=factors, source=source)
-    volume = float(solid.volume)
+    mass, friction = _mass_and_friction(name, source, solid, mass, density, friction, config)
+    return _model_of_solid(
+        name,
+        solid,
+        source,
+        factors,
+        mass,
+        friction,
+        config,
+        symmetry=symmetry,
+        convex_parts=convex_parts,
+        cache_dir=cache_dir,
+        parts_method=parts_method,
+        status=status,
+        detect_symmetry=detect_symmetry,
+        use_detected_symmetry=use_detected_symmetry,
+    )
 
-    if mass is not None and density is not None:
-        raise ModelError(f"{who}: give mass or density, not both")
-    if mass is not None:
-        mass = _positive(name, "mass", mass)
-    else:
-        rho = config.default_density if density is None else _positive(name, "density", density)
-        mass = rho * volume
-    friction = config.default_friction if friction is None else friction
-    friction = _positive(name, "friction", friction, allow_zero=True)
-    _plausibility(name, source, np.asarray(solid.extents), mass, config)
 
-    props = solid.mass_properties  # unit density
-    center_of_mass = np.asarray(props["center_mass"], dtype=np.float64)
-    inertia = np.asarray(props["inertia"], dtype=np.float64) * (mass / float(props["mass"]))
-    inertia = (inertia + inertia.T) / 2
+def _model_of_solid(
+    name: str,
+    solid: trimesh.Trimesh,
+    source: Path | None,
+    factors: np.ndarray,
+    mass: float,
+    friction: float,
+    config: LibraryConfig,
+    *,
+    symmetry: Symmetry | None,
+    convex_parts: Sequence[trimesh.Trimesh] | None,
+    cache_dir: Path | None,
+    parts_method: str,
+    status: Status | None,
+    detect_symmetry: float | None,
+    use_detected_symmetry: bool,
+) -> ObjectModel:
+    """:func:`build_model` of the validated mesh ``solid`` (metres; ``factors``: the scale it
+    was given) of ``mass`` and ``friction``: the mass properties, samples, convex parts and
+    symmetries."""
+    center_of_mass, inertia = _mass_properties(solid, mass)
 
     if status is not None:
         status(f"{name}: sampling")
@@ -245,6 +268,41 @@ def build_model(
         source=Path(source) if source is not None else None,
         detected_symmetry=detected,
     )
+
+
+def _mass_and_friction(
+    name: str,
+    source: Path | None,
+    solid: trimesh.Trimesh,
+    mass: float | None,
+    density: float | None,
+    friction: float | None,
+    config: LibraryConfig,
+) -> tuple[float, float]:
+    """:func:`build_model`'s checked ``(mass, friction)`` of the validated mesh ``solid``
+    (the defaults of ``config`` for the ones not given)."""
+    who = describe(name, source)
+    volume = float(solid.volume)
+    if mass is not None and density is not None:
+        raise ModelError(f"{who}: give mass or density, not both")
+    if mass is not None:
+        mass = _positive(name, "mass", mass)
+    else:
+        rho = config.default_density if density is None else _positive(name, "density", density)
+        mass = rho * volume
+    friction = config.default_friction if friction is None else friction
+    friction = _positive(name, "friction", friction, allow_zero=True)
+    _plausibility(name, source, np.asarray(solid.extents), mass, config)
+    return mass, friction
+
+
+def _mass_properties(solid: trimesh.Trimesh, mass: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(centre of mass (3,), inertia (3, 3) about it)`` of ``solid`` of ``mass`` kg."""
+    props = solid.mass_properties  # unit density
+    center_of_mass = np.asarray(props["center_mass"], dtype=np.float64)
+    inertia = np.asarray(props["inertia"], dtype=np.float64) * (mass / float(props["mass"]))
+    inertia = (inertia + inertia.T) / 2
+    return center_of_mass, inertia
 
 
 def _check_iou(

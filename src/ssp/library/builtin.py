@@ -132,8 +132,8 @@ def _apply(points: np.ndarray, transform: np.ndarray | None) -> np.ndarray:
 
 
 def _box(
-    extents: Sequence[float],
-    center: Sequence[float] = (0.0, 0.0, 0.0),
+    extents: Sequence[float] | np.ndarray,
+    center: Sequence[float] | np.ndarray = (0.0, 0.0, 0.0),
     transform: np.ndarray | None = None,
 ) -> trimesh.Trimesh:
     """Box of ``extents`` centred at ``center``, then moved by ``transform`` (4x4)."""
@@ -206,7 +206,7 @@ def _ellipsoid(
 
 
 def _posed_box(
-    extents: Sequence[float], center: Sequence[float], axis: str, degrees: float
+    extents: Sequence[float], center: Sequence[float] | np.ndarray, axis: str, degrees: float
 ) -> trimesh.Trimesh:
     """Box of ``extents`` rotated by ``degrees`` about the coordinate ``axis`` (through its own
     centre) and centred at ``center``."""
@@ -215,7 +215,9 @@ def _posed_box(
     return _box(extents, transform=T)
 
 
-def _rotation(axis: str, degrees: float, about: Sequence[float] = (0.0, 0.0, 0.0)) -> np.ndarray:
+def _rotation(
+    axis: str, degrees: float, about: Sequence[float] | np.ndarray = (0.0, 0.0, 0.0)
+) -> np.ndarray:
     """4x4 rotation by ``degrees`` about the coordinate ``axis`` through the point ``about``."""
     return trimesh.transformations.rotation_matrix(
         np.radians(degrees), np.eye(3)[_AXES[axis]], point=np.asarray(about, dtype=float)
@@ -256,7 +258,7 @@ def _box_group(extents: Sequence[float]) -> np.ndarray:
 def _finish(
     name: str,
     parts: Iterable[trimesh.Trimesh],
-    symmetries: Sequence[np.ndarray] = (),
+    symmetries: Sequence[np.ndarray] | np.ndarray = (),
     *,
     density: float,
     friction: float,

@@ -61,7 +61,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import trimesh
@@ -240,7 +240,10 @@ def _bodies(mesh: trimesh.Trimesh) -> list[trimesh.Trimesh]:
     )
     if len(groups) <= 1:
         return [mesh]
-    return [mesh.submesh([np.sort(g)], append=True, repair=False) for g in groups]
+    # append=True: one mesh per call (trimesh types submesh's result as a mesh or a list)
+    return [
+        cast(trimesh.Trimesh, mesh.submesh([np.sort(g)], append=True, repair=False)) for g in groups
+    ]
 
 
 def inside_mesh(mesh: trimesh.Trimesh, points: np.ndarray) -> np.ndarray:
@@ -368,77 +371,98 @@ def merge_parts(
     solid = [float(v) for v in (solid_volumes or [p.volume for p in parts])]
     if len(verts) <= 1:
         return tuple(parts)
-    lo = [v.min(axis=0) for v in verts]
-    hi = [v.max(axis=0) for v in verts]
-    pad = 0.05 * float(np.linalg.norm(np.max(hi, axis=0) - np.min(lo, axis=0)))
-    costs: dict[tuple[int, ...], tuple[float, np.ndarray]] = {}
+    merger = _PartMerger(verts, solid)
+    merger.merge_clusters(tolerance)
+    merger.merge_pairs(tolerance, max_parts)
+    return tuple(
+        parts[k] if k < len(parts) else trimesh.convex.convex_hull(verts[k])
+        for k in sorted(merger.alive)
+    )
 
-    def near(i: int, j: int) -> bool:
+
+class _PartMerger:
+    """The state of :func:`merge_parts`: the parts' vertices and solid volumes (a merged part
+    appended to them), their bounding boxes, the parts alive, a heap of candidate pairs
+    ``(cost, i, j)`` and the cost of every group tried."""
+
+    def __init__(self, verts: list[np.ndarray], solid: list[float]) -> None:
+        self.verts = verts
+        self.solid = solid
+        self.lo = [v.min(axis=0) for v in verts]
+        self.hi = [v.max(axis=0) for v in verts]
+        self.pad = 0.05 * float(np.linalg.norm(np.max(self.hi, axis=0) - np.min(self.lo, axis=0)))
+        self.costs: dict[tuple[int, ...], tuple[float, np.ndarray]] = {}
+        self.alive = set(range(len(verts)))
+        self.heap: list[tuple[float, int, int]] = []
+        for i in sorted(self.alive):
+            self.push_pairs(i, [j for j in self.alive if j > i])
+
+    def near(self, i: int, j: int) -> bool:
+        """Do the padded bounding boxes of parts ``i`` and ``j`` meet?"""
+        lo, hi, pad = self.lo, self.hi, self.pad
         return bool(np.all(lo[i] - pad <= hi[j]) and np.all(lo[j] - pad <= hi[i]))
 
-    def cost(group: tuple[int, ...]) -> tuple[float, np.ndarray]:
+    def cost(self, group: tuple[int, ...]) -> tuple[float, np.ndarray]:
+        """``(empty fraction of the joint hull, its vertices)`` of the parts ``group``."""
+        costs = self.costs
         if group not in costs:
-            both = np.vstack([verts[k] for k in group])
+            both = np.vstack([self.verts[k] for k in group])
             h = _hull(both)
-            total = sum(solid[k] for k in group)
+            total = sum(self.solid[k] for k in group)
             costs[group] = (np.inf, both) if h is None else (1.0 - total / h[0], h[1])
         return costs[group]
 
-    def add(hull_vertices: np.ndarray, group: Sequence[int]) -> int:
-        verts.append(hull_vertices)
-        solid.append(sum(solid[k] for k in group))
-        lo.append(hull_vertices.min(axis=0))
-        hi.append(hull_vertices.max(axis=0))
-        return len(verts) - 1
-
-    alive = set(range(len(verts)))
-    heap: list[tuple[float, int, int]] = []
-
-    def push_pairs(k: int, others) -> None:
+    def push_pairs(self, k: int, others) -> None:
+        """Push the pairs of part ``k`` with the parts ``others`` near it."""
         for j in sorted(others):
-            if j != k and near(k, j):
+            if j != k and self.near(k, j):
                 pair = (min(j, k), max(j, k))
-                heapq.heappush(heap, (cost(pair)[0], *pair))
+                heapq.heappush(self.heap, (self.cost(pair)[0], *pair))
 
-    for i in sorted(alive):
-        push_pairs(i, [j for j in alive if j > i])
-    # 1. clusters of cheap pairs, merged whole when the cluster itself is nearly convex
-    import networkx as nx
+    def merge(self, group: tuple[int, ...]) -> None:
+        """Replace the parts ``group`` by their hull."""
+        hull_vertices = self.cost(group)[1]
+        self.verts.append(hull_vertices)
+        self.solid.append(sum(self.solid[k] for k in group))
+        self.lo.append(hull_vertices.min(axis=0))
+        self.hi.append(hull_vertices.max(axis=0))
+        k = len(self.verts) - 1
+        self.alive -= set(group)
+        self.push_pairs(k, self.alive)
+        self.alive.add(k)
 
-    graph = nx.Graph()
-    graph.add_nodes_from(alive)
-    graph.add_edges_from((i, j) for c, i, j in heap if c <= tolerance)
-    for component in sorted(nx.connected_components(graph), key=min):
-        group = tuple(sorted(component))
-        if len(group) > 1 and cost(group)[0] <= tolerance:
-            k = add(cost(group)[1], group)
-            alive -= component
-            push_pairs(k, alive)
-            alive.add(k)
-    # 2. pairs, cheapest first; beyond the cap whatever the cost
-    while len(alive) > 1:
-        while heap and not (heap[0][1] in alive and heap[0][2] in alive):
-            heapq.heappop(heap)
-        over = len(alive) > max_parts
-        if not heap:
-            if not over:
+    def merge_clusters(self, tolerance: float) -> None:
+        """1. clusters of cheap pairs, merged whole when the cluster itself is nearly convex."""
+        import networkx as nx
+
+        graph = nx.Graph()
+        graph.add_nodes_from(self.alive)
+        graph.add_edges_from((i, j) for c, i, j in self.heap if c <= tolerance)
+        for component in sorted(nx.connected_components(graph), key=min):
+            group = tuple(sorted(component))
+            if len(group) > 1 and self.cost(group)[0] <= tolerance:
+                self.merge(group)
+
+    def merge_pairs(self, tolerance: float, max_parts: int) -> None:
+        """2. pairs, cheapest first; beyond the cap whatever the cost."""
+        alive, heap = self.alive, self.heap
+        while len(alive) > 1:
+            while heap and not (heap[0][1] in alive and heap[0][2] in alive):
+                heapq.heappop(heap)
+            over = len(alive) > max_parts
+            if not heap:
+                if not over:
+                    break
+                for i in sorted(alive):  # far apart parts: only the cap merges them
+                    for j in sorted(alive):
+                        if j > i:
+                            heapq.heappush(heap, (self.cost((i, j))[0], i, j))
+                continue
+            c, i, j = heap[0]
+            if not (c <= tolerance or over):
                 break
-            for i in sorted(alive):  # far apart parts: only the cap merges them
-                for j in sorted(alive):
-                    if j > i:
-                        heapq.heappush(heap, (cost((i, j))[0], i, j))
-            continue
-        c, i, j = heap[0]
-        if not (c <= tolerance or over):
-            break
-        heapq.heappop(heap)
-        k = add(cost((i, j))[1], (i, j))
-        alive -= {i, j}
-        push_pairs(k, alive)
-        alive.add(k)
-    return tuple(
-        parts[k] if k < len(parts) else trimesh.convex.convex_hull(verts[k]) for k in sorted(alive)
-    )
+            heapq.heappop(heap)
+            self.merge((i, j))
 
 
 #: A decimated mesh is used only if its volume is within this fraction of the original's.
@@ -523,7 +547,8 @@ def write_entry(bucket: Path, centred: np.ndarray, meta: dict, **arrays: np.ndar
                     fh,
                     meta=np.array(json.dumps(meta)),
                     mesh_vertices=np.asarray(centred, dtype=np.float64),
-                    **arrays,
+                    # numpy's stub lets ** reach savez's allow_pickle: bool; arrays are arrays
+                    **arrays,  # type: ignore[arg-type]
                 )
             os.replace(tmp, path)
         except BaseException:
@@ -753,8 +778,8 @@ def decompose(
     bucket = Path(cache_dir) / cache_key(mesh, config)
     hit = _load_cache(bucket, centred, tol, config)
     if hit is not None:
-        parts, info = hit
-        return tuple(_moved(p, centre) for p in parts), info
+        cached, info = hit
+        return tuple(_moved(p, centre) for p in cached), info
 
     t0 = time.perf_counter()
     volume = float(mesh.volume)

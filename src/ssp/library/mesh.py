@@ -17,6 +17,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Sequence
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 import trimesh
@@ -213,7 +214,7 @@ def _open_edges_description(mesh: trimesh.Trimesh) -> str:
     return ", ".join(parts)
 
 
-def scale_vector(scale: float | Sequence[float], who: str = "model") -> np.ndarray:
+def scale_vector(scale: float | Sequence[float] | np.ndarray, who: str = "model") -> np.ndarray:
     """``scale`` (a number or 3 per-axis factors) as a positive, finite (3,) array."""
     try:
         v = np.broadcast_to(np.asarray(scale, dtype=np.float64), (3,)).copy()
@@ -230,7 +231,7 @@ def validate_mesh(
     mesh: trimesh.Trimesh,
     name: str,
     config: LibraryConfig,
-    scale: float | Sequence[float] = 1.0,
+    scale: float | Sequence[float] | np.ndarray = 1.0,
     source: str | Path | None = None,
 ) -> trimesh.Trimesh:
     """Return a cleaned, repaired copy of ``mesh`` scaled by ``scale`` (to metres).
@@ -251,6 +252,36 @@ def validate_mesh(
     if not isinstance(mesh, trimesh.Trimesh):
         raise GeometryError(f"{who}: expected a trimesh.Trimesh, got {type(mesh)}")
     factors = scale_vector(scale, who)
+    vertices, faces = _checked_arrays(mesh, who)
+    m = trimesh.Trimesh(vertices * factors, faces, process=False)
+    if len(m.faces) > config.max_mesh_faces:
+        m = _decimated(m, who, config)
+    m.remove_unreferenced_vertices()
+    extents = _checked_extents(m, who, factors, config)
+    m, repaired = _cleaned(m, who)
+    if len(m.faces) < 4:
+        raise GeometryError(f"{who}: fewer than 4 faces are left after cleaning")
+    if not m.is_watertight:
+        raise GeometryError(
+            f"{who}: the mesh is not watertight after repair "
+            f"({_open_edges_description(m)}; only holes whose edges lie in a plane are "
+            f"filled); {_OPEN_SURFACE_WHY}. Close the mesh in a mesh editor (e.g. fill holes / "
+            "make manifold) and try again"
+        )
+    volume = _oriented_volume(m, repaired)
+    if repaired:
+        log.info("%s: repaired mesh: %s", who, "; ".join(repaired))
+    if not np.isfinite(volume) or volume <= 1e-9 * float(np.prod(extents)):
+        raise GeometryError(
+            f"{who}: the mesh encloses no volume ({volume:.3g} m^3 for extents "
+            f"{np.round(extents, 4)} m); it may be a flat sheet or self-cancelling surfaces"
+        )
+    return m
+
+
+def _checked_arrays(mesh: trimesh.Trimesh, who: str) -> tuple[np.ndarray, np.ndarray]:
+    """``mesh``'s (V, 3) float64 vertices and (F, 3) int64 faces, checked: finite vertices, at
+    least 4 faces, every face index a vertex."""
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     faces = np.asarray(mesh.faces, dtype=np.int64)
     if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
@@ -266,30 +297,40 @@ def validate_mesh(
         raise GeometryError(f"{who}: only {len(faces)} faces; a closed surface needs at least 4")
     if faces.min() < 0 or faces.max() >= len(vertices):
         raise GeometryError(f"{who}: faces reference vertices that do not exist")
+    return vertices, faces
 
-    m = trimesh.Trimesh(vertices * factors, faces, process=False)
-    if len(m.faces) > config.max_mesh_faces:
-        n_faces = len(m.faces)
-        m.merge_vertices()
-        with np.errstate(all="ignore"):
-            volume_before = abs(float(m.volume))
-        m = m.simplify_quadric_decimation(face_count=int(config.max_mesh_faces))
-        with np.errstate(all="ignore"):
-            change = abs(abs(float(m.volume)) / volume_before - 1.0) if volume_before else 0.0
-        if change > 0.01:
-            raise GeometryError(
-                f"{who}: {n_faces} faces (more than library.max_mesh_faces "
-                f"{config.max_mesh_faces}), and decimating it changed its volume by "
-                f"{100 * change:.1f} %; decimate the mesh in a mesh editor, or raise "
-                "library.max_mesh_faces"
-            )
-        log.warning(
-            "%s: %d faces decimated to %d (library.max_mesh_faces) to bound memory and time",
-            who,
-            n_faces,
-            len(m.faces),
+
+def _decimated(m: trimesh.Trimesh, who: str, config: LibraryConfig) -> trimesh.Trimesh:
+    """``m`` (merged in place) decimated to ``config.max_mesh_faces`` faces (logged);
+    GeometryError when that changes its volume by more than 1 %."""
+    n_faces = len(m.faces)
+    m.merge_vertices()
+    with np.errstate(all="ignore"):
+        volume_before = abs(float(m.volume))
+    m = m.simplify_quadric_decimation(face_count=int(config.max_mesh_faces))
+    with np.errstate(all="ignore"):
+        change = abs(abs(float(m.volume)) / volume_before - 1.0) if volume_before else 0.0
+    if change > 0.01:
+        raise GeometryError(
+            f"{who}: {n_faces} faces (more than library.max_mesh_faces "
+            f"{config.max_mesh_faces}), and decimating it changed its volume by "
+            f"{100 * change:.1f} %; decimate the mesh in a mesh editor, or raise "
+            "library.max_mesh_faces"
         )
-    m.remove_unreferenced_vertices()
+    log.warning(
+        "%s: %d faces decimated to %d (library.max_mesh_faces) to bound memory and time",
+        who,
+        n_faces,
+        len(m.faces),
+    )
+    return m
+
+
+def _checked_extents(
+    m: trimesh.Trimesh, who: str, factors: np.ndarray, config: LibraryConfig
+) -> np.ndarray:
+    """``m``'s (3,) extents, m: GeometryError when flat, UnitsError when the largest is outside
+    ``[config.min_extent, config.max_extent]`` (``factors``: the scale applied, for the hint)."""
     extents = np.asarray(m.extents, dtype=float)
     largest = float(extents.max())
     if largest <= 0 or float(extents.min()) <= 1e-6 * largest:
@@ -304,8 +345,13 @@ def validate_mesh(
             f"{who}: largest extent {largest:.4g} m is {limit} the plausible "
             f"{bound:g} m: {_units_hint(largest, float(np.prod(factors)) ** (1 / 3), config)}"
         )
+    return extents
 
-    # cleaning that never opens a closed surface
+
+def _cleaned(m: trimesh.Trimesh, who: str) -> tuple[trimesh.Trimesh, list[str]]:
+    """``m`` cleaned in place by operations that never open a closed surface (merged
+    vertices, no repeated-vertex or duplicate faces), then, when open, without zero-area faces
+    and with its planar holes filled (a new mesh); and what was repaired."""
     m.merge_vertices(merge_tex=True, merge_norm=True)
     f = m.faces
     repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
@@ -313,7 +359,7 @@ def validate_mesh(
         m.update_faces(~repeated)
     m.update_faces(m.unique_faces())
     m.remove_unreferenced_vertices()
-    repaired = []
+    repaired: list[str] = []
     if not m.is_watertight:
         n_before = len(m.faces)
         m.update_faces(m.nondegenerate_faces())
@@ -331,15 +377,12 @@ def validate_mesh(
                     new_faces,
                 )
                 repaired.append(f"filled {holes} planar holes with {new_faces} faces")
-    if len(m.faces) < 4:
-        raise GeometryError(f"{who}: fewer than 4 faces are left after cleaning")
-    if not m.is_watertight:
-        raise GeometryError(
-            f"{who}: the mesh is not watertight after repair "
-            f"({_open_edges_description(m)}; only holes whose edges lie in a plane are "
-            f"filled); {_OPEN_SURFACE_WHY}. Close the mesh in a mesh editor (e.g. fill holes / "
-            "make manifold) and try again"
-        )
+    return m, repaired
+
+
+def _oriented_volume(m: trimesh.Trimesh, repaired: list[str]) -> float:
+    """Orient ``m``'s faces outward in place (:func:`_fix_orientation`) and return its volume,
+    m^3; what was fixed is appended to ``repaired``."""
     was_consistent = m.is_winding_consistent
     with np.errstate(all="ignore"):
         volume_before = float(m.volume)
@@ -350,14 +393,7 @@ def validate_mesh(
         volume = float(m.volume)
     if was_consistent and volume_before < 0 < volume:
         repaired.append("inverted inside-out mesh")
-    if repaired:
-        log.info("%s: repaired mesh: %s", who, "; ".join(repaired))
-    if not np.isfinite(volume) or volume <= 1e-9 * float(np.prod(extents)):
-        raise GeometryError(
-            f"{who}: the mesh encloses no volume ({volume:.3g} m^3 for extents "
-            f"{np.round(extents, 4)} m); it may be a flat sheet or self-cancelling surfaces"
-        )
-    return m
+    return volume
 
 
 def load_convex_parts(path: str | Path) -> list[trimesh.Trimesh]:
@@ -375,8 +411,11 @@ def load_convex_parts(path: str | Path) -> list[trimesh.Trimesh]:
     try:
         if path.suffix.lower() == ".obj":
             # one geometry per OBJ object/group (trimesh's OBJ loader does the splitting)
-            scene = trimesh.load(
-                path, split_objects=True, group_material=False, force="scene", process=False
+            scene = cast(  # force="scene": always a Scene
+                trimesh.Scene,
+                trimesh.load(
+                    path, split_objects=True, group_material=False, force="scene", process=False
+                ),
             )
             parts = [g for g in scene.geometry.values() if isinstance(g, trimesh.Trimesh)]
         if len(parts) <= 1:

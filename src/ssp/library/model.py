@@ -127,7 +127,7 @@ class ObjectModel:
 
     @cached_property
     def diameter(self) -> float:
-        """Largest distance between two points of the object (eps_d of Eq. 8), m."""
+        """Largest distance between two points of the object (eps_d of the paper's Eq. 10), m."""
         from scipy.spatial.distance import pdist
 
         v = self.hull_vertices
@@ -135,11 +135,14 @@ class ObjectModel:
 
     @cached_property
     def d_max(self) -> float:
-        """Largest distance from the centre of mass to the object's surface (pivot arm), m."""
+        """Largest distance from the centre of mass to the object's surface (pivot arm; d_max of
+        the paper's Eq. 8), m."""
         return float(np.linalg.norm(self.hull_vertices - self.center_of_mass, axis=1).max())
 
     def max_angular_acceleration(self, gravity: float) -> float:
-        """alpha_max = m g d_max / I_pivot, rad/s^2 (stability term, DESIGN section 4).
+        """alpha_max = m g d_max / I_pivot, rad/s^2: the paper's beta_R_max of Eq. 8 (which
+        it prints inverted, I / (g d_max m); DESIGN section 4), the scale of beta_R in the
+        stability term (Eq. 9).
 
         The angular acceleration gravity gives the object when it pivots about its farthest
         point with the lever arm horizontal; I_pivot is the smallest principal moment about the

@@ -36,6 +36,7 @@ import json
 import logging
 import math
 import re
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -115,7 +116,7 @@ def parse_rotation(text: str) -> RotationSpec:
         )
     axis = [0.0, 0.0, 0.0]
     axis["xyz".index(m["axis"].lower())] = -1.0 if m["sign"] == "-" else 1.0
-    return RotationSpec(axis=tuple(axis), angle=float(m["angle"]))
+    return RotationSpec(axis=(axis[0], axis[1], axis[2]), angle=float(m["angle"]))
 
 
 class SymmetryDetectSpec(_Strict):
@@ -131,9 +132,11 @@ def _optional_model(name: str, source: type[BaseModel]) -> type[BaseModel]:
     """A strict model with every field of ``source`` optional (same types and bounds)."""
     fields: dict[str, Any] = {}
     for key, info in source.model_fields.items():
-        annotation = info.annotation
+        annotation: Any = info.annotation
         if info.metadata:
-            annotation = Annotated[(annotation, *info.metadata)]
+            # a name, not a (x, *y) display in the brackets: mypy reads that as 3.11 syntax
+            params = (annotation, *info.metadata)
+            annotation = Annotated[params]
         fields[key] = (annotation | None, Field(None, description=info.description))
     return create_model(name, __base__=_Strict, **fields)
 
@@ -216,7 +219,7 @@ def _allowed_keys(model: type[BaseModel]) -> list[str]:
     return list(model.model_fields)
 
 
-def _describe_error(err: dict[str, Any]) -> str:
+def _describe_error(err: Mapping[str, Any]) -> str:
     loc = [str(x) for x in err.get("loc", ())]
     # pydantic adds the union member name ("ObjectSpec") to the location; drop it
     wrappers = (
@@ -323,7 +326,9 @@ def _entry(
     unit = UNIT_SCALES[spec.units or props.units]
     factors = unit * np.broadcast_to(np.asarray(1.0 if spec.scale is None else spec.scale), (3,))
     scale: float | tuple[float, float, float] = (
-        float(factors[0]) if np.all(factors == factors[0]) else tuple(float(x) for x in factors)
+        float(factors[0])
+        if np.all(factors == factors[0])
+        else (float(factors[0]), float(factors[1]), float(factors[2]))
     )
     if spec.mass is not None or spec.density is not None:
         mass, density = spec.mass, spec.density

@@ -467,7 +467,7 @@ class HypothesisEstimator:
                 table.icp_grid(self.library[name], stage["n_samples"])
 
     # ------------------------------------------------------------------ one segment
-    def estimate(
+    def estimate(  # noqa: C901
         self,
         points: np.ndarray,
         normals: np.ndarray,

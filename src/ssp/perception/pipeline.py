@@ -1,9 +1,10 @@
 """From a sensor frame to the scene parser's input: table, segments, pose hypotheses.
 
-The paper's front end (section VI): the table plane gives gravity and the world frame, the
-cloud above it is segmented, and a pose estimator proposes several poses per object (here
-:class:`ssp.perception.estimator.HypothesisEstimator`). :class:`Perception` chains these and
-returns a :class:`ssp.scene.Frame` ready for :meth:`ssp.parser.SceneParser.update`.
+The paper's front end (section IV-D, "Software Implementation"): the table plane gives gravity
+and the world frame, the cloud above it is segmented, and a pose estimator proposes several
+poses per object (here :class:`ssp.perception.estimator.HypothesisEstimator`).
+:class:`Perception` chains these and returns a :class:`ssp.scene.Frame` ready for
+:meth:`ssp.parser.SceneParser.update`.
 
 Segments and candidate classes:
 
@@ -209,7 +210,7 @@ class Perception:
             hypotheses_frame=hypotheses_frame,
         )
 
-    def from_points(
+    def from_points(  # noqa: C901
         self,
         points: np.ndarray,
         *,

@@ -121,14 +121,9 @@ def _check_model(model: ObjectModel, oid: str) -> None:
         )
 
 
-def build_mjmodel(
-    instances: Sequence[ObjectInstance], *, table: bool, config: PhysicsConfig
-) -> mujoco.MjModel:
-    """Compile the scene of ``instances`` (in order) into a new ``MjModel``.
-
-    Raises :class:`PhysicsError` when a model's mass properties or convex parts are unusable
-    (for example a degenerate, flat convex part that MuJoCo cannot compile).
-    """
+def _new_spec(instances: Sequence[ObjectInstance], config: PhysicsConfig) -> mujoco.MjSpec:
+    """An empty ``MjSpec`` with ssp's compiler settings, ``config``'s solver options and an
+    arena sized for ``instances``."""
     spec = mujoco.MjSpec()
     spec.modelname = "ssp_world"
     spec.compiler.inertiafromgeom = mujoco.mjtInertiaFromGeom.mjINERTIAFROMGEOM_FALSE
@@ -146,16 +141,84 @@ def build_mjmodel(
     opt.iterations = int(config.solver_iterations)
     opt.tolerance = float(config.solver_tolerance)
     opt.noslip_iterations = int(config.noslip_iterations)
+    return spec
 
-    solref = [float(x) for x in config.solref]
-    solimp = [float(x) for x in config.solimp]
+
+def _add_meshes(spec: mujoco.MjSpec, model: ObjectModel, k: int) -> list[str]:
+    """Add the convex parts of ``model`` (the ``k``-th distinct model) to ``spec`` as mesh
+    assets; returns their names."""
+    names = []
+    for j, part in enumerate(model.convex_parts):
+        verts = np.asarray(part.vertices, dtype=float)
+        if verts.ndim != 2 or verts.shape[1] != 3 or len(verts) < 4:
+            raise PhysicsError(f"model {model.name!r}: convex part {j} needs at least 4 vertices")
+        if not np.all(np.isfinite(verts)):
+            raise PhysicsError(f"model {model.name!r}: convex part {j} has NaN vertices")
+        name = f"model{k}_part{j}"
+        spec.add_mesh(
+            name=name,
+            uservert=verts.ravel().tolist(),
+            inertia=mujoco.mjtMeshInertia.mjMESH_INERTIA_CONVEX,
+        )
+        names.append(name)
+    return names
+
+
+def _add_body(
+    spec: mujoco.MjSpec,
+    i: int,
+    model: ObjectModel,
+    mesh_names: list[str],
+    spin: list[float],
+    contact: dict,
+) -> None:
+    """Add object ``i``: a free body with ``model``'s mass properties and one geom per mesh
+    of ``mesh_names`` (friction ``model.friction`` then ``spin``, ``contact`` settings)."""
+    body = spec.worldbody.add_body(name=f"obj{i}")
+    body.add_freejoint(name=f"obj{i}_free")
+    inertia = np.asarray(model.inertia, dtype=float)
+    body.explicitinertial = True
+    body.mass = float(model.mass)
+    body.ipos = [float(x) for x in model.center_of_mass]
+    body.fullinertia = [
+        inertia[0, 0],
+        inertia[1, 1],
+        inertia[2, 2],
+        inertia[0, 1],
+        inertia[0, 2],
+        inertia[1, 2],
+    ]
+    for j, name in enumerate(mesh_names):
+        body.add_geom(
+            name=f"obj{i}_part{j}",
+            type=mujoco.mjtGeom.mjGEOM_MESH,
+            meshname=name,
+            friction=[float(model.friction), *spin],
+            **contact,
+        )
+
+
+def build_mjmodel(
+    instances: Sequence[ObjectInstance], *, table: bool, config: PhysicsConfig
+) -> mujoco.MjModel:
+    """Compile the scene of ``instances`` (in order) into a new ``MjModel``.
+
+    Raises :class:`PhysicsError` when a model's mass properties or convex parts are unusable
+    (for example a degenerate, flat convex part that MuJoCo cannot compile).
+    """
+    spec = _new_spec(instances, config)
     spin = [float(config.torsional_friction), float(config.rolling_friction)]
     # MuJoCo 4 adds the margins of the two geoms of a pair: give each geom half.
     half_margin = 0.5 * contact_margin(config)
 
     # contact settings shared by every geom (table and object parts)
     contact = dict(
-        solref=solref, solimp=solimp, condim=CONDIM, margin=half_margin, contype=1, conaffinity=1
+        solref=[float(x) for x in config.solref],
+        solimp=[float(x) for x in config.solimp],
+        condim=CONDIM,
+        margin=half_margin,
+        contype=1,
+        conaffinity=1,
     )
     if table:
         spec.worldbody.add_geom(
@@ -171,47 +234,8 @@ def build_mjmodel(
         model = inst.model
         _check_model(model, inst.id)
         if id(model) not in mesh_names:
-            k = len(mesh_names)
-            names = []
-            for j, part in enumerate(model.convex_parts):
-                verts = np.asarray(part.vertices, dtype=float)
-                if verts.ndim != 2 or verts.shape[1] != 3 or len(verts) < 4:
-                    raise PhysicsError(
-                        f"model {model.name!r}: convex part {j} needs at least 4 vertices"
-                    )
-                if not np.all(np.isfinite(verts)):
-                    raise PhysicsError(f"model {model.name!r}: convex part {j} has NaN vertices")
-                name = f"model{k}_part{j}"
-                spec.add_mesh(
-                    name=name,
-                    uservert=verts.ravel().tolist(),
-                    inertia=mujoco.mjtMeshInertia.mjMESH_INERTIA_CONVEX,
-                )
-                names.append(name)
-            mesh_names[id(model)] = names
-
-        body = spec.worldbody.add_body(name=f"obj{i}")
-        body.add_freejoint(name=f"obj{i}_free")
-        inertia = np.asarray(model.inertia, dtype=float)
-        body.explicitinertial = True
-        body.mass = float(model.mass)
-        body.ipos = [float(x) for x in model.center_of_mass]
-        body.fullinertia = [
-            inertia[0, 0],
-            inertia[1, 1],
-            inertia[2, 2],
-            inertia[0, 1],
-            inertia[0, 2],
-            inertia[1, 2],
-        ]
-        for j, name in enumerate(mesh_names[id(model)]):
-            body.add_geom(
-                name=f"obj{i}_part{j}",
-                type=mujoco.mjtGeom.mjGEOM_MESH,
-                meshname=name,
-                friction=[float(model.friction), *spin],
-                **contact,
-            )
+            mesh_names[id(model)] = _add_meshes(spec, model, len(mesh_names))
+        _add_body(spec, i, model, mesh_names[id(model)], spin, contact)
 
     try:
         return spec.compile()

@@ -35,6 +35,7 @@ from __future__ import annotations
 import itertools
 import logging
 import math
+from collections import Counter
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -195,8 +196,7 @@ class World:
             ):
                 raise TypeError(f"expected ObjectInstance(id: str, model), got {inst!r:.80}")
         ids = tuple(inst.id for inst in instances)
-        seen: set[str] = set()
-        dups = sorted({i for i in ids if i in seen or seen.add(i)})
+        dups = sorted(i for i, count in Counter(ids).items() if count > 1)
         if dups:
             raise DuplicateObjectError(f"duplicate object ids in the world: {dups}")
 
@@ -530,9 +530,10 @@ class World:
         """Advance ``n`` steps of ``timestep``.
 
         ``quasi_static=True`` zeroes all velocities before each step (relaxation from rest, as
-        the reference code does); ``False`` is plain dynamics. Raises :class:`PhysicsError` if
-        the simulation diverges or overflows its buffers; the state is then invalid and should
-        be restored with :meth:`restore_state`.
+        the reference code does: the ``StepSimulation`` of the paper's Alg. 1 as DESIGN
+        section 4 "Simulation" reads it); ``False`` is plain dynamics. Raises
+        :class:`PhysicsError` if the simulation diverges or overflows its buffers; the state is
+        then invalid and should be restored with :meth:`restore_state`.
         """
         n = int(n)
         if n < 0:
@@ -669,7 +670,8 @@ class World:
     def acceleration_from_rest(self) -> tuple[np.ndarray, np.ndarray]:
         """``(lin, ang)``, each (n, 3), world frame: the linear acceleration of each object's
         centre of mass (m/s^2) and its angular acceleration (rad/s^2) if every object were at
-        rest at the current poses, under gravity, contacts and the applied wrenches.
+        rest at the current poses, under gravity, contacts and the applied wrenches (with the
+        wrenches cleared, the ``a_o`` and ``alpha_o`` of the paper's Eq. 7-8; DESIGN section 4).
 
         Disabled objects report zeros. The world's state is not changed.
         """

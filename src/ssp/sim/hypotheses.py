@@ -51,6 +51,7 @@ __all__ = [
     "HypothesisNoise",
     "draw_hypotheses",
     "induced_errors",
+    "random_symmetry",
 ]
 
 #: Mean of the norm of a 3-vector of independent N(0, 1) components (chi, 3 dof): 2 sqrt(2/pi).
@@ -157,7 +158,7 @@ class HypothesisNoise:
         return dataclasses.asdict(self)
 
 
-def _random_symmetry(symmetry, rng: np.random.Generator) -> np.ndarray:
+def random_symmetry(symmetry, rng: np.random.Generator) -> np.ndarray:
     """A uniformly random transform of ``symmetry`` (discrete times continuous), 4x4.
 
     Always draws the same number of random numbers for a given symmetry."""
@@ -202,7 +203,7 @@ def draw_hypotheses(
         jitter = rng.uniform(1.0 - noise.score_jitter, 1.0 + noise.score_jitter, size=k)
         symmetry = library[cls].symmetry
         flips = [
-            _random_symmetry(symmetry, rng)
+            random_symmetry(symmetry, rng)
             if noise.flip_symmetric and symmetry.is_symmetric
             else None
             for _ in range(k)

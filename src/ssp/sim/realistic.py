@@ -71,7 +71,7 @@ from scipy.spatial.transform import Rotation
 from ssp.library.model import ObjectModel
 from ssp.probability import pose_change
 from ssp.scene import Hypothesis
-from ssp.sim.hypotheses import _random_symmetry
+from ssp.sim.hypotheses import random_symmetry
 
 __all__ = [
     "KINDS",
@@ -528,7 +528,7 @@ class RealisticStream:
                 err = float(rng.uniform(1.5, 4.5))  # scored like a mediocre hypothesis
             sym = self.library[name].symmetry
             if sym.is_symmetric:
-                Th = Th @ _random_symmetry(sym, rng)
+                Th = Th @ random_symmetry(sym, rng)
             score = self._score(v, err, rng)
             out.append(StreamHypothesis(Hypothesis(name, Th, score, segment=segment), oid, kind))
         return out
