@@ -227,6 +227,20 @@ def test_the_frame_context_imports_no_ssp_module_at_run_time() -> None:
     assert any(i.where == "under TYPE_CHECKING" for i in _imports("ssp.frame_context"))
 
 
+def test_the_core_imports_no_application_package() -> None:
+    """The scene-parsing core is free of I/O, datasets, perception and presentation: it
+    imports none of the application packages, not even inside a function."""
+    outside = ("cli", "pipeline", "eval", "sim", "viz", "io", "perception")
+    found = [
+        f"{i.importer}:{i.line} imports {i.module}"
+        for module in _modules()
+        if _is_core(module)
+        for i in _imports(module)
+        if i.module.split(".")[1:2] and i.module.split(".")[1] in outside
+    ]
+    assert found == [], "\n".join(found)
+
+
 def test_the_import_checker_sees_nested_and_relative_imports() -> None:
     """The checker itself: imports inside functions and classes count, ``from ssp.x import m``
     of a submodule ``m`` is an import of ``ssp.x.m``, relative imports are resolved."""

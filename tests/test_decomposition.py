@@ -5,6 +5,7 @@ return what it returned on the measured failures, so the tests stay fast."""
 from __future__ import annotations
 
 import logging
+import re
 import sys
 import tracemalloc
 
@@ -265,19 +266,33 @@ def test_cache_survives_reexport_and_recentring(tmp_path, monkeypatch):
 # --------------------------------------------------------------------------- progress, memory
 
 
-def test_coacd_progress_reports_running_time(monkeypatch):
+def test_coacd_progress_reports_running_time(tmp_path):
+    """While the worker runs, ``status`` gets its running time (about once a second). The
+    worker here ends only once it has been reported on (exit 3 if it never is, in 30 s)."""
+    reported = tmp_path / "reported"
     seen = []
+
+    def status(text: str) -> None:
+        seen.append(text)
+        reported.touch()
+
+    worker = (
+        f"import pathlib, sys, time\np = pathlib.Path({str(reported)!r})\nt = time.monotonic()\n"
+        "while not p.exists():\n"
+        "    if time.monotonic() - t > 30:\n        sys.exit(3)\n"
+        "    time.sleep(0.01)\n"
+    )
     code, _ = dec._communicate(
-        [sys.executable, "-c", "import time; time.sleep(1.3)"],
-        DecompositionConfig(timeout_s=10),
+        [sys.executable, "-c", worker],
+        DecompositionConfig(timeout_s=120),
         2**33,
         ".",
         {},
-        seen.append,
+        status,
         "CoACD (threshold 0.05)",
     )
-    assert code == 0 and seen and all(s.startswith("CoACD (threshold 0.05): ") for s in seen)
-    assert "s (cap 10 s)" in seen[-1]
+    assert code == 0 and seen
+    assert all(re.fullmatch(r"CoACD \(threshold 0\.05\): \d+ s \(cap 120 s\)", s) for s in seen)
 
 
 def test_iou_of_a_many_facet_hull_has_bounded_memory():

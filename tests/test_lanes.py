@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import os
 import signal
+import threading
 
 import numpy as np
 import pytest
@@ -22,6 +23,14 @@ from ssp.timing import StageTimer
 LIB = ObjectLibrary.builtin()
 
 pytestmark = pytest.mark.skipif(not lanes_mod.fork_available(), reason="os.fork is Linux-only")
+
+
+@pytest.fixture(autouse=True)
+def _single_threaded():
+    """The lanes fork a single-threaded process only: a thread an earlier test left running
+    would keep these tests in one process, so say which."""
+    others = [t.name for t in threading.enumerate() if t is not threading.current_thread()]
+    assert not others, f"threads left running by an earlier test: {others}"
 
 
 def _square(job, base):
@@ -79,6 +88,52 @@ def test_a_child_that_stops_answering_is_dropped(caplog):
         assert [v for v, _ in out] == [9, 16]
         assert lanes.lanes == 1
     assert "did not answer within 0.5 s" in caplog.text
+
+
+@pytest.mark.parametrize("daemon", [False, True], ids=["thread", "daemon thread"])
+def test_a_process_that_runs_another_thread_is_not_forked(monkeypatch, caplog, daemon):
+    """A child forked while another thread runs holds, held for ever, every lock that thread
+    held then (a progress bar's console and stderr buffer while it redraws): the lanes fork a
+    single-threaded process only, and test here meanwhile (the same results)."""
+    threads_at_fork = []
+    fork = os.fork
+
+    def counting_fork():
+        threads_at_fork.append(threading.active_count())
+        return fork()
+
+    monkeypatch.setattr(lanes_mod.os, "fork", counting_fork)
+    monkeypatch.setattr(lanes_mod, "_warned_threads", False, raising=False)
+    lock, holding, release = threading.Lock(), threading.Event(), threading.Event()
+
+    def hold() -> None:  # holds a lock until told, as a refresh thread does while it draws
+        with lock:
+            holding.set()
+            release.wait(60)
+
+    other = threading.Thread(target=hold, name="holds-a-lock", daemon=daemon)
+    other.start()
+    try:
+        assert holding.wait(60)
+        with caplog.at_level(logging.WARNING, logger="ssp.lanes"):
+            with ForkLanes(_square, 2, StageTimer()) as lanes:
+                out = lanes.run(10, list(range(5)))
+                assert lanes.lanes == 1 and lanes._children == []
+                assert [v for v, _ in lanes.run(0, [2, 3])] == [4, 9]
+            with ForkLanes(_square, 2, StageTimer()) as lanes:  # said once per process
+                lanes.run(0, [1, 2])
+    finally:
+        release.set()
+        other.join(60)
+    assert threads_at_fork == []  # today's code: [2], a threaded process forked
+    assert out == [(j * j + 10, os.getpid()) for j in range(5)]
+    assert caplog.text.count("runs other threads (holds-a-lock)") == 1
+    # once the other thread has ended, the next lanes fork again (a single-threaded process)
+    with ForkLanes(_square, 2, StageTimer()) as lanes:
+        out = lanes.run(0, [1, 2, 3])
+        assert lanes.lanes == 2
+    assert threads_at_fork == [1]
+    assert [p for _, p in out] == [os.getpid(), out[1][1], os.getpid()] != [os.getpid()] * 3
 
 
 def _fails_on_three(job, base):

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
+import os
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -297,17 +297,32 @@ def test_interior_samples_strictly_inside_box_and_thin_plate():
 # --------------------------------------------------------------------------- decomposition
 
 
-def test_coacd_nonconvex_cached_and_identical(cache_dir):
+def _counted(monkeypatch, module, names: tuple[str, ...]) -> list[str]:
+    """The names of ``module``'s functions ``names`` in the order they are called from now."""
+    calls: list[str] = []
+    for name in names:
+        real = getattr(module, name)
+
+        def counted(*args, _real=real, _name=name, **kwargs):
+            calls.append(_name)
+            return _real(*args, **kwargs)
+
+        monkeypatch.setattr(module, name, counted)
+    return calls
+
+
+def test_coacd_nonconvex_cached_and_identical(cache_dir, monkeypatch):
     mesh = l_shape()
     cfg = DecompositionConfig(iou_samples=50_000)
+    work = _counted(monkeypatch, decomposition_module, ("_run_coacd", "hull_iou"))
     parts, info = decompose(mesh, cfg, cache_dir / "coacd")
     assert info.method == "coacd" and not info.cached and info.note == ""
     assert len(parts) > 1 and info.n_parts == len(parts)
     assert info.iou > 0.85
     assert all(p.is_convex and p.is_watertight and p.volume > 1e-9 for p in parts)
-    t0 = time.perf_counter()
+    assert work == ["_run_coacd", "hull_iou"]
     parts2, info2 = decompose(mesh, cfg, cache_dir / "coacd")
-    assert time.perf_counter() - t0 < 0.5
+    assert work == ["_run_coacd", "hull_iou"]  # a cache hit: neither CoACD nor the IoU again
     assert info2.cached and info2.seconds == 0.0 and info2.iou == info.iou
     assert len(parts2) == len(parts)
     for p, q in zip(parts, parts2, strict=True):
@@ -357,16 +372,25 @@ def test_coacd_crash_then_coarse_retry(tmp_path, monkeypatch):
 
 
 def test_coacd_timeout_is_a_failure(tmp_path, monkeypatch):
+    """A worker still running at ``timeout_s`` is killed, not waited for: it never gets to the
+    end of its 30 s (both runs, CoACD and its coarse retry, time out)."""
+    started, finished = tmp_path / "started", tmp_path / "finished"
+    worker = (
+        "import os, pathlib, time; "
+        f"pathlib.Path({str(started)!r}).write_text(str(os.getpid())); "
+        f"time.sleep(30); pathlib.Path({str(finished)!r}).write_text('too late')"
+    )
     monkeypatch.setattr(
-        decomposition_module,
-        "_worker_argv",
-        lambda i, o: [sys.executable, "-c", "import time; time.sleep(30)"],
+        decomposition_module, "_worker_argv", lambda i, o: [sys.executable, "-c", worker]
     )
     cfg = DecompositionConfig(timeout_s=0.5, iou_samples=5_000)
-    t0 = time.perf_counter()
-    parts, info = decompose(l_shape(), cfg, tmp_path)
-    assert time.perf_counter() - t0 < 5
+    parts, info = decompose(l_shape(), cfg, tmp_path / "cache")
     assert info.method == "convex-hull" and "timed out after 0.5 s" in info.note
+    assert not finished.exists()  # killed before its end (waiting would take 30 s and write it)
+    pid = started.read_text() if started.exists() else ""  # it may not even have started
+    if pid:
+        with pytest.raises(ProcessLookupError):  # and reaped, not left running
+            os.kill(int(pid), 0)
 
 
 def test_default_cache_dir(monkeypatch, tmp_path):

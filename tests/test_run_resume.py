@@ -25,7 +25,8 @@ from ssp.cli import app
 from ssp.config import SSPConfig
 from ssp.errors import ArgumentError
 from ssp.io.results import BopCsvWriter
-from ssp.runner import TIMING_KEYS, run
+from ssp.pipeline.run import run
+from ssp.pipeline.summary import TIMING_KEYS
 from ssp.sim.bop import simulate_to_disk
 
 FRAMES = 10
@@ -104,6 +105,37 @@ def assert_consistent(out: Path, ref: Path) -> int:
     return n
 
 
+#: ``python -c`` of ``ssp run`` (args: OUT, k, a pipe's fd, then the command's) that, once it
+#: has written its k-th frame file (k = 0: run.json), writes ``k`` to the pipe and waits for a
+#: signal there: the test signals it at that point, whatever the speed of the machine.
+_WAIT_AT_FRAME = """
+import os, runpy, signal, sys
+from pathlib import Path
+
+out, k, ready = Path(sys.argv[1]).absolute(), int(sys.argv[2]), int(sys.argv[3])
+replace, written = os.replace, []
+
+
+def replace_then_wait(src, dst, *args, **kwargs):
+    replace(src, dst, *args, **kwargs)
+    dst = Path(dst).absolute()
+    if dst.parent == out / "frames" and dst.suffix == ".json":
+        written.append(dst.name)
+        at = len(written) == k
+    else:
+        at = k == 0 and dst == out / "run.json"
+    if at:
+        os.write(ready, b"k")
+        os.close(ready)
+        signal.pause()  # a handler's KeyboardInterrupt (SIGINT, SIGTERM) is raised here
+
+
+os.replace = replace_then_wait
+sys.argv = ["ssp", *sys.argv[4:]]
+runpy.run_module("ssp.cli", run_name="__main__", alter_sys=True)
+"""
+
+
 @pytest.mark.parametrize(
     "sig, k",
     [
@@ -125,22 +157,37 @@ def test_killed_run_resumes_to_the_uninterrupted_result(sig, k, lib, scene, refe
                                                         tmp_path):  # fmt: skip
     out = tmp_path / "out"
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    cmd = [sys.executable, "-m", "ssp.cli", "run", str(scene), "--out", str(out)]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
+    ready_r, ready_w = os.pipe()  # the run says on it that it has reached the point, and waits
+    cmd = [sys.executable, "-c", _WAIT_AT_FRAME, str(out), str(k), str(ready_w),
+           "run", str(scene), "--out", str(out)]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env,
+                            pass_fds=(ready_w,))  # fmt: skip
+    os.close(ready_w)
     try:
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline and proc.poll() is None:
-            written = len(list((out / "frames").glob("*.json"))) if (out / "frames").exists() else 0
-            if (out / "run.json").exists() and written >= k:
-                break
-            time.sleep(0.001)
-        assert proc.poll() is None, "the run finished before it could be stopped"
+        # the run writes b"k" once it has written its k-th frame file (k = 0: run.json) and
+        # waits there for the signal; the pipe's end (b"") means it ended before that point.
+        # The deadline is a hang guard only (the run takes seconds).
+        os.set_blocking(ready_r, False)
+        deadline, at = time.monotonic() + 600, None
+        while at is None and time.monotonic() < deadline:
+            try:
+                at = os.read(ready_r, 1)
+            except BlockingIOError:
+                time.sleep(0.01)
+        os.close(ready_r)
+        if at != b"k":  # b"": it ended first; None: it hung
+            proc.kill()
+            proc.wait()
+            pytest.fail(f"the run did not stop at frame file {k} ({at!r}): {proc.stderr.read()}")
         proc.send_signal(sig)
-        proc.wait(timeout=30)
+        proc.wait(timeout=120)
     finally:
         if proc.poll() is None:
             proc.kill()
+            proc.wait()
     stderr = proc.stderr.read().decode()
+    assert (out / "run.json").exists()
+    assert len(list((out / "frames").glob("*.json"))) >= k
     if sig == signal.SIGKILL:
         assert proc.returncode == -signal.SIGKILL
     else:  # Ctrl-C and SIGTERM stop it cleanly, saying how to go on
@@ -160,9 +207,9 @@ def test_killed_run_resumes_to_the_uninterrupted_result(sig, k, lib, scene, refe
 def _crash_at(monkeypatch, where: str, frame: str) -> None:
     """Raise KeyboardInterrupt at one write of frame ``frame`` (``where``: after its JSON,
     half-way through its CSV rows, before the state commit, after it)."""
-    import ssp.runner
+    import ssp.pipeline.run
 
-    real_write = ssp.runner.write_json
+    real_write = ssp.pipeline.run.write_json
     seen = {"frame": False}
 
     def write_json(path, obj, indent=1):
@@ -177,7 +224,7 @@ def _crash_at(monkeypatch, where: str, frame: str) -> None:
             raise KeyboardInterrupt
         return real_write(path, obj, indent)
 
-    real_text = ssp.runner.atomic_write_text
+    real_text = ssp.pipeline.run.atomic_write_text
 
     def atomic_write_text(path, text):  # the summary written after each frame
         out = real_text(path, text)
@@ -195,8 +242,8 @@ def _crash_at(monkeypatch, where: str, frame: str) -> None:
             raise KeyboardInterrupt
         return real_rows(self, lines)
 
-    monkeypatch.setattr(ssp.runner, "write_json", write_json)
-    monkeypatch.setattr(ssp.runner, "atomic_write_text", atomic_write_text)
+    monkeypatch.setattr(ssp.pipeline.run, "write_json", write_json)
+    monkeypatch.setattr(ssp.pipeline.run, "atomic_write_text", atomic_write_text)
     monkeypatch.setattr(BopCsvWriter, "write_rows", write_rows)
 
 
@@ -248,7 +295,7 @@ def _stop_after(lib, scene, out, frames: int) -> None:
 
 def test_summary_written_during_the_run_is_the_summary(reference):
     """The compact summary written after each frame (records encoded once) equals the dict."""
-    from ssp.runner import RunSummary
+    from ssp.pipeline.summary import RunSummary
 
     s = RunSummary("in", "bop", frames=FRAMES)
     for p in sorted((reference / "frames").iterdir()):

@@ -1,11 +1,18 @@
-"""The layered search's choice of the objects a test leaves out (ssp.search)."""
+"""The layered search (ssp.search, Alg. 3): the objects a test leaves out, the windows, the
+order of the tests, the choices."""
 
 from __future__ import annotations
 
-from ssp.geometry import make_pose
+import numpy as np
+
+from ssp.config import SSPConfig
+from ssp.forces import SegmentField
+from ssp.geometry import make_pose, transform_points
 from ssp.library import ObjectInstance
 from ssp.physics import World
-from ssp.search import _out_of_reach
+from ssp.scoring import SceneScorer
+from ssp.search import Candidate, Simulator, _out_of_reach, layered_search
+from ssp.timing import StageTimer
 
 
 def test_objects_out_of_reach_are_left_out_unless_they_hold_up_the_others(lib):
@@ -50,3 +57,115 @@ def test_a_window_without_forces_ends_early_only_when_the_scene_is_at_rest(lib):
     sim = Simulator.for_world(world, [None], cfg, StageTimer())
     sim.settle(0.1, with_forces=False)
     assert sim.steps == 20
+
+
+# ------------------------------------------------------------------------ layered_search
+
+
+def _cube_scene(lib, current: dict, data: dict):
+    """Cubes at their ``current`` poses (id -> pose) whose data (segments) are their surfaces
+    at the ``data`` poses: the world, its simulator and scorer (as the parser builds them, no
+    camera, every object new), and a log of the candidate tests: ``(tested id, its pose at the
+    start of the window, ids enabled then)``."""
+    cfg = SSPConfig()
+    cube = lib["cube"]
+    world = World([ObjectInstance(oid, cube) for oid in current])
+    world.set_poses(current)
+    segments = {oid: transform_points(T, cube.surface_points) for oid, T in data.items()}
+    fields = [SegmentField(segments[oid], cfg.forces.max_distance) for oid in world.ids]
+    timer = StageTimer()
+    sim = Simulator.for_world(world, fields, cfg, timer)
+    scorer = SceneScorer(world, cfg, segments, dict.fromkeys(world.ids))
+    log: list[tuple[str, np.ndarray, set[str]]] = []
+    last: list = [None]
+    set_pose, window = world.set_pose, sim.window
+
+    def recording_set_pose(oid, T):
+        last[0] = (oid, np.array(T, dtype=float))
+        set_pose(oid, T)
+
+    def recording_window():  # a test sets its object's pose last, then runs the window
+        oid, T = last[0]
+        log.append((oid, T, {o for o in world.ids if world.is_enabled(o)}))
+        window()
+
+    world.set_pose = recording_set_pose
+    sim.window = recording_window
+    return world, sim, scorer, timer, log
+
+
+def _at(lib, x=0.0, y=0.0, level=0):
+    e = float(lib["cube"].extents[2])
+    return make_pose(t=[x, y, e / 2 + level * e])
+
+
+def _tower_and_a_cube(lib):
+    """``a`` on the table, ``b`` on it, ``c`` beside them: at their true poses, each with one
+    candidate 3 mm off; layers [a, c], [b] (b is a's child)."""
+    truth = {"a": _at(lib), "b": _at(lib, level=1), "c": _at(lib, x=0.07)}
+    world, sim, scorer, timer, log = _cube_scene(lib, truth, truth)
+    off = make_pose(t=[0.003, 0.0, 0.0])
+    candidates = {oid: [Candidate(off @ T, "hypothesis", 0.9)] for oid, T in truth.items()}
+    i = {oid: world.index(oid) for oid in truth}
+    layers = [[i["c"], i["a"]], [i["b"]]]
+    children = {i["a"]: [i["b"]]}
+    return world, sim, scorer, timer, log, candidates, layers, children, i, truth
+
+
+def test_layered_search_goes_layer_by_layer_with_the_children_of_the_tested_object(lib):
+    world, sim, scorer, timer, log, cands, layers, children, i, truth = _tower_and_a_cube(lib)
+    result = layered_search(world, sim, scorer, cands, layers, children, timer)
+    # layer 0 (its objects by id), then layer 1; per object its current pose, then candidates
+    assert [oid for oid, _, _ in log] == ["a", "a", "c", "c", "b", "b"]
+    assert result.tested == 6 and result.failed == []
+    for oid, T, _ in log[1::2]:
+        np.testing.assert_array_equal(T, cands[oid][0].T_world_obj)
+    # a is tested with b on it (AddChildOf); c, of the same layer, without b (not its child)
+    assert all("b" in on for oid, _, on in log if oid == "a")
+    assert all("b" not in on and {"a", "c"} <= on for oid, _, on in log if oid == "c")
+    assert all(on == {"a", "b", "c"} for oid, _, on in log if oid == "b")
+    # b's own tests start from its first-guess pose, whatever a's tests did to it
+    np.testing.assert_allclose(log[4][1], truth["b"], atol=1e-12)
+    assert set(result.chosen) == {"a", "b", "c"}
+    assert all(world.is_enabled(o) for o in world.ids)
+    assert result.score.ids == world.ids
+
+
+def test_layered_search_keeps_the_candidate_the_data_supports(lib):
+    """``a``'s first guess is 5 cm from its data; of its two other candidates the one on the
+    data wins, whichever source it has and wherever it is in the list; a worse one never."""
+    truth = _at(lib)
+    good = make_pose(t=[0.002, -0.001, 0.0]) @ truth  # within the data forces' reach
+    bad = _at(lib, y=-0.05)  # 5 cm off: no data pulls it
+    for sources in (("hypothesis", "previous"), ("previous", "hypothesis")):
+        world, sim, scorer, timer, log = _cube_scene(lib, {"a": _at(lib, y=0.05)}, {"a": truth})
+        cands = {"a": [Candidate(bad, sources[0], 0.9), Candidate(good, sources[1], 0.5)]}
+        result = layered_search(world, sim, scorer, cands, [[0]], {}, timer)
+        assert result.chosen == {"a": sources[1]} and result.tested == 3
+        np.testing.assert_allclose(world.get_pose("a")[:3, 3], truth[:3, 3], atol=0.002)
+    # the first guess on the data keeps its place against both
+    world, sim, scorer, timer, log = _cube_scene(lib, {"a": truth}, {"a": truth})
+    cands = {"a": [Candidate(bad, "hypothesis", 0.9), Candidate(_at(lib, y=0.05), "previous")]}
+    assert layered_search(world, sim, scorer, cands, [[0]], {}, timer).chosen == {"a": "current"}
+
+
+def test_settled_objects_keep_their_pose_untested(lib):
+    world, sim, scorer, timer, log, cands, layers, children, i, truth = _tower_and_a_cube(lib)
+    result = layered_search(world, sim, scorer, cands, layers, children, timer, settled={i["c"]})
+    assert [oid for oid, _, _ in log] == ["a", "a", "b", "b"]
+    assert result.tested == 4
+    assert result.chosen["c"] == "previous (settled)"
+    assert {result.chosen["a"], result.chosen["b"]} <= {"current", "hypothesis"}
+
+
+def test_layered_search_is_deterministic(lib):
+    runs = []
+    for _ in range(2):
+        world, sim, scorer, timer, log, cands, layers, children, i, _t = _tower_and_a_cube(lib)
+        result = layered_search(world, sim, scorer, cands, layers, children, timer)
+        runs.append((result, world.pose_array(), log))
+    (r1, p1, log1), (r2, p2, log2) = runs
+    assert r1.chosen == r2.chosen and r1.tested == r2.tested
+    assert r1.score.total == r2.score.total
+    np.testing.assert_array_equal(p1, p2)
+    assert [(o, on) for o, _, on in log1] == [(o, on) for o, _, on in log2]

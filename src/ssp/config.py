@@ -671,6 +671,35 @@ class SSPConfig(_Section):
     perception: PerceptionConfig = Field(default_factory=PerceptionConfig)
     seed: int = Field(0, description="Seed for everything random in ssp.")
 
+    @model_validator(mode="after")
+    def _reach_covers_the_window(self) -> SSPConfig:
+        """``search.reach`` must cover what a candidate's window can move an object.
+
+        Quasi-static steps move an object by at most about ``g dt^2`` each (0.25 mm at
+        dt = 5 ms), so the window of a test (``search.settle_with_forces`` +
+        ``search.settle_without_forces``: ``w`` seconds, ``w / dt`` steps) moves it up to about
+        ``w / dt * g dt^2 = w g dt`` (:class:`SearchConfig`; docs/parser.md, "Quasi-static
+        windows"): 12.3 mm with the defaults. The search sets aside the objects farther than
+        ``reach`` from a tested object's candidates (and an unchanged object with no change
+        within ``reach`` keeps its pose untested), so a smaller reach could leave out an object
+        that the test moves into. Checked when a configuration is built or loaded
+        (``SSPConfig(...)``, :meth:`from_dict`, :func:`load_config`); a field set in place
+        afterwards is not checked again.
+        """
+        s, p = self.search, self.physics
+        window = s.settle_with_forces + s.settle_without_forces
+        bound = window * p.gravity * p.timestep
+        if s.reach < bound:
+            raise ValueError(
+                f"search.reach = {s.reach:g} m is less than what a search window can move an "
+                f"object: (search.settle_with_forces + search.settle_without_forces) * "
+                f"physics.gravity * physics.timestep = ({s.settle_with_forces:g} + "
+                f"{s.settle_without_forces:g}) s * {p.gravity:g} m/s^2 * {p.timestep:g} s = "
+                f"{bound:.4g} m (docs/parser.md, 'Quasi-static windows'): set search.reach to "
+                f"at least {bound:.4g} or shorten the windows"
+            )
+        return self
+
     @classmethod
     def from_dict(cls, data: dict[str, Any] | None, where: str = "configuration") -> SSPConfig:
         """Validate a (possibly partial) nested dict; missing fields keep their defaults.
@@ -796,20 +825,9 @@ def load_config(path: str | Path) -> SSPConfig:
     return SSPConfig.from_dict(data, str(path))
 
 
-def dump_config(config: SSPConfig, path: str | Path | None = None) -> str:
-    """YAML text of ``config`` (written atomically to ``path`` when given), with a units header.
-
-    Raises:
-        ConfigError: ``path`` cannot be written.
-    """
-    from ssp.io._files import atomic_write_text
-
-    text = "# ssp configuration. Units: metres, kilograms, seconds, radians.\n" + yaml.safe_dump(
+def dump_config(config: SSPConfig) -> str:
+    """YAML text of ``config`` with a units header (:func:`load_config` reads it back; the
+    command ``ssp dump-config --out FILE`` writes it)."""
+    return "# ssp configuration. Units: metres, kilograms, seconds, radians.\n" + yaml.safe_dump(
         config.to_dict(), sort_keys=False
     )
-    if path is not None:
-        try:
-            atomic_write_text(path, text)
-        except OSError as exc:
-            raise ConfigError(f"cannot write {path}: {exc}") from exc
-    return text

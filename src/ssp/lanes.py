@@ -16,10 +16,24 @@ the search (:meth:`ForkLanes.close`).
 Threads (the GIL) gave nothing here: a test is a Python loop of short MuJoCo steps and small
 numpy operations. Processes need ``os.fork`` (Linux) and ``OMP_NUM_THREADS=1`` (ssp's default:
 an OpenMP runtime that has started threads hangs in a forked child); otherwise the search runs
-serially and says so once. A child only computes and writes to its pipe, which is why forking
-a process that has other threads (a progress bar's, a recorder's) is safe here. If a child
-fails or stops answering (``timeout``), its jobs run in the calling process instead and the
-lanes go on with one process: the results are the same either way.
+serially and says so once.
+
+A single-threaded process only is forked. A child is a copy of the memory with only the
+forking thread in it: a lock that another thread held at that moment (the stderr buffer's or
+the console's of a progress bar refreshing the screen, a logging handler's, a recorder's) stays
+held forever there, and the child hangs on its first warning or log line (until ``timeout``,
+then its jobs run here). So the children are forked only while no other Python thread runs
+(:func:`other_threads`, checked right before the fork); otherwise the lanes stay at one (the
+results are the same) and say once which threads kept them there. A program that wants the
+lanes must not run another thread meanwhile: a progress display, for one, must redraw from the
+calling thread (rich's ``auto_refresh=False``), not from a refresh thread of its own. Native
+threads are not Python's and hold none of its locks: OpenBLAS joins its pool before a fork (its
+own at-fork handler) and OpenMP is kept single-threaded (above). (The children must be forked
+from the frame's process: they hold its world, forces and scorer, which no other process has,
+and the test functions are closures over them; a clean process, spawned or from a fork server,
+would need all of them serialised every frame.) If a child fails or stops answering
+(``timeout``), its jobs run in the calling process instead and the lanes go on with one
+process: the results are the same either way.
 """
 
 from __future__ import annotations
@@ -28,6 +42,7 @@ import logging
 import os
 import signal
 import sys
+import threading
 import time
 import traceback
 import warnings
@@ -36,7 +51,7 @@ from multiprocessing.connection import Connection, Pipe
 
 from ssp.timing import StageTimer
 
-__all__ = ["LANES_STAGE", "ForkLanes", "fork_available"]
+__all__ = ["LANES_STAGE", "ForkLanes", "fork_available", "other_threads"]
 
 log = logging.getLogger(__name__)
 
@@ -45,6 +60,7 @@ log = logging.getLogger(__name__)
 LANES_STAGE = "lanes"
 
 _warned_no_fork = False
+_warned_threads = False
 _zombies: list[int] = []  # children that had not exited yet when closed, reaped later
 
 
@@ -56,6 +72,13 @@ def fork_available() -> bool:
         and sys.platform.startswith("linux")
         and os.environ.get("OMP_NUM_THREADS", "1").strip() == "1"
     )
+
+
+def other_threads() -> list[threading.Thread]:
+    """The Python threads of this process other than the calling one that are alive (a fork
+    now would copy whatever locks they hold, held; the lanes fork only when there is none)."""
+    me = threading.current_thread()
+    return [t for t in threading.enumerate() if t is not me and t.is_alive()]
 
 
 def _reap() -> None:
@@ -142,9 +165,15 @@ class ForkLanes:
         _reap()
         for _ in range(self.wanted - 1):
             parent_end, child_end = Pipe()
+            others = other_threads()
+            if others:  # forking now could leave a child on a lock held forever
+                parent_end.close()
+                child_end.close()
+                self._single_threaded_only(others)
+                return
             with warnings.catch_warnings():
-                # Python 3.12+ warns about forking a multi-threaded process; the child only
-                # computes and writes to its pipe (module docstring)
+                # Python 3.12+ also counts native threads (OpenBLAS's pool, which its at-fork
+                # handler joins before the fork); no Python thread runs (other_threads)
                 warnings.simplefilter("ignore", DeprecationWarning)
                 pid = os.fork()
             if pid == 0:  # the child
@@ -160,6 +189,21 @@ class ForkLanes:
             child_end.close()
             self._children.append((pid, parent_end))
 
+    def _single_threaded_only(self, others: Sequence[threading.Thread]) -> None:
+        """No (more) children: another Python thread runs (module docstring)."""
+        global _warned_threads
+        if not _warned_threads:
+            log.warning(
+                "%d processes were asked for, but this process runs other threads (%s): "
+                "forking it could hang a child on a lock one of them holds, so this search "
+                "runs in %d process(es) (the results are the same)",
+                self.wanted,
+                ", ".join(t.name for t in others),
+                self.lanes,
+            )
+            _warned_threads = True
+        self.wanted = self.lanes
+
     def run(self, base: object, jobs: Sequence[object]) -> list:
         """``test(job, base)`` for every job, in job order (what it returns, or the exception
         it raises in the calling process)."""
@@ -168,7 +212,7 @@ class ForkLanes:
         n = min(self.lanes, len(jobs))
         if n <= 1:
             return [self.test(job, base) for job in jobs]
-        sent = []
+        sent: list[tuple[int | None, Connection | None, list[tuple[int, object]]]] = []
         for j, (pid, conn) in enumerate(self._children[: n - 1], start=1):
             batch = [(k, jobs[k]) for k in range(j, len(jobs), n)]
             try:
@@ -178,8 +222,8 @@ class ForkLanes:
                 self._drop(pid, conn, f"could not be sent its jobs ({exc})")
                 sent.append((None, None, batch))
         results: dict[int, object] = {k: self.test(jobs[k], base) for k in range(0, len(jobs), n)}
-        for pid, conn, batch in sent:
-            got = self._collect(pid, conn) if conn is not None else None
+        for child, link, batch in sent:
+            got = self._collect(child, link) if child is not None and link is not None else None
             if got is None:  # the child failed: its jobs run here
                 results.update({k: self.test(job, base) for k, job in batch})
                 continue
