@@ -180,7 +180,7 @@ class LibraryConfig(_Section):
 
 
 class ForcesConfig(_Section):
-    """Data-guiding forces (paper Eq. for f_pi and F, tau; DESIGN section 4)."""
+    """Data-guiding forces (paper Eq. 13 for f_pi, Eq. 14 for F and tau; DESIGN section 4)."""
 
     max_distance: float = Field(
         0.02, gt=0, description="d_t: correspondence cut-off of the point-pair kernel, m."
@@ -189,7 +189,7 @@ class ForcesConfig(_Section):
         2.0,
         ge=0,
         description=(
-            "f: peak data force F_max = f m g (proportional to mass). The paper's default is "
+            "f: peak data force F_max = f m g (proportional to mass). DESIGN's default is "
             "0.5; the reference's block-scene launch used 2.0, which is also what converges "
             "within the search windows here (docs/parser.md)."
         ),
@@ -226,20 +226,22 @@ class ForcesConfig(_Section):
 
 
 class StabilityConfig(_Section):
-    """Stability term P_B = L(-s_B (a_t beta_t - a_B)) L(-s_B (a_R beta_R - a_B)) (Eq. 7)."""
+    """Stability term P_B = L(-s_B (a_t beta_t - a_B)) L(-s_B (a_R beta_R - a_B)) (Eq. 9)."""
 
     steepness: float = Field(
-        73.0, gt=0, description="sigma_B (calibrated for MuJoCo, docs/calibration.md; paper 40)."
+        73.0,
+        gt=0,
+        description="sigma_B (calibrated for MuJoCo, docs/calibration.md; reference 40).",
     )
     midpoint: float = Field(
-        0.056, ge=0, description="alpha_B (calibrated, docs/calibration.md; paper 0.1)."
+        0.056, ge=0, description="alpha_B (calibrated, docs/calibration.md; reference 0.1)."
     )
     translation_weight: float = Field(1.0, ge=0, description="alpha_t.")
     rotation_weight: float = Field(1.0, ge=0, description="alpha_R.")
 
 
 class CollisionConfig(_Section):
-    """Collision term P_C = L(-s_c (e_C - a_c)), e_C = d/eps_d * v_c/v_t (Eq. 8)."""
+    """Collision term P_C = L(-s_c (e_C - a_c)), e_C = d/eps_d * v_c/v_t (Eq. 10)."""
 
     steepness: float = Field(
         19000.0, gt=0, description="sigma_c (calibrated for MuJoCo, docs/calibration.md)."
@@ -256,26 +258,27 @@ class CollisionConfig(_Section):
 
 
 class SupportConfig(_Section):
-    """Support term P_S = L(s_s sum_i F_S,i + a_s) (Eq. 9)."""
+    """Support term P_S = L(s_s sum_i F_S,i + a_s) (Eq. 11)."""
 
     steepness: float = Field(0.5, ge=0, description="sigma_s.")
     offset: float = Field(0.5, description="alpha_s.")
 
 
 class DataConfig(_Section):
-    """Data fitness P_D = L(s_d (min(c / C_max, 1) - a_d)) (Eq. 10).
+    """Data fitness P_D = L(s_d (min(c / C_max, 1) - a_d)) (Eq. 12).
 
-    The paper's constants (s_d 10, a_d 0.36, C_max 0.5) saturate: any pose that explains half
-    of the model's samples scores P_D > 0.99, so the term cannot tell a pose 6 mm off from the
-    right one, and the transition term then holds a moved object back (docs/parser.md).
+    The reference code's constants (s_d 10, a_d 0.36, C_max 0.5; the paper gives none)
+    saturate: any pose that explains half of the model's samples scores P_D > 0.99, so the
+    term cannot tell a pose 6 mm off from the right one, and the transition term then holds a
+    moved object back (docs/parser.md).
     Ours put every c on the log-linear side of the logistic (a_d = C_max = 1): ``log P_D`` is
     then about ``s_d (c - 1)``, each explained sample adding ``s_d / M``.
     """
 
-    steepness: float = Field(20.0, gt=0, description="sigma_d (paper 10).")
-    midpoint: float = Field(1.0, description="alpha_d (paper 0.36).")
+    steepness: float = Field(20.0, gt=0, description="sigma_d (reference 10).")
+    midpoint: float = Field(1.0, description="alpha_d (reference 0.36).")
     c_max: float = Field(
-        1.0, gt=0, le=1, description="C_max: fit fraction counted as full (paper 0.5)."
+        1.0, gt=0, le=1, description="C_max: fit fraction counted as full (reference 0.5)."
     )
     inlier_radius: float = Field(
         0.0037, gt=0, description="r_c: a surface sample is explained within this distance, m."
@@ -283,7 +286,7 @@ class DataConfig(_Section):
 
 
 class TransitionConfig(_Section):
-    """Transition term P_T = exp(-|dt|^2/2 s_t^2) exp(-dtheta^2/2 s_r^2) (Eq. 4), with a floor."""
+    """Transition term P_T = exp(-|dt|^2/2 s_t^2) exp(-dtheta^2/2 s_r^2) (Eq. 6), with a floor."""
 
     sigma_translation: float = Field(0.01, gt=0, description="sigma_t, m.")
     sigma_rotation: float = Field(math.radians(18.0), gt=0, description="sigma_r, rad (18 deg).")
@@ -293,13 +296,13 @@ class TransitionConfig(_Section):
         description=(
             "log P_T never falls below this: the transition is a mixture of the Gaussian and "
             "a small uniform part (e^floor), so an orientation the data keeps contradicting "
-            "can be given up (a half turn costs -50 without it); -1e9: the paper's Gaussian."
+            "can be given up (a half turn costs -50 without it); -1e9: DESIGN's plain Gaussian."
         ),
     )
 
 
 class TemporalConfig(_Section):
-    """Transition modes (paper section V-C)."""
+    """Transition modes (paper section IV-C)."""
 
     static_translation: float = Field(0.0075, gt=0, description="Static below this motion, m.")
     static_rotation: float = Field(
@@ -498,7 +501,7 @@ class SearchConfig(_Section):
         ),
     )
     previous_candidates: bool = Field(
-        True, description="Add the previous frame's pose of an object as a candidate (V-C)."
+        True, description="Add the previous frame's pose of an object as a candidate (IV-C)."
     )
     unchanged_shortcut: bool = Field(
         True,
@@ -565,7 +568,7 @@ class SearchConfig(_Section):
 class PerceptionConfig(_Section):
     """The perception front end (``ssp.perception``): table, segments, pose hypotheses.
 
-    The hypothesis generator plays ObjRecRANSAC's role (paper section VI): oriented point pairs
+    The hypothesis generator plays ObjRecRANSAC's role (paper section IV-D): oriented point pairs
     of a segment are matched to model pairs with the same point-pair feature (Drost et al.
     2010), each match gives a pose, the poses are scored on a voxel occupancy grid of the
     segment, and the best distinct ones are refined by ICP. Lengths relative to a model are
