@@ -73,3 +73,13 @@ class PerceptionError(SSPError):
 
 class TableNotFoundError(PerceptionError):
     """No support plane (table) was found in a cloud, so gravity cannot be derived."""
+
+
+class OutputError(SSPError, OSError):
+    """An output file or folder that cannot be written safely: a symbolic link in an output
+    folder (ssp never writes, truncates or deletes through one), or a write that failed (a full
+    disk, no permission); the message names the file."""
+
+
+class OutputLockedError(OutputError):
+    """An output folder another run is writing (it holds the folder's lock)."""

@@ -19,8 +19,11 @@ import numpy as np
 __all__ = [
     "atomic_write_bytes",
     "atomic_write_text",
+    "file_mode",
     "file_problem",
     "fsync_dir",
+    "output_error",
+    "refuse_link",
     "read_json",
     "to_jsonable",
     "write_json",
@@ -69,26 +72,80 @@ def fsync_dir(path: str | os.PathLike) -> None:
         os.close(fd)
 
 
+def file_mode() -> int:
+    """The permissions of a new file under the process's umask (``0o666 & ~umask``: 0644 under
+    umask 022), as :func:`open` gives them; read from ``/proc`` where it can be."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return 0o666 & ~int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)  # no other way to read it: set and put back at once
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
+def output_error(path: str | os.PathLike, exc: OSError) -> OSError:
+    """``exc`` (raised while writing ``path``) as an :class:`~ssp.errors.OutputError` whose
+    message is one line naming the file (``exc`` itself when it is one already)."""
+    from ssp.errors import OutputError
+
+    if isinstance(exc, OutputError):
+        return exc
+    err = OutputError(f"{os.fspath(path)}: cannot write: {exc.strerror or exc}")
+    err.errno = exc.errno
+    return err
+
+
+def refuse_link(path: str | os.PathLike, what: str = "") -> None:
+    """:class:`~ssp.errors.OutputError` when ``path`` is a symbolic link (never followed: ssp
+    writes, truncates and deletes nothing through a link); nothing when it is anything else or
+    absent."""
+    from ssp.errors import OutputError
+
+    p = os.fspath(path)
+    if os.path.islink(p):
+        raise OutputError(
+            f"{p}: is a symbolic link (to {os.readlink(p)!r}){what}; ssp writes, truncates and "
+            "deletes nothing through a link: remove the link, or choose a new --out folder"
+        )
+
+
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
     """Write ``data`` to ``path`` atomically: a temporary file in the same folder, fsynced, then
-    :func:`os.replace` (readers see the old file or the new one, never a partial one).
+    :func:`os.replace` (readers see the old file or the new one, never a partial one). The file
+    gets the permissions the umask gives new files (:func:`file_mode`), not the owner-only ones
+    of a temporary file.
 
     The parent folder is created. Returns the path.
+
+    Raises:
+        OutputError: the file cannot be written (a full disk, no permission); the message
+            names ``path``, the file being written.
     """
     p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent)
+    try:
+        p.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent)
+    except OSError as exc:
+        raise output_error(p, exc) from exc
     try:
         with os.fdopen(fd, "wb") as f:
+            if hasattr(os, "fchmod"):  # not on Windows, where files have no such mode
+                os.fchmod(f.fileno(), file_mode())
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, p)
-    except BaseException:
+    except BaseException as exc:
         try:
             os.unlink(tmp)
-        except FileNotFoundError:
+        except OSError:
             pass
+        if isinstance(exc, OSError):
+            raise output_error(p, exc) from exc
         raise
     return p
 

@@ -26,7 +26,7 @@ import numpy as np
 
 from ssp.errors import ArgumentError, InputError, InvalidPoseError, UnknownObjectError
 from ssp.geometry import validate_pose
-from ssp.io._files import file_problem, to_jsonable, write_json
+from ssp.io._files import file_problem, output_error, refuse_link, to_jsonable, write_json
 from ssp.io.hypotheses import matrix_to_quat_xyzw
 
 if TYPE_CHECKING:
@@ -126,10 +126,15 @@ class BopCsvWriter:
     even if the run dies later. Use as a context manager or call :meth:`close`. With
     ``append=True`` an existing file (a resumed run's, already cut to its last whole frame)
     is continued, the header written only if it is empty. :meth:`sync` makes the rows
-    durable and returns the file's size, which a resumed run cuts the file back to.
+    durable and returns the file's size, which a resumed run cuts the file back to. With
+    ``nofollow=True`` a ``path`` that is a symbolic link is refused, never written through
+    (:class:`~ssp.errors.OutputError`). A write that fails (a full disk) raises
+    :class:`~ssp.errors.OutputError` naming the file.
     """
 
-    def __init__(self, path: str | os.PathLike, method: str, *, append: bool = False) -> None:
+    def __init__(
+        self, path: str | os.PathLike, method: str, *, append: bool = False, nofollow: bool = False
+    ) -> None:
         _check_method(method)
         self.path = Path(path)
         self.method = method
@@ -138,11 +143,19 @@ class BopCsvWriter:
             log.warning(
                 "%s: the BOP toolkit expects a file named %s_DATASET-SPLIT.csv", self.path, method
             )
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        mode = "a" if append else "w"
-        self._f = open(self.path, mode, encoding="ascii", newline="\n", buffering=1)  # noqa: SIM115
+        flags = os.O_WRONLY | os.O_CREAT | (os.O_APPEND if append else os.O_TRUNC)
+        if nofollow:
+            flags |= getattr(os, "O_NOFOLLOW", 0)
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            fd = os.open(self.path, flags, 0o666)
+        except OSError as exc:
+            if nofollow:
+                refuse_link(self.path)
+            raise output_error(self.path, exc) from exc
+        self._f = open(fd, "a", encoding="ascii", newline="\n", buffering=1)  # noqa: SIM115
         if self._f.tell() == 0:
-            self._f.write(BOP_CSV_HEADER + "\n")
+            self._write(BOP_CSV_HEADER + "\n")
         self._times: dict[tuple[int, int], float] = {}
         self.rows = 0
 
@@ -203,24 +216,39 @@ class BopCsvWriter:
         for line in lines:
             scene_id, im_id, *_rest, t_img = line.rstrip("\n").split(",")
             self._times.setdefault((int(scene_id), int(im_id)), float(t_img))
-            self._f.write(line)
+            self._write(line)
             self.rows += 1
+
+    def _write(self, text: str) -> None:
+        try:
+            self._f.write(text)
+        except OSError as exc:
+            raise output_error(self.path, exc) from exc
 
     def flush(self) -> None:
         """Flush buffered rows to the operating system (rows are line-buffered anyway)."""
         if not self._f.closed:
-            self._f.flush()
+            try:
+                self._f.flush()
+            except OSError as exc:
+                raise output_error(self.path, exc) from exc
 
     def sync(self) -> int:
         """Flush and fsync the rows written so far; returns the file's size in bytes."""
-        self._f.flush()
-        os.fsync(self._f.fileno())
-        return self._f.tell()
+        try:
+            self._f.flush()
+            os.fsync(self._f.fileno())
+            return self._f.tell()
+        except OSError as exc:
+            raise output_error(self.path, exc) from exc
 
     def close(self) -> None:
         """Flush and close; further :meth:`add` calls raise. Closing twice is harmless."""
         if not self._f.closed:
-            self._f.close()
+            try:
+                self._f.close()
+            except OSError as exc:
+                raise output_error(self.path, exc) from exc
 
     @property
     def closed(self) -> bool:
@@ -305,6 +333,9 @@ def _parse_bop_line(line: str, where: str) -> BopCsvLine:
         ids = None
     if len(parts) != 7:
         return BopCsvLine(where, ids, None, f"expected 7 columns, got {len(parts)}")
+    for col, n, what in ((4, 9, "R must be 9 numbers (3x3, row-major)"), (5, 3, "t must be 3")):
+        if len(parts[col].split()) != n:
+            return BopCsvLine(where, ids, None, f"{what}, got {len(parts[col].split())}")
     try:
         row = {
             "scene_id": int(parts[0]),

@@ -4,12 +4,15 @@ Each input ``IN`` gets its own output folder ``OUT/<IN's folder name>/`` holding
 single run (``docs/formats.md``); the runs are independent (:mod:`ssp.pipeline.executor` maps
 them), so each one's files are those it would write alone. One input that cannot be run at all
 (a missing folder, no frames) is reported in its place and the others go on; bad frames are
-handled inside each run as usual.
+handled inside each run as usual. An input whose worker process dies (killed, out of memory)
+fails alone, named, with how to resume it; a stop (Ctrl-C, SIGTERM) interrupts every running
+input, each resumable (:mod:`ssp.pipeline.executor`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import replace
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -88,7 +91,7 @@ def run_inputs(
         overwrite=overwrite,
         **options,
     )
-    return map_items(
+    results = map_items(
         work,
         [(str(src), str(out)) for src, out in zip(inputs, outs, strict=True)],
         shared=library,
@@ -97,3 +100,7 @@ def run_inputs(
         progress=progress,
         on_error="collect",
     )
+    for k, (res, out) in enumerate(zip(results, outs, strict=True)):
+        if isinstance(res, ItemFailure) and res.error_type == "WorkerDied":
+            results[k] = replace(res, error=f"{res.error}; resume it with: ssp run --resume {out}")
+    return results

@@ -9,10 +9,14 @@ read-only ``shared`` value.
 Executors (:class:`Parallel`):
 
 * ``serial``: one item after another in this process (no pickling).
-* ``processes``: a :class:`concurrent.futures.ProcessPoolExecutor` of ``workers`` processes
-  started with ``spawn``. Each worker is single-threaded (``OMP_NUM_THREADS=1`` and the like,
+* ``processes``: ``workers`` processes started with ``spawn``, each sent one item at a time
+  through its own pipe. Each worker is single-threaded (``OMP_NUM_THREADS=1`` and the like,
   :data:`SINGLE_THREAD_ENV`, set before anything heavy is imported) and gets ``shared`` once,
-  through its initialiser; ``fn`` and the items must be picklable.
+  when it starts; ``fn`` and the items must be picklable. A worker that dies (killed, out of
+  memory) fails the item it was running only, named, and a new worker goes on with the
+  others; when this process stops (Ctrl-C, or SIGTERM made a KeyboardInterrupt as ``ssp``
+  does), each worker gets SIGTERM, which interrupts its item as Ctrl-C would (an ``ssp run``
+  writes its summary and stays resumable), and the map ends at once.
 * ``ray``: Ray tasks of one CPU each. With ``ray_address`` None a local Ray is started with
   ``num_cpus=workers``; with an address (``auto``, ``ray://host:10001``, ...) the existing
   cluster is joined. ``shared`` is put in the object store once (``ray.put``). A Ray already
@@ -33,6 +37,8 @@ from __future__ import annotations
 import logging
 import os
 import pickle
+import signal
+import time
 import traceback
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -140,7 +146,7 @@ def _configure_worker(env: dict[str, str], levels: dict[str, int], fmt: str | No
 
 
 def _init_process(env: dict[str, str], levels: dict[str, int], fmt, shared: bytes) -> None:
-    """Process-pool initialiser: environment first, then the shared value (unpickling it
+    """A worker process's start: environment first, then the shared value (unpickling it
     imports numpy and the like)."""
     _configure_worker(env, levels, fmt)
     _WORKER["shared"] = pickle.loads(shared)
@@ -157,10 +163,6 @@ def _call(fn: Callable, item: Any, shared: Any) -> tuple[bool, Any]:
 def _describe(exc: BaseException) -> tuple[str, str, str, bool]:
     tb = "".join(traceback.format_exception(exc))
     return type(exc).__name__, str(exc), tb, isinstance(exc, SSPError)
-
-
-def _process_task(fn: Callable, item: Any) -> tuple[bool, Any]:
-    return _call(fn, item, _WORKER.get("shared"))
 
 
 def _ray_task(fn, item, shared, env, levels, fmt) -> tuple[bool, Any]:
@@ -280,38 +282,150 @@ def _map_serial(fn, items, shared, parallel, results: _Results) -> list:
     return results.values
 
 
+class _Worker:
+    """One worker process of :func:`_map_processes` and the pipe to it."""
+
+    def __init__(self, ctx, init: tuple) -> None:
+        self.conn, child = ctx.Pipe()
+        self.process = ctx.Process(target=_worker_main, args=(child, *init))
+        self.process.start()
+        child.close()
+        self.item: int | None = None  # the item it is running
+
+    def death(self) -> str:
+        """How the process ended, in words."""
+        self.process.join(timeout=5)
+        code = self.process.exitcode
+        if code is not None and code < 0:
+            try:
+                return f"killed by {signal.Signals(-code).name}"
+            except ValueError:
+                return f"killed by signal {-code}"
+        return f"exit code {code}" if code is not None else "its pipe closed"
+
+
 def _map_processes(fn, items, shared, parallel, results: _Results) -> list:
+    """The ``processes`` executor: ``workers`` spawned processes, each fed one item at a time
+    through its own pipe, so the item a worker runs is always known: a worker that dies
+    (killed, out of memory) fails that item only (the others go on; a new worker takes its
+    place), and a stop of this process (Ctrl-C, SIGTERM made KeyboardInterrupt) is passed on
+    to the workers, which interrupt their items (:func:`_stop_workers`)."""
     import multiprocessing
-    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-    from concurrent.futures.process import BrokenProcessPool
+    from multiprocessing.connection import wait
 
     levels, fmt = _log_levels()
-    names = results.names
-    pool = ProcessPoolExecutor(
-        max_workers=min(parallel.workers, len(items)),
-        mp_context=multiprocessing.get_context("spawn"),
-        initializer=_init_process,
-        initargs=(SINGLE_THREAD_ENV, levels, fmt, pickle.dumps(shared)),
-    )
+    ctx = multiprocessing.get_context("spawn")
+    init = (SINGLE_THREAD_ENV, levels, fmt, pickle.dumps(shared))
+    todo = list(range(len(items)))[::-1]  # popped from the end: item order
+    workers = [_Worker(ctx, init) for _ in range(min(parallel.workers, len(items)))]
+    finished = False
     try:
-        futures = {pool.submit(_process_task, fn, item): i for i, item in enumerate(items)}
-        pending = set(futures)
-        while pending:
-            finished, pending = wait(pending, return_when=FIRST_COMPLETED)
-            for fut in sorted(finished, key=futures.get):
-                i = futures[fut]
-                try:
-                    outcome = fut.result()
-                except BrokenProcessPool as exc:  # a worker died (killed, out of memory)
-                    raise ItemError(
-                        ItemFailure(names[i], type(exc).__name__, f"a worker process died: {exc}")
-                    ) from exc
-                except Exception as exc:  # the item or its result could not be pickled
-                    outcome = (False, (type(exc).__name__, str(exc), "", False))
+        while todo or any(w.item is not None for w in workers):
+            for k, w in enumerate(workers):
+                if w.item is None and todo and not w.process.is_alive():  # died idle
+                    w.conn.close()
+                    workers[k] = w = _Worker(ctx, init)
+                while w.item is None and todo:
+                    i = todo.pop()
+                    try:
+                        w.conn.send((fn, items[i]))
+                    except Exception as exc:  # the item or fn cannot be pickled
+                        results.finish(i, (False, (type(exc).__name__, str(exc), "", False)))
+                        continue
+                    w.item = i
+            busy = [w for w in workers if w.item is not None]
+            if not busy:
+                continue
+            wait([w.conn for w in busy] + [w.process.sentinel for w in busy])
+            for w in busy:
+                outcome = None
+                if w.conn.poll():
+                    try:
+                        outcome = w.conn.recv()
+                    except (EOFError, OSError):
+                        outcome = None
+                elif w.process.is_alive():
+                    continue
+                i, w.item = w.item, None
+                if outcome is None:  # it died while running item i: that item fails alone
+                    how = w.death()
+                    msg = f"the worker process running it died ({how}); the other items go on"
+                    log.error("%s: %s", results.names[i], msg)
+                    workers[workers.index(w)] = _Worker(ctx, init) if todo else w
+                    outcome = (False, ("WorkerDied", msg, "", False))
                 results.finish(i, outcome)
+        finished = True
     finally:
-        pool.shutdown(wait=True, cancel_futures=True)
+        _stop_workers(workers, graceful=finished)
     return results.values
+
+
+def _stop_workers(workers: list[_Worker], graceful: bool, timeout: float = 60.0) -> None:
+    """End the workers: ``graceful`` (all items done), ask each to exit; else (this process is
+    stopping: an interrupt, a failed item with ``on_error="raise"``) send each SIGTERM, which
+    interrupts the item it runs as Ctrl-C would (a run writes its summary and stays
+    resumable), and wait up to ``timeout`` s before killing what is left."""
+    for w in workers:
+        if not w.process.is_alive():
+            continue
+        if graceful:
+            try:
+                w.conn.send(None)
+            except OSError:
+                w.process.terminate()
+        else:
+            w.process.terminate()
+    deadline = time.monotonic() + timeout
+    try:
+        for w in workers:
+            w.process.join(timeout=max(0.0, deadline - time.monotonic()))
+    except KeyboardInterrupt:  # asked again to stop: do not wait
+        pass
+    finally:
+        for w in workers:
+            if w.process.is_alive():
+                w.process.kill()
+                w.process.join(timeout=5)
+            w.conn.close()
+
+
+def _worker_main(conn, env, levels, fmt, shared: bytes) -> None:
+    """A worker of :func:`_map_processes`: run the items it is sent, one at a time, and send
+    back each :func:`_call` outcome; None or a closed pipe ends it. SIGINT is ignored (a
+    Ctrl-C reaches the whole process group: the main process decides, and passes it on as
+    SIGTERM); SIGTERM interrupts the running item (KeyboardInterrupt) and ends the worker."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, _on_sigterm)
+    _init_process(env, levels, fmt, shared)
+    while True:
+        try:
+            msg = conn.recv()
+        except (EOFError, OSError, SystemExit):
+            return
+        if msg is None:
+            return
+        fn, item = msg
+        _WORKER["busy"] = True
+        try:
+            outcome = _call(fn, item, _WORKER.get("shared"))
+        except (KeyboardInterrupt, SystemExit):
+            return  # stopped: nobody waits for its result
+        finally:
+            _WORKER["busy"] = False
+        try:
+            conn.send(outcome)
+        except (OSError, SystemExit):
+            return
+        except Exception as exc:  # the result cannot be pickled
+            conn.send((False, (type(exc).__name__, f"its result cannot be sent back: {exc}",
+                               "", False)))  # fmt: skip
+
+
+def _on_sigterm(signum, frame) -> None:
+    """A worker's SIGTERM: interrupt the item it runs, or end it when it waits for one."""
+    if _WORKER.get("busy"):
+        raise KeyboardInterrupt
+    raise SystemExit(0)
 
 
 def _ray():

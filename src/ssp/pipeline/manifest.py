@@ -5,12 +5,14 @@ the options a resume takes from ``run.json`` (:meth:`RunOptions.resumed`)."""
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import hashlib
 import itertools
 import json
 import logging
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -19,8 +21,8 @@ import numpy as np
 
 from ssp import __version__
 from ssp.config import SSPConfig
-from ssp.errors import ArgumentError
-from ssp.io._files import file_problem
+from ssp.errors import ArgumentError, OutputLockedError
+from ssp.io._files import file_problem, output_error, refuse_link
 from ssp.io.rosbag import BagOptions
 from ssp.io.tum import TUM_DIR
 from ssp.pipeline.inputs import input_files
@@ -28,6 +30,7 @@ from ssp.pipeline.sources import FrameSource
 
 __all__ = [
     "FRAMES_DIR",
+    "LOCK_FILE",
     "NO_EFFECT",
     "OBJ_IDS_JSON",
     "RUN_JSON",
@@ -38,6 +41,7 @@ __all__ = [
     "differences",
     "file_stamp",
     "library_digests",
+    "lock_out_dir",
     "own_files",
     "prepare_fresh",
     "prepare_resume",
@@ -53,6 +57,8 @@ SUMMARY_JSON = "summary.json"
 OBJ_IDS_JSON = "obj_ids.json"
 RUN_JSON = "run.json"
 STATE_JSON = "state.json"
+#: The lock a run holds on its output folder while it writes it (:func:`lock_out_dir`).
+LOCK_FILE = ".ssp.lock"
 RUN_FORMAT, STATE_FORMAT, FORMAT_VERSION = "ssp-run", "ssp-run-state", 1
 
 
@@ -158,6 +164,11 @@ def read_run(out_dir: str | os.PathLike) -> dict[str, Any]:
     """
     p = Path(out_dir) / RUN_JSON
     if not p.is_file():
+        if _unstarted(Path(out_dir)):
+            raise ArgumentError(
+                f"{out_dir}: an ssp run stopped here before it wrote {RUN_JSON} (no frame was "
+                "done): nothing to resume; start it again with --overwrite"
+            )
         raise ArgumentError(f"{out_dir}: no ssp run here (no {RUN_JSON}): nothing to resume")
     return _read_doc(p, RUN_FORMAT, "ssp run manifest")
 
@@ -209,12 +220,109 @@ def differences(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
     return diffs
 
 
+def _entries(out: Path) -> list[Path]:
+    """What ``out`` holds, but the lock of a run (:data:`LOCK_FILE`)."""
+    return [p for p in out.iterdir() if p.name != LOCK_FILE]
+
+
+def _unstarted(out: Path) -> bool:
+    """Whether ``out`` holds only what a run that stopped before writing ``run.json`` may have
+    left: empty ``frames/`` and ``tum/`` folders, temporary files of atomic writes (and at
+    least one of them)."""
+    if not out.is_dir() or (out / RUN_JSON).exists():
+        return False
+    entries = _entries(out)
+    for p in entries:
+        if p.is_symlink():
+            return False
+        if p.name in (FRAMES_DIR, TUM_DIR) and p.is_dir():
+            if any(not (q.name.startswith(".") and q.name.endswith(".tmp")) for q in p.iterdir()):
+                return False
+        elif not (p.is_file() and p.name.startswith(".") and p.name.endswith(".tmp")):
+            return False
+    return bool(entries)
+
+
+def check_links(out: Path, manifest: Mapping[str, Any] | None = None) -> None:
+    """:class:`~ssp.errors.OutputError` when a file or folder a run writes, truncates or deletes
+    in ``out`` (its subfolders, the CSV, the JSON files) is a symbolic link: nothing outside the
+    output folder is ever touched."""
+    names = [FRAMES_DIR, TUM_DIR, RUN_JSON, STATE_JSON, SUMMARY_JSON, OBJ_IDS_JSON, LOCK_FILE]
+    if manifest and isinstance(manifest.get("csv"), str):
+        names.append(Path(manifest["csv"]).name)
+    for name in names:
+        refuse_link(out / name, " in the output folder")
+    for sub in (FRAMES_DIR, TUM_DIR):
+        if (out / sub).is_dir():
+            for p in (out / sub).iterdir():
+                refuse_link(p, " in the output folder")
+
+
+@contextlib.contextmanager
+def lock_out_dir(out: Path) -> Iterator[None]:
+    """Hold ``out``'s lock (an exclusive ``flock`` on ``out/.ssp.lock``, which holds the pid)
+    while a run writes it; the folder is created. The lock file is removed on release.
+
+    Raises:
+        OutputLockedError: another run holds it (the message names the folder and its pid).
+        OutputError: the folder or the lock file cannot be written, or the lock file is a
+            symbolic link.
+    """
+    try:
+        import fcntl
+    except ImportError:  # Windows: no advisory locks here
+        yield
+        return
+    path = out / LOCK_FILE
+    if out.exists() and not out.is_dir():
+        raise ArgumentError(f"{out}: the output folder is a file")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise output_error(out, exc) from exc
+    refuse_link(path, " in the output folder")
+    while True:
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0), 0o666)
+        except OSError as exc:
+            refuse_link(path, " in the output folder")
+            raise output_error(path, exc) from exc
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            holder = os.read(fd, 32).decode("ascii", "replace").strip()
+            os.close(fd)
+            if exc.errno not in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
+                raise output_error(path, exc) from exc
+            pid = f" (pid {holder})" if holder.isdigit() else ""
+            raise OutputLockedError(
+                f"{out}: another ssp run{pid} is writing this output folder; wait for it to "
+                "end or stop it, or choose another --out folder"
+            ) from None
+        try:  # the file may have been removed by a run that released it meanwhile
+            same = os.path.samestat(os.fstat(fd), os.stat(path, follow_symlinks=False))
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)
+    try:
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode("ascii"))
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            os.unlink(path)
+        os.close(fd)
+
+
 def own_files(out: Path, manifest: Mapping[str, Any] | None) -> list[Path]:
-    """The files an ssp run wrote in ``out`` (and temporary files of atomic writes)."""
+    """The files an ssp run wrote in ``out`` (and temporary files of atomic writes); never
+    the lock (:data:`LOCK_FILE`)."""
     names = [RUN_JSON, STATE_JSON, SUMMARY_JSON, OBJ_IDS_JSON]
     if manifest and isinstance(manifest.get("csv"), str):
         names.append(Path(manifest["csv"]).name)
-    files = [out / n for n in names if (out / n).exists()]
+    files = [out / n for n in names if os.path.lexists(out / n)]
     files += [p for p in out.glob(".*.tmp")]
     frames = out / FRAMES_DIR
     if frames.is_dir():
@@ -237,7 +345,17 @@ def prepare_fresh(out: Path, overwrite: bool, clear: bool = True) -> None:
     ``overwrite`` allows to clear (only its own files go; ``clear=False``: only check)."""
     if out.exists() and not out.is_dir():
         raise ArgumentError(f"{out}: the output folder is a file")
-    if not out.exists() or not any(out.iterdir()):
+    if not out.exists() or not _entries(out):
+        return
+    if _unstarted(out):  # a run stopped before writing run.json: nothing of it to keep
+        if not overwrite:
+            raise ArgumentError(
+                f"{out}: the output folder holds the start of an ssp run that stopped before "
+                f"it wrote {RUN_JSON} (no frame was done): replace it with --overwrite, or "
+                "choose a new --out folder"
+            )
+        if clear:
+            _clear(out, None)
         return
     if not (out / RUN_JSON).exists():
         raise ArgumentError(
@@ -258,14 +376,35 @@ def prepare_fresh(out: Path, overwrite: bool, clear: bool = True) -> None:
             f"{out}: the output folder already holds {'a finished' if finished else 'an'} ssp "
             f"run{of}: {again}replace it with --overwrite, or choose a new --out folder"
         )
-    if not clear:
-        return
+    check_links(out, old)
+    if clear:
+        _clear(out, old)
+
+
+def _clear(out: Path, old: Mapping[str, Any] | None) -> None:
+    """Delete the files of the earlier run in ``out`` (:func:`own_files`; links themselves,
+    never what they point to) and its empty subfolders."""
     for p in own_files(out, old):
         p.unlink()
     for sub in (out / FRAMES_DIR, out / TUM_DIR):
-        if sub.is_dir() and not any(sub.iterdir()):
+        if sub.is_dir() and not sub.is_symlink() and not any(sub.iterdir()):
             sub.rmdir()
     log.info("%s: cleared the earlier run's files", out)
+
+
+def _truncate(path: Path, size: int) -> None:
+    """Cut ``path`` back to ``size`` bytes, never through a symbolic link."""
+    try:
+        fd = os.open(path, os.O_WRONLY | getattr(os, "O_NOFOLLOW", 0))
+    except OSError as exc:
+        refuse_link(path, " in the output folder")
+        raise output_error(path, exc) from exc
+    try:
+        os.ftruncate(fd, size)
+    except OSError as exc:
+        raise output_error(path, exc) from exc
+    finally:
+        os.close(fd)
 
 
 def prepare_resume(
@@ -276,6 +415,7 @@ def prepare_resume(
     the saved state (empty if the run stopped before its first commit) and the frame JSONs of
     the committed frames, in order."""
     old = read_run(out)
+    check_links(out, old)
     diffs = differences(old, manifest)
     if diffs:
         raise ArgumentError(
@@ -291,14 +431,14 @@ def prepare_resume(
                 p.unlink()
         return {}, []
     size = int(state.get("csv_bytes", 0))
+    refuse_link(csv_path, " in the output folder")
     have = csv_path.stat().st_size if csv_path.exists() else 0
     if have < size:
         raise ArgumentError(
             f"{csv_path}: {have} bytes, but the run had written {size}: the output folder was "
             "modified; start a new run"
         )
-    with open(csv_path, "r+b") as f:
-        f.truncate(size)
+    _truncate(csv_path, size)
     names = [fr.name for fr in itertools.islice(source.frames(0), int(state["next"]))]
     for p in own_files(out, old):
         stale = p.parent.name == FRAMES_DIR and p.suffix == ".json" and p.stem not in names

@@ -27,7 +27,11 @@ and ``SystemExit`` stop the run (the outputs stay consistent).
 
 **Crash safety.** Per frame, in this order: its JSON (atomic replace), its CSV rows (fsynced),
 then ``state.json`` (atomic; the commit: the frame counts as finished from here), then
-``summary.json``. ``summary.json`` and ``obj_ids.json`` exist from the start. A run stopped at
+``summary.json``. ``run.json`` is written first, then ``frames/``, ``obj_ids.json`` and
+``summary.json``, which exist from the start. A run holds a lock on ``out`` while it writes
+it (:func:`ssp.pipeline.manifest.lock_out_dir`); nothing is written, truncated or deleted
+through a symbolic link in ``out``; a write that fails (a full disk) raises
+:class:`ssp.errors.OutputError` naming the file, the committed frames kept. A run stopped at
 any point (SIGKILL included) is continued by ``run(..., resume=True)`` (``ssp run --resume
 OUT``): the CSV is cut back to the size recorded at the last commit, frame JSONs of frames not
 committed are deleted, the parser resumes from its saved state, and the results are those of
@@ -61,8 +65,10 @@ from ssp.pipeline.manifest import (
     STATE_FORMAT,
     STATE_JSON,
     SUMMARY_JSON,
+    lock_out_dir,
     prepare_fresh,
     prepare_resume,
+    read_run,
     run_manifest,
 )
 from ssp.pipeline.sources import HYPOTHESES_MODES, FrameSource, InputFrame
@@ -121,7 +127,9 @@ def run(
         record: write a 3D recording of the run to this rerun ``.rrd`` file
             (:class:`ssp.viz.record.Recorder`; needs the ``record`` extra): each finished
             frame's cloud, objects, hypotheses, support and terms, failed frames as error
-            lines. A resumed run records the frames it processes itself.
+            lines. A resumed run records the frames it processes itself, into the first free
+            ``<stem>.<k>.rrd`` next to ``record`` when that exists (the earlier recording is
+            kept; ``summary.files`` names the file).
 
     Raises:
         InputError: the input as a whole cannot be used (missing folder, no frames, bad
@@ -130,6 +138,9 @@ def run(
             resume whose input, models, config or options differ from the recorded ones.
         RecordingError: ``record`` given and rerun is not installed or the file cannot be
             written (:mod:`ssp.viz.record`).
+        OutputLockedError: another run is writing ``out_dir``.
+        OutputError: a symbolic link in ``out_dir`` where the run writes, or an output that
+            cannot be written (a full disk); the message names the file.
     """
     cfg = config if config is not None else SSPConfig()
     if record is not None:
@@ -144,14 +155,37 @@ def run(
     )  # fmt: skip
     out = Path(out_dir)
     csv_path = out / manifest["csv"]
-    summary, state, parser = _start(out, csv_path, src, manifest, source, ids, library, cfg,
-                                    resume=resume, overwrite=overwrite)  # fmt: skip
-    _run_frames(out, csv_path, source, parser, summary, state, ids, library, cfg, method=method,
-                scene_id=scene_id, resume=resume, progress=progress, record=record)  # fmt: skip
-    summary.status = "finished"
-    write_tum(out)
-    write_json(out / SUMMARY_JSON, summary.to_dict())
+    if resume and not out.is_dir():
+        read_run(out)  # nothing to resume: said before the folder is made for the lock
+    with lock_out_dir(out):  # one writer at a time (OutputLockedError for a second one)
+        summary, state, parser = _start(out, csv_path, src, manifest, source, ids, library, cfg,
+                                        resume=resume, overwrite=overwrite)  # fmt: skip
+        if record is not None and resume:
+            record = _resumed_recording(Path(record))
+        if record is not None:
+            summary.files.append(str(record))
+        _run_frames(out, csv_path, source, parser, summary, state, ids, library, cfg,
+                    method=method, scene_id=scene_id, resume=resume, progress=progress,
+                    record=record)  # fmt: skip
+        summary.status = "finished"
+        write_tum(out)
+        write_json(out / SUMMARY_JSON, summary.to_dict())
     return summary
+
+
+def _resumed_recording(record: Path) -> Path:
+    """Where a resumed run records: ``record`` when it does not exist yet, else the first free
+    ``<stem>.<k>.rrd`` next to it (k = 1, 2, ...): the earlier recording is kept."""
+    if not record.exists() and not record.is_symlink():
+        return record
+    k = 1
+    while True:
+        other = record.with_name(f"{record.stem}.{k}{record.suffix}")
+        if not other.exists() and not other.is_symlink():
+            log.info("%s exists (the recording before the resume; kept): recording the resumed "
+                     "frames in %s", record, other)  # fmt: skip
+            return other
+        k += 1
 
 
 def _open_input(
@@ -213,6 +247,9 @@ def _start(
     else:
         prepare_fresh(out, overwrite)
         state, finished = {}, []
+        # run.json first: a folder without it holds nothing of the run but empty folders and
+        # temporary files (an --overwrite replaces them)
+        write_json(out / RUN_JSON, manifest)
     (out / FRAMES_DIR).mkdir(parents=True, exist_ok=True)
     summary = RunSummary(str(src), source.kind, frames=source.total)
     summary.files = [str(csv_path), str(out / OBJ_IDS_JSON), str(out / FRAMES_DIR),
@@ -223,8 +260,6 @@ def _start(
         parser = SceneParser.from_state(library, state["parser"], cfg)
     else:
         parser = SceneParser(library, cfg)
-    if not resume:
-        write_json(out / RUN_JSON, manifest)
     write_json(out / OBJ_IDS_JSON, ids.to_json())
     write_json(out / SUMMARY_JSON, summary.to_dict())
     fsync_dir(out)
@@ -262,7 +297,10 @@ def _run_frames(
     }
     from ssp.viz.record import RunRecording  # rerun itself only when recording
 
-    with BopCsvWriter(csv_path, method, append=resume) as csv, RunRecording(record, library) as rec:
+    with (
+        BopCsvWriter(csv_path, method, append=resume, nofollow=True) as csv,
+        RunRecording(record, library) as rec,
+    ):
         committed_parser = parser.state()
 
         def commit(n_next: int, parser_state: dict[str, Any]) -> None:
@@ -297,8 +335,8 @@ def _run_frames(
             try:
                 write_tum(out)  # the committed frames' trajectories
                 write_json(out / SUMMARY_JSON, summary.to_dict())
-            except Exception:  # the original error matters more
-                log.exception("could not write %s", out / SUMMARY_JSON)
+            except Exception as err:  # the original error matters more: one line for this one
+                log.warning("the stopped run's summary and trajectories: %s", err)
             raise
 
 
