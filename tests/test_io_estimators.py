@@ -118,7 +118,7 @@ def test_bop19_bad_rows_fail_only_their_image(tmp_path):
         3: (6, "expected 7 columns, got 6"),
         4: (7, r"obj_id 7 has no class; known obj_ids: 2 \(cracker_box\), 5 \(mug\)"),
         5: (8, "score is nan"),
-        6: (9, "malformed row"),
+        6: (9, r"R must be 9 numbers \(3x3, row-major\), got 7"),
     }
     for im, (line, what) in expect.items():
         with pytest.raises(InputError, match=rf"x_ycbv-test.csv:{line}\b.*{what}"):
@@ -191,21 +191,22 @@ def test_megapose_folder_of_image_files_with_label_mapping(tmp_path):
     (tmp_path / "frame11.json").write_text(json.dumps(doc))
     labels = {"obj_000002": "cracker_box", "obj_000005": "mustard_bottle"}
     est = read_estimates(tmp_path, classes=labels, library=LIBRARY)
-    # names are not numbers: im_ids are their natural order
+    # im_ids are the numbers ending the names (never their positions)
     assert [est.names[k] for k in est.images()] == [
         "frame2", "frame7", "frame8", "frame9", "frame10", "frame11"
     ]  # fmt: skip
-    assert est.for_image(0, 0)[0].class_name == "cracker_box"
-    np.testing.assert_allclose(est.for_image(0, 4)[0].T_world_obj, T_B, atol=1e-12)
+    assert est.images() == [(0, i) for i in (2, 7, 8, 9, 10, 11)]
+    assert est.for_image(0, 2)[0].class_name == "cracker_box"
+    np.testing.assert_allclose(est.for_image(0, 10)[0].T_world_obj, T_B, atol=1e-12)
     with pytest.raises(InputError, match=r"frame7.json: entry 0 .*'obj_000009' is not in the "
                        r"label -> class mapping \(did you mean 'obj_00000[25]'"):  # fmt: skip
-        est.for_image(0, 1)
+        est.for_image(0, 7)
     with pytest.raises(InputError, match=r"frame8.json: not MegaPose estimates"):
-        est.for_image(0, 2)
+        est.for_image(0, 8)
     with pytest.raises(InputError, match=r"frame9.json: invalid JSON"):
-        est.for_image(0, 3)
+        est.for_image(0, 9)
     with pytest.raises(InputError, match=r"frame11.json: entry 0 .*NaN.*; .*entry 1 .*no 'TWO'"):
-        est.for_image(0, 5)
+        est.for_image(0, 11)
     # HappyPose's example output name, a score key, identity labels with a close name
     ex = tmp_path / "hp" / "12" / "outputs"
     ex.mkdir(parents=True)

@@ -12,9 +12,9 @@ from rich.table import Table
 from ssp.cli.common import (
     CacheOption,
     ConfigOption,
-    ModelsOption,
     ProcessesOption,
     console,
+    err_console,
     friendly,
     load_config,
     load_library,
@@ -23,6 +23,16 @@ from ssp.cli.common import (
 
 __all__ = ["estimate_cmd", "evaluate_cmd", "refine_cmd"]
 
+DatasetModelsOption = typer.Option(
+    None,
+    "--models",
+    "-m",
+    help=(
+        "Model folder (default: the dataset's models/ folder; the built-in models when its "
+        "models.json names only built-in classes, as ssp simulate writes it)."
+    ),
+    show_default=False,
+)
 SplitOption = typer.Option(None, "--split", help="The dataset's split folder (default: test).")
 ScenesOption = typer.Option(
     None, "--scenes", help="Comma-separated scene ids (default: every scene of the split)."
@@ -88,7 +98,7 @@ def refine_cmd(
     ),
     resume: bool = typer.Option(False, "--resume", help="Continue a stopped refine in --out."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an earlier refine."),
-    models: Path | None = ModelsOption,
+    models: Path | None = DatasetModelsOption,
     config: Path | None = ConfigOption,
     cache: Path | None = CacheOption,
     processes: int | None = ProcessesOption,
@@ -118,17 +128,24 @@ def refine_cmd(
             resume=resume,
             overwrite=overwrite,
             models=None if models_dir is None else str(Path(models_dir).resolve()),
-            progress=lambda d, t, m: progress.update(
-                task, completed=d, total=t, description=m[:60]
-            ),  # fmt: skip
+            progress=lambda d, t, m: progress.update(task, completed=d, total=t, description=m),
         )
     _print_refine(summary)
+    if summary.frames_done == 0:
+        err_console.print(
+            f"[bold red]no frame succeeded[/] (0 of {summary.frames} frames refined): see the "
+            "errors above"
+        )
+        raise typer.Exit(1)
     if not summary.done:
         raise typer.Exit(1)
 
 
 def _print_refine(summary) -> None:
-    """One line per scene of a refine, and the CSV it wrote."""
+    """The warnings about the estimates, one line per scene of a refine, and the CSV it
+    wrote."""
+    for w in summary.warnings:
+        console.print(f"[yellow]warning[/] {escape(w)}", highlight=False)
     for s in summary.scenes:
         failed = s.get("failed", 0)
         extra = f", [red]{failed} failed[/]" if failed else ""
@@ -147,7 +164,7 @@ def estimate_cmd(
     scenes: str | None = ScenesOption,
     classes: str | None = typer.Option(None, help="Comma-separated candidate classes."),
     masks: str = MasksOption,
-    models: Path | None = ModelsOption,
+    models: Path | None = DatasetModelsOption,
     config: Path | None = ConfigOption,
     cache: Path | None = CacheOption,
 ) -> None:
@@ -177,7 +194,7 @@ def evaluate_cmd(
     out: Path | None = typer.Option(None, "--out", "-o", help="Write the results as JSON."),
     split: str | None = SplitOption,
     vsd: bool = typer.Option(True, "--vsd/--no-vsd", help="Compute VSD (renders; slower)."),
-    models: Path | None = ModelsOption,
+    models: Path | None = DatasetModelsOption,
     config: Path | None = ConfigOption,
     cache: Path | None = CacheOption,
 ) -> None:

@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ssp.camera import Camera
+from ssp.errors import InvalidPoseError
 from ssp.geometry import invert
 from ssp.library.symmetry import Symmetry
 from ssp.sim.render import ImageWindow, image_window, render
@@ -224,9 +225,15 @@ class BopEvaluator:
     ) -> None:
         """One frame: ground truth ``id -> (class, T_world_obj)``, its visible fractions,
         the method's estimates ``(class, T_world_obj, score)`` and the test depth ``(H, W)``
-        (z, m; needed for VSD)."""
+        (z, m; needed for VSD).
+
+        Raises:
+            InvalidPoseError: a pose that is not a finite 4x4 matrix (a 3x2 "rotation" is
+                never scored), naming the estimate or ground-truth instance.
+        """
         if self.use_vsd and depth is None:
             raise ValueError("VSD needs the frame's depth image")
+        _check_poses(gt, estimates)
         T_cw = invert(np.asarray(T_world_cam, dtype=float))
         for cls in sorted({c for c, _ in gt.values()}):
             gids = [g for g in gt if gt[g][0] == cls and visib_fract.get(g, 0.0) >= MIN_VISIB]
@@ -357,6 +364,18 @@ class BopEvaluator:
             del s["recall_MSSD"], s["recall_MSPD"]
             out["per_class"][cls] = finish(s)
         return out
+
+
+def _check_poses(gt: Mapping[str, tuple[str, np.ndarray]], estimates: Sequence) -> None:
+    """InvalidPoseError unless every pose of a frame is a finite 4x4 matrix."""
+    poses = [(f"ground truth {g!r}", T) for g, (_, T) in gt.items()]
+    poses += [(f"estimate {i}", T) for i, (_, T, _) in enumerate(estimates)]
+    for what, T in poses:
+        M = np.asarray(T, dtype=float)
+        if M.shape != (4, 4) or not np.all(np.isfinite(M)):
+            raise InvalidPoseError(
+                f"{what}: a pose must be a finite 4x4 matrix, got shape {M.shape}"
+            )
 
 
 def _spheres_overlap(radius: float, p1: np.ndarray, p2: np.ndarray) -> bool:

@@ -35,6 +35,7 @@ import difflib
 import io
 import logging
 import os
+import re
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -73,6 +74,8 @@ _COSYPOSE_REQUIRED = ("scene_id", "view_id", "label", "TCO")
 #: Where the upstream examples write their estimates, inside one example folder per image:
 #: MegaPose ``run_inference_on_example.py`` and HappyPose ``example_inference_utils.py``.
 MEGAPOSE_OUTPUTS = ("outputs/object_data.json", "outputs/object_data_inf.json")
+#: A BOP19 CSV whose translations are all shorter than this (mm) was written in metres.
+METRES_LIKE_MM = 5.0
 #: Problems of one image shown in full in its error (the rest are counted).
 _SHOWN_PROBLEMS = 3
 
@@ -89,11 +92,14 @@ class EstimatorHypotheses:
         source: the file or folder read.
         names: per image, its name in the source (the file stem for per-image files, else
             ``str(im_id)``), to match it with an input frame.
+        warnings: what the reader passed over or suspects, also logged: files that name no
+            image, duplicated rows merged, translations that look like metres in a BOP19 CSV.
     """
 
     format: str
     source: Path
     names: dict[ImageKey, str] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
     _hyps: dict[ImageKey, list[Hypothesis]] = field(default_factory=dict, repr=False)
     _problems: dict[ImageKey, list[str]] = field(default_factory=dict, repr=False)
 
@@ -151,10 +157,16 @@ def _closest(name: str, known: Iterable[str]) -> str:
 
 
 class _ClassMap:
-    """Label (or BOP obj_id) -> library class name, checked against ``library`` if given."""
+    """Label (or BOP obj_id) -> library class name, checked against ``library`` if given.
+
+    Labels are compared as strings, so a mapping with integer keys (a dataset's ``obj_id ->
+    class``) matches labels ``"2"`` (also ``"02"``); and a label that is not a key but the BOP
+    model name of a numeric key (``obj_000002``) or one of the mapping's class names (the
+    estimator was given the library's names) is that class."""
 
     def __init__(self, classes: Any, library: Any, kind: str) -> None:
         self.kind = kind
+        self.alias: dict[str, str] = {}
         self.library = None if library is None else [str(c) for c in library]
         if isinstance(classes, ObjectIds):
             if kind != "obj_id":
@@ -176,6 +188,8 @@ class _ClassMap:
                         key = int(k)
                     except (TypeError, ValueError) as exc:
                         raise ArgumentError(f"classes: obj_id {k!r} is not an integer") from exc
+                else:
+                    key = _label_key(k)
                 if not isinstance(v, str) or not v:
                     raise ArgumentError(f"classes[{k!r}]: class must be a non-empty string")
                 if self.library is not None and v not in self.library:
@@ -184,6 +198,12 @@ class _ClassMap:
                         + _closest(v, self.library)
                     )
                 self.map[key] = v
+            if kind == "label":
+                for k, v in self.map.items():
+                    if k.isdigit():
+                        self.alias.setdefault(f"obj_{int(k):06d}", v)
+                for v in self.map.values():
+                    self.alias.setdefault(v, v)
         else:
             raise ArgumentError(
                 f"classes must be a mapping ({kind} -> class name) or None, "
@@ -193,19 +213,29 @@ class _ClassMap:
     def __call__(self, label: Any) -> str:
         """The class of ``label``; InputError (a message without the place) if none."""
         if self.map is not None:
-            if label in self.map:
-                return self.map[label]
+            key = label if self.kind == "obj_id" else _label_key(label)
+            if key in self.map:
+                return self.map[key]
+            if key in self.alias:
+                return self.alias[key]
             if self.kind == "obj_id":
                 known = ", ".join(f"{k} ({v})" for k, v in sorted(self.map.items()))
                 raise InputError(f"obj_id {label} has no class; known obj_ids: {known or 'none'}")
             raise InputError(
-                f"label {label!r} is not in the label -> class mapping" + _closest(label, self.map)
+                f"label {label!r} is not in the label -> class mapping"
+                + _closest(str(label), self.map)
             )
         if self.library is not None and label not in self.library:
             raise InputError(
                 f"class {label!r} is not in the library" + _closest(label, self.library)
             )
         return str(label)
+
+
+def _label_key(label: Any) -> str:
+    """A label as compared: a string, an integer's digits without leading zeros."""
+    text = str(label)
+    return str(int(text)) if text.isdigit() else text
 
 
 # ------------------------------------------------------------------------------ collecting
@@ -215,6 +245,9 @@ class _Collector:
     def __init__(self, fmt: str, source: Path, classes: _ClassMap) -> None:
         self.out = EstimatorHypotheses(fmt, source)
         self.classes = classes
+        # per image, (class, pose bytes) -> position of that hypothesis: duplicates merge
+        self._seen: dict[ImageKey, dict[tuple[str, bytes], int]] = {}
+        self.duplicates = 0
 
     def image(self, key: ImageKey, name: str | None = None) -> None:
         self.out.names.setdefault(key, str(key[1]) if name is None else name)
@@ -237,9 +270,29 @@ class _Collector:
         except InputError as exc:
             self.problem(key, f"{where}: {exc}")
             return
-        self.out._hyps[key].append(Hypothesis(class_name=cls, T_world_obj=T, score=score))
+        # an identical row (same image, object and pose) written twice is one hypothesis: as
+        # two it would take two of the places kept per object and crowd out the others
+        seen = self._seen.setdefault(key, {})
+        at = seen.get((cls, T.tobytes()))
+        hyps = self.out._hyps[key]
+        if at is not None:
+            self.duplicates += 1
+            hyps[at] = replace(hyps[at], score=max(hyps[at].score, score))
+            return
+        seen[(cls, T.tobytes())] = len(hyps)
+        hyps.append(Hypothesis(class_name=cls, T_world_obj=T, score=score))
+
+    def warn(self, message: str) -> None:
+        """A warning about the source (logged, and kept in the result's ``warnings``)."""
+        self.out.warnings.append(f"{self.out.source}: {message}")
+        log.warning("%s", self.out.warnings[-1])
 
     def result(self) -> EstimatorHypotheses:
+        if self.duplicates:
+            self.warn(
+                f"{self.duplicates} duplicated rows or entries (the same image, object and "
+                "pose as an earlier one) merged into one hypothesis each"
+            )
         for hyps in self.out._hyps.values():
             hyps.sort(key=lambda h: -h.score)  # stable: ties keep the file's order
         bad = self.out.bad_images()
@@ -267,19 +320,53 @@ def _rigid(T: np.ndarray) -> np.ndarray:
     return T
 
 
-def _image_ids(names: Iterable[str], where: Path) -> dict[str, int]:
-    """im_id of each image name: the number when every name is one (``000012`` -> 12), else
-    the 0-based position in natural order (``frame2`` before ``frame10``)."""
+_NUMBERED = re.compile(r"^(.*?)(\d+)$")
+
+
+def _image_ids(names: Iterable[str], where: Path, col: _Collector | None = None) -> dict[str, int]:
+    """im_id of each image name, read from the name, never from its position among the
+    files: the number when the name is one (``000012`` -> 12), else the number ending the
+    names of the common pattern (``frame2``, ``frame10`` -> 2, 10). The names are matched to
+    the images by these ids, so a stray file (``000000_backup``) shifts nothing: a name of
+    no image (not of the pattern) is left out, with a warning naming it (``col.warn``).
+
+    Raises:
+        InputError: no name carries an image number, two patterns are as common, or two
+            names give one im_id.
+    """
     names = sorted(set(names), key=natural_key)
-    if names and all(n.isdigit() for n in names):
-        ids: dict[str, int] = {}
-        for n in names:
-            clash = [m for m, i in ids.items() if i == int(n)]
-            if clash:
-                raise InputError(f"{where}: {clash[0]!r} and {n!r} are the same im_id {int(n)}")
-            ids[n] = int(n)
-        return ids
-    return {n: i for i, n in enumerate(names)}
+    patterns: dict[str, list[str]] = {}
+    for n in names:
+        m = _NUMBERED.match(n)
+        if m is not None:
+            patterns.setdefault(m.group(1), []).append(n)
+    if not patterns:
+        raise InputError(
+            f"{where}: no file name carries an image number ({', '.join(names[:5])}): name "
+            "the files by the image's id (000012.json, frame12.json)"
+        )
+    most = max(len(v) for v in patterns.values())
+    best = [p for p, v in patterns.items() if len(v) == most]
+    if len(best) > 1 and "" not in best:
+        raise InputError(
+            f"{where}: cannot tell which files are images: as many are named "
+            f"{' as '.join(repr(p + '<number>') for p in best)}"
+        )
+    prefix = "" if "" in best else best[0]
+    ids: dict[str, int] = {}
+    for n in patterns[prefix]:
+        im = int(n[len(prefix) :])
+        clash = [m for m, i in ids.items() if i == im]
+        if clash:
+            raise InputError(f"{where}: {clash[0]!r} and {n!r} are the same im_id {im}")
+        ids[n] = im
+    stray = [n for n in names if n not in ids]
+    if stray and col is not None:
+        col.warn(
+            f"{len(stray)} files name no image (not named {prefix or ''}<image id> as the "
+            f"others): {', '.join(stray[:10])}{' ...' if len(stray) > 10 else ''}; ignored"
+        )
+    return ids
 
 
 def _check_source(path: Path, folder_ok: bool = False, file_ok: bool = True) -> None:
@@ -307,12 +394,17 @@ def read_bop19_csv(
             :class:`ssp.io.results.ObjectIds`.
         library: the library's class names (a mapping or an iterable), to check classes.
 
+    Identical rows (image, object, pose) are merged into one hypothesis, and translations
+    that are all shorter than :data:`METRES_LIKE_MM` (metres, not mm) are warned about
+    (:attr:`EstimatorHypotheses.warnings`).
+
     Raises:
         InputError: the file is missing or has no BOP19 header, or a row's ids cannot be read.
         ArgumentError: a bad ``classes`` mapping.
     """
     p = Path(path)
     col = _Collector("bop19", p, _ClassMap(classes, library, "obj_id"))
+    t_mm: list[float] = []
     for line in scan_bop_csv(p):
         if line.ids is None:
             raise InputError(
@@ -327,7 +419,14 @@ def read_bop19_csv(
         T = np.eye(4)
         T[:3, :3] = row["R"]
         T[:3, 3] = row["t"] / 1000.0
+        t_mm.append(float(np.linalg.norm(row["t"])))
         col.add(line.ids, row["obj_id"], T, row["score"], f"{line.where} (obj_id {row['obj_id']})")
+    if t_mm and np.all(np.array(t_mm) < METRES_LIKE_MM):  # NaN rows fail their image
+        col.warn(
+            f"every translation is shorter than {METRES_LIKE_MM:g} mm (the longest "
+            f"{max(t_mm):.3g}): BOP19's t is in millimetres, these look like metres (multiply "
+            "t by 1000)"
+        )
     return col.result()
 
 
@@ -344,8 +443,10 @@ def read_megapose(
 
     ``path`` is one such file (one image: im_id from its stem if numeric, else 0), or a folder
     of ``<image>.json`` files, or a folder of upstream example folders ``<image>/`` each with
-    :data:`MEGAPOSE_OUTPUTS`. Image names become im_ids as numbers when all are, else by their
-    natural order. An entry's optional ``score`` is used (upstream writes none: 1.0).
+    :data:`MEGAPOSE_OUTPUTS`. Image names become im_ids by the number they are or end with
+    (``000012``, ``frame12``: 12); a file whose name does not follow the others'
+    (``000000_backup``) is left out with a warning. An entry's optional ``score`` is used
+    (upstream writes none: 1.0).
 
     Args:
         classes: ``label -> class name``; None: labels are library class names.
@@ -353,8 +454,8 @@ def read_megapose(
         scene_id: the scene_id of every image (the files have none).
 
     Raises:
-        InputError: a missing path, a single file that is not such a list, a folder with
-            no such files.
+        InputError: a missing path, a single file that is not such a list (or cannot be
+            parsed: bad syntax, nested too deeply), a folder with no such files.
     """
     p = Path(path)
     _check_source(p, folder_ok=True)
@@ -367,8 +468,8 @@ def read_megapose(
         _megapose_entries(col, (sid, im), doc, p)
         return col.result()
     files = _megapose_files(p)
-    ids = _image_ids(files, p)
-    for name in sorted(files, key=natural_key):
+    ids = _image_ids(files, p, col)
+    for name in sorted(ids, key=natural_key):
         key = (sid, ids[name])
         col.image(key, name)
         try:
@@ -400,7 +501,10 @@ def _megapose_files(folder: Path) -> dict[str, Path]:
 
 
 def _read_json_list(p: Path) -> list:
-    doc = read_json(p)
+    try:
+        doc = read_json(p)
+    except RecursionError:
+        raise InputError(f"{p}: invalid JSON: nested too deeply to read") from None
     if not isinstance(doc, list):
         raise InputError(
             f"{p}: not MegaPose estimates: expected a JSON list of objects with 'label' and "
@@ -410,6 +514,13 @@ def _read_json_list(p: Path) -> list:
 
 
 def _megapose_entries(col: _Collector, key: ImageKey, doc: list, p: Path) -> None:
+    try:
+        _megapose_entry_list(col, key, doc, p)
+    except RecursionError:  # an entry nested too deeply to be shown or read
+        col.problem(key, f"{p}: an entry is nested too deeply to read")
+
+
+def _megapose_entry_list(col: _Collector, key: ImageKey, doc: list, p: Path) -> None:
     for i, entry in enumerate(doc):
         where = f"{p}: entry {i}"
         try:
@@ -471,7 +582,8 @@ def read_foundationpose(
     Layouts: one object: ``path/ob_in_cam/*.txt`` (the demo's ``--debug_dir``) or
     ``path/*.txt``; several objects (one demo run per object): ``path/<object>/ob_in_cam/*.txt``
     or ``path/<object>/*.txt``. The frame ids (file stems: the demo's colour image stems) become
-    im_ids as numbers when all are, else by their natural order. A frame missing for one
+    im_ids by the number they are or end with (a stem that does not follow the others' is
+    left out with a warning). A frame missing for one
     object just lacks that object's hypothesis. Scores are 1.0 (FoundationPose writes none).
 
     Args:
@@ -488,11 +600,13 @@ def read_foundationpose(
     _check_source(p, folder_ok=True, file_ok=False)
     col = _Collector("foundationpose", p, _ClassMap(classes, library, "label"))
     objects = _foundationpose_objects(p, object_name)
-    ids = _image_ids([f.stem for files in objects.values() for f in files], p)
+    ids = _image_ids([f.stem for files in objects.values() for f in files], p, col)
     for name in sorted(ids, key=natural_key):
         col.image((int(scene_id), ids[name]), name)
     for obj, files in objects.items():
         for f in files:
+            if f.stem not in ids:
+                continue  # a file of no image (a warning named it)
             key = (int(scene_id), ids[f.stem])
             try:
                 T = _read_matrix_txt(f)

@@ -86,7 +86,10 @@ def read_hypotheses(path: str | os.PathLike) -> HypothesisFile:
             file and the hypothesis index.
     """
     p = Path(path)
-    return parse_hypotheses(read_json(p, missing="no such file"), str(p))
+    try:
+        return parse_hypotheses(read_json(p, missing="no such file"), str(p))
+    except RecursionError:  # json and the checks recurse; a file nested that deep is no input
+        raise InputError(f"{p}: invalid JSON: nested too deeply to read") from None
 
 
 def parse_hypotheses(doc: Any, where: str = "hypotheses") -> HypothesisFile:

@@ -33,7 +33,7 @@ from ssp.errors import InputError
 from ssp.io._files import atomic_write_text
 from ssp.io.hypotheses import matrix_to_quat_xyzw
 
-__all__ = ["TUM_DIR", "TumWriter", "read_frame_records", "tum_line", "write_tum"]
+__all__ = ["TUM_DIR", "TumWriter", "read_frame_records", "tum_line", "tum_stamp", "write_tum"]
 
 log = logging.getLogger(__name__)
 
@@ -43,12 +43,28 @@ FRAMES_DIR = "frames"
 _UNSAFE = re.compile(r"[^A-Za-z0-9._-]")
 
 
+def tum_stamp(stamp: float) -> str:
+    """A timestamp (s) as written: fixed-point, the fewest decimals (at most 9: a ROS stamp's
+    nanoseconds) that give the stamp within half a nanosecond or one float step
+    (``1700000000.1``, ``0.033333333``, ``0.0``), never the float noise of ``stamp_ns *
+    1e-9`` (``1700000000.1000001``); evo and the TUM scripts read it as a float."""
+    stamp = float(stamp)
+    tol = max(0.5e-9, math.ulp(stamp))
+    for decimals in range(1, 10):
+        text = f"{stamp:.{decimals}f}"
+        if abs(float(text) - stamp) <= tol:
+            break
+    if "." in text:
+        text = text.rstrip("0")
+    return text + "0" if text.endswith(".") else text
+
+
 def tum_line(stamp: float, T_world_obj: np.ndarray) -> str:
-    """``"timestamp tx ty tz qx qy qz qw"`` (s, m; w >= 0) of a 4x4 pose, numbers exact
-    (``repr``), without a newline."""
+    """``"timestamp tx ty tz qx qy qz qw"`` (s, m; w >= 0) of a 4x4 pose, without a newline:
+    the stamp to the nanosecond (:func:`tum_stamp`), the pose's numbers exact (``repr``)."""
     T = np.asarray(T_world_obj, dtype=np.float64)
-    vals = [float(stamp), *T[:3, 3].tolist(), *matrix_to_quat_xyzw(T[:3, :3])]
-    return " ".join(repr(v) for v in vals)
+    vals = [*T[:3, 3].tolist(), *matrix_to_quat_xyzw(T[:3, :3])]
+    return " ".join([tum_stamp(stamp), *(repr(v) for v in vals)])
 
 
 def read_frame_records(run_dir: str | os.PathLike) -> list[dict[str, Any]]:

@@ -63,6 +63,7 @@ class BagSource:
         # no camera pose from tf: the table's frame, kept while the camera stays put
         self.tracker = TableTracker(cfg.perception.table_distance)
         self.total = len(self.bag)
+        self._said_no_masks = False
 
     def frames(self, start: int = 0) -> Iterator[InputFrame]:
         """The frames from position ``start`` on (:class:`~ssp.pipeline.sources.FrameSource`);
@@ -98,11 +99,26 @@ class BagSource:
             warnings.append("the table plane moved: the world frame was fitted again")
         return T_wc
 
+    def _no_masks(self, f, warnings: list[str]) -> None:
+        """Say once per run (log and the frame's warnings, so the summary) that the bag has no
+        mask topic and the frames are segmented by clustering, much less exactly."""
+        if self._said_no_masks or f.labels is not None or self.topics.mask is not None:
+            return
+        self._said_no_masks = True
+        what = "and its clouds no label field " if f.kind == "cloud" else ""
+        warnings.append(
+            f"{self.path}: no instance mask topic {what}(give one with --topic-mask): the "
+            "frames are segmented by clustering the cloud above the table, much less exactly "
+            "than with masks"
+        )
+        log.warning("%s", warnings[-1])
+
     def _perceive(self, fs) -> tuple[PerceptionResult, list[str]]:
         f = fs.load()
         warnings = list(f.warnings)
         for w in warnings:
             log.warning("%s", w)
+        self._no_masks(f, warnings)
         hyps = None if self.mode == "estimated" else f.hypotheses
         if self.mode == "given" and hyps is None:
             topics = self.topics

@@ -44,6 +44,7 @@ from ssp.io.results import (
 __all__ = [
     "DatasetModelsError",
     "RefineSummary",
+    "check_estimates",
     "dataset_models",
     "estimate",
     "evaluate",
@@ -73,19 +74,31 @@ def refined_method(estimates_path: str | Path) -> str:
 
 @dataclass
 class RefineSummary:
-    """What :func:`refine` did: per scene its run summary (``scenes``), the gathered CSV."""
+    """What :func:`refine` did: per scene its run summary (``scenes``), the gathered CSV, and
+    the warnings about the estimates (images the dataset lacks, duplicated rows, units)."""
 
     csv: Path
     method: str
     scenes: list[dict[str, Any]] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def done(self) -> bool:
         return all(s["status"] == "finished" for s in self.scenes)
 
+    @property
+    def frames_done(self) -> int:
+        """Frames refined (over every scene; a refine where this is 0 did nothing)."""
+        return sum(int(s.get("done", 0)) for s in self.scenes)
+
+    @property
+    def frames(self) -> int:
+        return sum(int(s.get("frames", 0)) for s in self.scenes)
+
     def to_dict(self) -> dict[str, Any]:
         return {"csv": str(self.csv), "method": self.method, "done": self.done,
-                "scenes": self.scenes}  # fmt: skip
+                "frames": self.frames, "frames_done": self.frames_done,
+                "warnings": self.warnings, "scenes": self.scenes}  # fmt: skip
 
 
 def refine(
@@ -120,8 +133,13 @@ def refine(
         masks, period: as for :func:`ssp.pipeline.run.run`.
         progress: ``progress(done, total, message)`` after each frame of each scene.
 
+    The estimates' warnings (:func:`check_estimates`: scenes and images the dataset lacks;
+    the reader's: duplicated rows, metres in a BOP19 CSV) are in ``summary.warnings``. A
+    refine where no frame succeeded has ``summary.frames_done == 0``.
+
     Raises:
-        InputError: no scene, an unreadable estimates file, classes not in the library.
+        InputError: no scene, an unreadable estimates file, classes not in the library, or
+            estimates none of whose images is in the refined scenes.
         ArgumentError: bad options or output folder.
     """
     cfg = config if config is not None else SSPConfig()
@@ -181,20 +199,26 @@ def _refine_scenes(
     from ssp.pipeline.run import run  # the parser: only when refining
 
     first = open_bop(scenes[0])
-    est = None
+    est = read_estimates(estimates_path, fmt, dict(first.classes) or None, library=library,
+                         scene_id=first.scene_id)  # fmt: skip
+    summary.warnings += est.warnings
+    summary.warnings += check_estimates(est, scenes, first)
     total = len(scenes)
     for n, scene_path in enumerate(scenes):
         scene = first if n == 0 else open_bop(scene_path)
-        if est is None or est.format in ("megapose", "foundationpose"):
+        if n > 0 and est.format in ("megapose", "foundationpose"):
             # formats without scene ids name the images of the one scene they are for
             est = read_estimates(estimates_path, fmt, dict(scene.classes) or None,
                                  library=library, scene_id=scene.scene_id)  # fmt: skip
         sub = out / "scenes" / scene_path.name
         sub_resume = resume and (sub / "run.json").exists()
-        if resume and sub_resume and _finished(sub):
+        kept = _finished(sub) if resume and sub_resume else None
+        if kept is not None:
             log.info("%s: scene %s finished before; kept", out, scene_path.name)
             summary.scenes.append({"scene": scene_path.name, "status": "finished",
-                                   "out": str(sub), "input": read_run(sub)["input"]})  # fmt: skip
+                                   "out": str(sub), "input": read_run(sub)["input"],
+                                   "frames": kept.get("frames", 0), "done": kept.get("done", 0),
+                                   "failed": len(kept.get("failed", []))})  # fmt: skip
             continue
 
         def report(done: int, frames: int, message: str, n=n) -> None:
@@ -241,12 +265,74 @@ def _check_out(out: Path, resume: bool, overwrite: bool) -> None:
     raise ArgumentError(f"{out}: the output folder is not empty and holds no ssp refine")
 
 
-def _finished(sub: Path) -> bool:
-    """Whether the run in ``sub`` finished (its summary says so)."""
+def _finished(sub: Path) -> dict[str, Any] | None:
+    """The summary of the run in ``sub`` if it finished (its summary says so), else None."""
     try:
-        return json.loads((sub / "summary.json").read_text())["status"] == "finished"
-    except (OSError, ValueError, KeyError):
-        return False
+        doc = json.loads((sub / "summary.json").read_text())
+        return doc if doc["status"] == "finished" else None
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+#: Image ids shown in a warning about the images an estimates file names (the rest counted).
+_SHOWN_IMAGES = 10
+
+
+def check_estimates(est: Any, scenes: Sequence[Path], first: Any = None) -> list[str]:
+    """What an estimator's output names that the dataset lacks: scenes (BOP19, CosyPose) and
+    images of the refined ``scenes`` (every format), as warnings (also logged), so that a
+    file for another dataset, split or scene, or with other image ids, does not pass as a
+    refine with nothing in it. ``first``: ``scenes[0]`` opened, if it is.
+
+    Raises:
+        InputError: not one image of the estimates is an image of ``scenes``.
+    """
+    images = est.images()
+    if not images:
+        return []
+    per_scene = est.format in ("megapose", "foundationpose")  # read again for each scene
+    have: dict[int, set[int]] = {}
+    for n, path in enumerate(scenes):
+        scene = first if n == 0 and first is not None else open_bop(path)
+        have[scene.scene_id] = set(scene.im_ids)
+    if per_scene:
+        union = set().union(*have.values())
+        absent = [(s, im) for s, im in images if im not in union]
+    else:
+        absent = [(s, im) for s, im in images if im not in have.get(s, ())]
+    warnings = []
+    if not per_scene:
+        split = scenes[0].parent  # the scene folders beside the refined ones
+        known = {int(p.name) for p in split.iterdir() if p.is_dir() and p.name.isdigit()}
+        known |= set(have)
+        other = sorted({s for s, _ in images} - known)
+        if other:
+            warnings.append(f"{est.source}: names scenes the dataset lacks: {other}")
+        absent = [(s, im) for s, im in absent if s in have]  # other scenes are not refined
+    if absent:
+        shown = ", ".join(f"scene {s} image {im}" for s, im in absent[:_SHOWN_IMAGES])
+        more = f" and {len(absent) - _SHOWN_IMAGES} more" if len(absent) > _SHOWN_IMAGES else ""
+        warnings.append(
+            f"{est.source}: {len(absent)} of its images are not in the refined scenes (no "
+            f"such im_id): {shown}{more}"
+        )
+    matched = sum(im in have.get(s, ()) or (per_scene and im in union) for s, im in images)
+    if not matched:
+        ours = ", ".join(f"scene {s}: im_ids {_ids_text(ims)}" for s, ims in sorted(have.items()))
+        theirs = _ids_text([im for _, im in images])
+        raise InputError(
+            f"{est.source}: none of its {len(images)} images (scenes "
+            f"{sorted({s for s, _ in images})}, im_ids {theirs}) is an image of the refined "
+            f"scenes ({ours}): estimates of another dataset, split or scene?"
+        )
+    for w in warnings:
+        log.warning("%s", w)
+    return warnings
+
+
+def _ids_text(ids: Any) -> str:
+    ids = sorted(set(ids))
+    return ", ".join(map(str, ids[:5])) + (f", ... ({len(ids)})" if len(ids) > 5 else "")
 
 
 def _gather(summary: RefineSummary, out: Path) -> None:
