@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
+
+from ssp.errors import ArgumentError
 
 __all__ = ["Camera"]
 
@@ -22,10 +25,18 @@ class Camera:
     cy: float
 
     def __post_init__(self) -> None:
+        """ArgumentError (a ValueError) for a size that is not positive, a focal length that is
+        not a positive finite number, or a principal point that is not finite."""
         if int(self.width) < 1 or int(self.height) < 1:
-            raise ValueError(f"camera size must be positive, got {self.width} x {self.height}")
-        if not (self.fx > 0 and self.fy > 0):
-            raise ValueError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
+            raise ArgumentError(f"camera size must be positive, got {self.width} x {self.height}")
+        if not (0 < self.fx < math.inf and 0 < self.fy < math.inf):
+            raise ArgumentError(
+                f"focal lengths must be positive finite numbers, got fx={self.fx}, fy={self.fy}"
+            )
+        if not (math.isfinite(self.cx) and math.isfinite(self.cy)):
+            raise ArgumentError(
+                f"the principal point must be finite, got cx={self.cx}, cy={self.cy}"
+            )
 
     @classmethod
     def default(cls) -> Camera:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import difflib
 import math
+import reprlib
 from pathlib import Path
 from typing import Any, Literal
 
@@ -19,6 +20,15 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from ssp.errors import ConfigError, SSPError
+
+#: The most simulation steps (``window / physics.timestep``) of one window of the search: 50
+#: with the defaults, 150 with the reference code's windows.
+MAX_WINDOW_STEPS = 2000
+#: The most nodes a YAML file may expand to through its aliases (a config file has a few
+#: hundred): more is refused, so that an alias bomb costs nothing.
+MAX_YAML_NODES = 100_000
+#: Values echoed in a configuration error are cut to this many characters.
+MAX_ECHO = 80
 
 
 class _Section(BaseModel):
@@ -50,9 +60,13 @@ class PhysicsConfig(_Section):
     torsional_friction: float = Field(0.005, ge=0, description="Torsional friction coefficient.")
     rolling_friction: float = Field(0.0001, ge=0, description="Rolling friction coefficient.")
     table_friction: float = Field(1.0, ge=0, description="Sliding friction of the table plane.")
-    solver_iterations: int = Field(100, ge=1, description="Constraint solver iterations.")
+    solver_iterations: int = Field(
+        100, ge=1, le=10_000, description="Constraint solver iterations."
+    )
     solver_tolerance: float = Field(1e-8, gt=0, description="Constraint solver tolerance.")
-    noslip_iterations: int = Field(0, ge=0, description="Noslip solver iterations (0 = off).")
+    noslip_iterations: int = Field(
+        0, ge=0, le=10_000, description="Noslip solver iterations (0 = off)."
+    )
     sleep_disabled: bool = Field(
         True,
         description=(
@@ -703,6 +717,30 @@ class SSPConfig(_Section):
             )
         return self
 
+    @model_validator(mode="after")
+    def _windows_have_bounded_steps(self) -> SSPConfig:
+        """Every simulation window of the search is at most :data:`MAX_WINDOW_STEPS` steps of
+        ``physics.timestep`` (50 with the defaults): a tiny timestep or a huge window would
+        make a frame take unbounded time (``physics.timestep: 1e-7`` is 2.5 million steps per
+        tested candidate)."""
+        s, dt = self.search, self.physics.timestep
+        windows = (
+            ("search.settle_with_forces + search.settle_without_forces",
+             s.settle_with_forces + s.settle_without_forces),
+            ("search.initial_settle", s.initial_settle),
+            ("search.final_settle", s.final_settle),
+        )  # fmt: skip
+        for name, seconds in windows:
+            steps = seconds / dt
+            if steps > MAX_WINDOW_STEPS:
+                raise ValueError(
+                    f"physics.timestep = {dt:g} s makes the window {name} = {seconds:g} s "
+                    f"{steps:,.0f} simulation steps, more than {MAX_WINDOW_STEPS:,} (a frame "
+                    f"would take unbounded time): set physics.timestep to at least "
+                    f"{seconds / MAX_WINDOW_STEPS:.3g} s or shorten the window"
+                )
+        return self
+
     @classmethod
     def from_dict(cls, data: dict[str, Any] | None, where: str = "configuration") -> SSPConfig:
         """Validate a (possibly partial) nested dict; missing fields keep their defaults.
@@ -791,11 +829,75 @@ def config_problems(exc: ValidationError) -> list[str]:
             msg = str(err["msg"]).removeprefix("Value error, ")
             shown = got if not isinstance(got, dict) else None
             line = f"{_loc(loc)}: {msg[:1].lower()}{msg[1:]}" + (
-                f" (got {shown!r})" if shown is not None else ""
+                f" (got {_echo(shown)})" if shown is not None else ""
             )
         if line not in lines:
             lines.append(line)
     return lines
+
+
+_REPR = reprlib.Repr()
+_REPR.maxlevel, _REPR.maxlist, _REPR.maxtuple, _REPR.maxdict = 3, 8, 8, 8
+_REPR.maxstring = _REPR.maxother = MAX_ECHO
+
+
+def _echo(value: Any) -> str:
+    """``repr(value)``, cut to about :data:`MAX_ECHO` characters without building the whole
+    repr (a value shared many times over by YAML aliases would take minutes)."""
+    text = _REPR.repr(value)
+    return text if len(text) <= MAX_ECHO else text[: MAX_ECHO - 3] + "..."
+
+
+def _expanded_nodes(root: yaml.Node, limit: int) -> int:
+    """The number of nodes of the YAML tree ``root`` once its aliases are expanded (a node
+    shared ``n`` times counts ``n`` times), or ``limit + 1`` when it exceeds ``limit`` or an
+    alias refers to a node that contains it (an infinite tree). Linear in the distinct nodes."""
+
+    def children(node: yaml.Node) -> list[yaml.Node]:
+        if isinstance(node, yaml.MappingNode):
+            return [n for pair in node.value for n in pair]
+        if isinstance(node, yaml.SequenceNode):
+            return list(node.value)
+        return []
+
+    size: dict[int, int] = {}
+    path: set[int] = set()  # the nodes being counted: an ancestor seen again is a cycle
+    stack: list[tuple[yaml.Node, bool]] = [(root, False)]
+    while stack:
+        node, done = stack.pop()
+        key = id(node)
+        if done:
+            size[key] = min(limit + 1, 1 + sum(size[id(c)] for c in children(node)))
+            path.discard(key)
+            continue
+        if key in size:
+            continue
+        path.add(key)
+        stack.append((node, True))
+        for c in children(node):
+            if id(c) in path:
+                return limit + 1
+            if id(c) not in size:
+                stack.append((c, False))
+    return size[id(root)]
+
+
+def _safe_load(text: str, where: str, error: type[SSPError]) -> Any:
+    """:func:`yaml.safe_load` of ``text``, refusing a document whose aliases expand it beyond
+    :data:`MAX_YAML_NODES` nodes (before anything is built from it)."""
+    loader = yaml.SafeLoader(text)
+    try:
+        node = loader.get_single_node()
+        if node is None:
+            return None
+        if _expanded_nodes(node, MAX_YAML_NODES) > MAX_YAML_NODES:
+            raise error(
+                f"{where}: YAML aliases (*name) expand it to more than {MAX_YAML_NODES:,} "
+                "values, or refer to themselves: refused (an alias bomb?); write the values out"
+            )
+        return loader.construct_document(node)
+    finally:
+        loader.dispose()
 
 
 def read_yaml(path: Path, error: type[SSPError], what: str = "file") -> Any:
@@ -811,7 +913,9 @@ def read_yaml(path: Path, error: type[SSPError], what: str = "file") -> Any:
     except OSError as exc:
         raise error(f"cannot read {what} {path}: {exc}") from exc
     try:
-        return yaml.safe_load(text)
+        return _safe_load(text, str(path), error)
+    except RecursionError:
+        raise error(f"{path}: not valid YAML: nested too deeply to read") from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"{path}:{mark.line + 1}:{mark.column + 1}" if mark is not None else str(path)

@@ -36,6 +36,7 @@ scene folders of a dataset (or the one scene given).
 
 from __future__ import annotations
 
+import logging
 import os
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
@@ -48,12 +49,14 @@ from PIL import Image
 from ssp.camera import Camera
 from ssp.errors import ArgumentError, InputError
 from ssp.io._files import file_problem, read_json
+from ssp.perception.depth import depth_doubt
 from ssp.scene import Hypothesis
 
 __all__ = [
     "DEFAULT_PERIOD",
     "DEPTH_SCALE",
     "MASK_MODES",
+    "MAX_IMAGE_PIXELS",
     "BopFrame",
     "BopScene",
     "bop_scenes",
@@ -66,8 +69,13 @@ __all__ = [
 
 #: Depth PNG unit written by ssp, mm (0.1 mm: depths up to 6.5 m).
 DEPTH_SCALE = 0.1
+#: The most pixels of an image (depth, mask) :func:`read_png` decodes: 25 Mpx, about ten times a
+#: 4K depth sensor's; a header that claims more is refused before decoding.
+MAX_IMAGE_PIXELS = 25_000_000
 #: Seconds between consecutive ``im_id`` of a published scene (which has no stamps).
 DEFAULT_PERIOD = 1.0 / 30.0
+log = logging.getLogger(__name__)
+
 SPLITS = ("test", "val", "train", "train_pbr", "train_real", "train_synt", "test_primesense")
 
 
@@ -97,11 +105,36 @@ def read_png(path: Path) -> np.ndarray:
     if problem is not None:
         raise InputError(f"{path}: {problem}")
     try:
-        with Image.open(path) as im:
+        size = _png_size(path)
+        if size is not None:
+            _check_size(path, *size)
+        with Image.open(path) as im:  # reads the header only
+            _check_size(path, *im.size)
             im.load()
             return np.asarray(im)
-    except (OSError, ValueError, SyntaxError) as exc:  # PIL: truncated, corrupt, unknown
-        raise InputError(f"{path}: cannot read the image: {exc}") from exc
+    except (OSError, ValueError, SyntaxError, Image.DecompressionBombError) as exc:
+        if isinstance(exc, InputError):
+            raise
+        raise InputError(f"{path}: cannot read the image: {exc}") from exc  # PIL: corrupt
+
+
+def _check_size(path: Path, w: int, h: int) -> None:
+    """InputError when an image header claims more than :data:`MAX_IMAGE_PIXELS` pixels."""
+    if w * h > MAX_IMAGE_PIXELS:
+        raise InputError(
+            f"{path}: the image header says {w} x {h} pixels, more than the "
+            f"{MAX_IMAGE_PIXELS:,} ssp reads (a corrupt or hostile file?); not decoded"
+        )
+
+
+def _png_size(path: Path) -> tuple[int, int] | None:
+    """``(width, height)`` from a PNG file's IHDR chunk (its first 24 bytes), or None when
+    the file is no PNG; read before PIL opens it (PIL refuses a huge one with its own words)."""
+    with open(path, "rb") as f:
+        head = f.read(24)
+    if len(head) < 24 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+        return None
+    return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
 
 
 def is_bop_scene(path: str | os.PathLike) -> bool:
@@ -175,6 +208,9 @@ class BopFrame:
             without ``scene_gt.json``. ``visib_fract``: instance id -> visible fraction.
         hypotheses: the scene's own hypotheses (``hypotheses.json``, world frame).
         static_group: the stage of an ssp scene (0 for published scenes).
+        warnings: what is suspicious about the frame's files (an 8-bit depth image, a depth
+            scale that puts the scene at an implausible distance: said once per scene, on the
+            first frame it is seen in, and logged).
     """
 
     im_id: int
@@ -188,6 +224,7 @@ class BopFrame:
     hypotheses: list[Hypothesis]
     static_group: int = 0
     instance_is_gt: bool = False
+    warnings: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -219,6 +256,7 @@ class BopScene:
     _scene_camera: dict = field(repr=False, default_factory=dict)
     _scene_info: dict = field(repr=False, default_factory=dict)
     _hypotheses: dict = field(repr=False, default_factory=dict)
+    _depth_doubted: bool = field(repr=False, default=False)
 
     def __len__(self) -> int:
         return len(self.im_ids)
@@ -253,9 +291,14 @@ class BopScene:
             w, h = self._size
         else:
             h, w = read_png(self._depth_path(k)).shape[:2]
-        return Camera(
-            int(w), int(h), float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
-        )
+        try:
+            return Camera(
+                int(w), int(h), float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
+            )
+        except ArgumentError as exc:  # fx = 0, a NaN principal point, ...
+            raise InputError(
+                f"{self.path / 'scene_camera.json'}: im_id {self.im_ids[k]}: invalid cam_K: {exc}"
+            ) from None
 
     def T_world_cam_of(self, k: int) -> np.ndarray | None:
         """The camera pose of the ``k``-th image from ``cam_R_w2c``/``cam_t_w2c`` (m), or
@@ -319,7 +362,16 @@ class BopScene:
             gt: dict[str, tuple[str, np.ndarray]] = {}
             for j, g in enumerate(self._scene_gt.get(key, [])):
                 T_co = np.eye(4)
-                T_co[:3, :3] = np.asarray(g["cam_R_m2c"], dtype=float).reshape(3, 3)
+                try:
+                    R = np.asarray(g["cam_R_m2c"], dtype=float)
+                except (TypeError, ValueError):
+                    R = np.zeros(0)
+                if R.size != 9:
+                    raise InputError(
+                        f"{d / 'scene_gt.json'}: im_id {im}, entry {j}: cam_R_m2c must be 9 "
+                        f"numbers (3x3, row-major), got {g['cam_R_m2c']!r:.80}"
+                    )
+                T_co[:3, :3] = R.reshape(3, 3)
                 T_co[:3, 3] = np.asarray(g["cam_t_m2c"], dtype=float).reshape(3) / 1000.0
                 cls = self.classes.get(int(g["obj_id"]), f"obj_{int(g['obj_id']):06d}")
                 gt[str(g.get("inst_id", f"{cls}_{j}"))] = (cls, T_co)
@@ -331,6 +383,8 @@ class BopScene:
             }
             depth_scale = float(cam_entry.get("depth_scale", 1.0))
             hl = [self._hypothesis(h) for h in self._hypotheses.get(key, [])]
+        except InputError:
+            raise
         except (KeyError, TypeError, ValueError, IndexError) as exc:
             raise InputError(f"{d}: malformed entry of im_id {im}: {exc!r}") from exc
         if not (depth_scale > 0 and np.isfinite(depth_scale)):
@@ -349,6 +403,7 @@ class BopScene:
                 f"{self._depth_path(k)}: {depth.shape[1]} x {depth.shape[0]} "
                 f"pixels, the camera has {camera.width} x {camera.height}"
             )
+        warnings = self._doubt_depth(k, raw, depth, depth_scale, T_wc)
         instance, from_gt = (None, False)
         if masks is not None:
             instance, from_gt = self._instance(k, len(ids), depth, gt_only=masks == "gt")
@@ -364,7 +419,35 @@ class BopScene:
             hypotheses=hl,
             static_group=self.static_groups[k],
             instance_is_gt=from_gt,
+            warnings=warnings,
         )
+
+    def _doubt_depth(
+        self,
+        k: int,
+        raw: np.ndarray,
+        depth: np.ndarray,
+        depth_scale: float,
+        T_wc: np.ndarray | None,
+    ) -> list[str]:
+        """The warning (once per scene: the frames after it are not checked) when the depth
+        image of frame ``k`` is 8-bit or its depth scale puts the scene at an implausible
+        distance (:func:`ssp.perception.depth.depth_doubt`); logged."""
+        if self._depth_doubted:
+            return []
+        origin = None if T_wc is None else float(np.linalg.norm(T_wc[:3, 3]))
+        doubt = depth_doubt(
+            depth,
+            raw_dtype=raw.dtype,
+            origin_distance=origin,
+            scale_note=f" (depth_scale {depth_scale:g} mm per unit, scene_camera.json)",
+        )
+        if doubt is None:
+            return []
+        self._depth_doubted = True
+        message = f"{self._depth_path(k)}: {doubt} (said once for the scene)"
+        log.warning("%s", message)
+        return [message]
 
     def _instance(
         self, k: int, n_gt: int, depth: np.ndarray, gt_only: bool = False
@@ -379,7 +462,13 @@ class BopScene:
             for j in range(n_gt):
                 m = self.path / "mask_visib" / f"{im:06d}_{j:06d}.png"
                 if m.exists():
-                    instance[read_png(m) > 0] = j
+                    pixels = read_png(m)
+                    if pixels.shape != depth.shape:
+                        raise InputError(
+                            f"{m}: mask of shape {pixels.shape} (height, width[, channels]), "
+                            f"the depth image is {depth.shape}"
+                        )
+                    instance[pixels > 0] = j
             from_gt = True
         else:
             return None, False
@@ -394,6 +483,46 @@ class BopScene:
         T[:3, :3] = np.asarray(h["R"], dtype=float).reshape(3, 3)
         T[:3, 3] = np.asarray(h["t"], dtype=float) / 1000.0
         return Hypothesis(h.get("class") or self.classes[int(h["obj_id"])], T, float(h["score"]))
+
+
+def _scene_size(d: Path, meta: Mapping[str, Any]) -> tuple[int, int] | None:
+    """``(width, height)`` of the images of scene ``d``: its ``sequence.json``'s camera, else
+    the ``camera.json`` of the scene or its dataset, else None (the depth images' size)."""
+    if "camera" in meta:
+        return (int(meta["camera"]["width"]), int(meta["camera"]["height"]))
+    for folder in (d, dataset_root(d)):
+        if folder is not None and (folder / "camera.json").is_file():
+            return _camera_json_size(folder / "camera.json")
+    return None
+
+
+def _camera_json_size(path: Path) -> tuple[int, int]:
+    """``(width, height)`` of a dataset's ``camera.json``; InputError naming the file when
+    they are not positive integers (at most :data:`MAX_IMAGE_PIXELS` pixels) or when the
+    intrinsics it gives (``fx``, ``fy``, ``cx``, ``cy``) are not a camera's."""
+    c = load_json(path)
+    if not isinstance(c, Mapping):
+        raise InputError(f"{path}: expected an object {{width, height, fx, ...}}")
+    try:
+        w, h = c["width"], c["height"]
+    except KeyError as exc:
+        raise InputError(f"{path}: no {exc.args[0]!r}") from None
+    for name, v in (("width", w), ("height", h)):
+        if isinstance(v, bool) or not isinstance(v, int | float) or v != int(v) or v < 1:
+            raise InputError(f"{path}: {name} must be a positive number of pixels, got {v!r}")
+    if int(w) * int(h) > MAX_IMAGE_PIXELS:
+        raise InputError(
+            f"{path}: {int(w)} x {int(h)} pixels is more than the {MAX_IMAGE_PIXELS:,} ssp reads"
+        )
+    for name in ("fx", "fy", "cx", "cy"):
+        v = c.get(name)
+        if v is None:
+            continue
+        ok = isinstance(v, int | float) and not isinstance(v, bool) and np.isfinite(v)
+        if not ok or (name in ("fx", "fy") and v <= 0):
+            what = "a positive number" if name in ("fx", "fy") else "a finite number"
+            raise InputError(f"{path}: {name} must be {what} (pixels), got {v!r}")
+    return int(w), int(h)
 
 
 def _classes(d: Path) -> dict[int, str]:
@@ -465,16 +594,9 @@ def open_bop(path, library: Mapping | None = None, *, period: float = DEFAULT_PE
                 h.get("class") or int(h["obj_id"]) for v in hyps.values() for h in v
             },
         }
-        size = None
-        if "camera" in meta:
-            size = (int(meta["camera"]["width"]), int(meta["camera"]["height"]))
-        else:
-            root = dataset_root(d)
-            for folder in (d, root):
-                if folder is not None and (folder / "camera.json").is_file():
-                    c = load_json(folder / "camera.json")
-                    size = (int(c["width"]), int(c["height"]))
-                    break
+        size = _scene_size(d, meta)
+    except InputError:
+        raise
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise InputError(f"{d}: malformed scene files: {exc!r}") from exc
     if not im_ids:

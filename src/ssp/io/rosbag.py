@@ -47,7 +47,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from ssp.camera import Camera
-from ssp.errors import ArgumentError, InputError
+from ssp.errors import ArgumentError, InputError, SSPError
 from ssp.io.hypotheses import parse_hypotheses
 from ssp.scene import Hypothesis
 
@@ -599,7 +599,30 @@ class BagInput:
         self.entries = self._index[self.topics.main]
         if not self.entries:
             raise InputError(f"{path}: topic {self.topics.main} holds no message")
-        self._matches = [self._match(e) for e in self.entries]
+        self._matches = [
+            self._match(e, r) for e, r in zip(self.entries, self._ranks(), strict=True)
+        ]
+
+    def _ranks(self) -> list[int | None]:
+        """Each frame's rank among the frames of the same header stamp (0: the first in bag
+        order), None for a frame whose stamp is its own; frames sharing a stamp are warned
+        about."""
+        seen: dict[int, int] = {}
+        self._main_stamps = {e.stamp for e in self.entries}
+        ranks = []
+        for e in self.entries:
+            ranks.append(seen.get(e.stamp, 0))
+            seen[e.stamp] = ranks[-1] + 1
+        shared = {s: n for s, n in seen.items() if n > 1}
+        out = [r if e.stamp in shared else None for e, r in zip(self.entries, ranks, strict=True)]
+        if shared:
+            first = min(shared)
+            log.warning(
+                "%s: %d stamps of %s are each on several messages (%d at %s, ...): those frames "
+                "get the messages of their stamp in bag order, the k-th frame the k-th",
+                self.path, len(shared), self.topics.main, shared[first], _stamp_text(first),
+            )  # fmt: skip
+        return out
 
     def __len__(self) -> int:
         return len(self.entries)
@@ -611,8 +634,36 @@ class BagInput:
             reader.open()
         except (self._reader_err, OSError, ValueError) as exc:
             raise InputError(f"{self.path}: cannot open the bag: {exc}") from exc
-        _complete_types(reader, 2 if reader.is2 else 1)
+        except Exception as exc:  # a corrupt header or index: rosbags raises many kinds
+            raise InputError(
+                f"{self.path}: cannot open the bag (corrupt?): {type(exc).__name__}: {exc}"
+            ) from exc
+        try:
+            _complete_types(reader, 2 if reader.is2 else 1)
+        except Exception as exc:  # the bag's own message definitions are corrupt
+            reader.close()
+            raise InputError(
+                f"{self.path}: cannot read the bag's message definitions (corrupt?): "
+                f"{type(exc).__name__}: {exc}"
+            ) from exc
         return _Closing(reader)
+
+    def _messages(self, reader, conns) -> Iterator[tuple[Any, int, bytes]]:
+        """``reader.messages(connections=conns)``; any error of the bag library while
+        reading (a corrupt chunk, record length or index: OverflowError, struct.error, ...) is
+        a :class:`_BagReadError` naming the bag."""
+        try:
+            it = iter(reader.messages(connections=conns))
+        except Exception as exc:
+            raise _BagReadError(self.path, exc) from exc
+        while True:
+            try:
+                item = next(it)
+            except StopIteration:
+                return
+            except Exception as exc:
+                raise _BagReadError(self.path, exc) from exc
+            yield item
 
     def _roles(self) -> dict[str, str]:
         t = self.topics
@@ -630,10 +681,12 @@ class BagInput:
         conns = [c for c in reader.connections if c.topic in wanted]
         for topic in roles:
             self._index[topic] = []
-        for conn, bag_ns, raw in reader.messages(connections=conns):
+        for conn, bag_ns, raw in self._messages(reader, conns):
             where = f"{self.path}: {conn.topic}"
             try:
                 msg = reader.deserialize(raw, conn.msgtype)
+                if conn.topic in roles and conn.msgtype != STRING:
+                    _header_stamp(msg), _frame_id(msg.header.frame_id)  # a header to index
             except Exception as exc:  # rosbags raises several kinds on a corrupt message
                 if conn.topic in roles:
                     self._index[conn.topic].append(
@@ -651,9 +704,15 @@ class BagInput:
                     _Entry(_header_stamp(msg), _frame_id(msg.header.frame_id))
                 )
 
-    def _nearest(self, topic: str, stamp: int, tolerance: int | None) -> int | None:
+    def _nearest(
+        self, topic: str, stamp: int, tolerance: int | None, rank: int | None = None
+    ) -> int | None:
         """Position (in bag order) of the ``topic`` message whose stamp is nearest ``stamp``
-        (the earlier one of a tie), None if none lies within ``tolerance`` ns."""
+        (the earlier one of a tie), None if none lies within ``tolerance`` ns. ``rank``
+        given (the frame is the ``rank``-th of several frames of its stamp): the ``rank``-th
+        message of that nearest stamp in bag order (or the one following it in time, within
+        ``tolerance`` and not of another frame's stamp), so that each frame gets its own and
+        not the first frame's; None when there is none."""
         if topic not in self._sorted:
             stamps = np.array([e.stamp for e in self._index.get(topic) or []], dtype=np.int64)
             order = np.argsort(stamps, kind="stable")
@@ -666,17 +725,35 @@ class BagInput:
         best = min(near, key=lambda j: (abs(int(stamps[j]) - stamp), int(stamps[j])))
         if tolerance is not None and abs(int(stamps[best]) - stamp) > tolerance:
             return None
+        first = int(np.searchsorted(stamps, stamps[best]))  # the first of that stamp
+        last = int(np.searchsorted(stamps, stamps[best], side="right"))
+        if rank is not None:  # frames share the stamp: pair them in order with its messages
+            j = first + rank
+            if j >= last and not (
+                # a message stamped otherwise (a String's bag time) is the frame's when it
+                # follows, within the tolerance, and is no other frame's
+                j < len(stamps)
+                and abs(int(stamps[j]) - stamp) <= (tolerance or 0)
+                and int(stamps[j]) not in self._main_stamps
+            ):
+                return None
+            best = j
         return int(order[best])
 
-    def _match(self, e: _Entry) -> dict[str, int | None]:
+    def _match(self, e: _Entry, rank: int | None = None) -> dict[str, int | None]:
+        """The messages of the frame of ``e``, the ``rank``-th of its header stamp: frames that
+        share a stamp (a driver that stamps late, a paused clock) are paired with the messages
+        of that stamp in bag order, each its own, as they were published; a frame with no
+        message of its rank has none (a warning when it is read). The CameraInfo holds for
+        every frame: the nearest."""
         t = self.topics
         out: dict[str, int | None] = {}
         if t.camera_info is not None:
             out["camera_info"] = self._nearest(t.camera_info, e.stamp, None)
         if t.mask is not None:
-            out["mask"] = self._nearest(t.mask, e.stamp, self._tol)
+            out["mask"] = self._nearest(t.mask, e.stamp, self._tol, rank)
         if t.hypotheses is not None:
-            out["hypotheses"] = self._nearest(t.hypotheses, e.stamp, self._tol)
+            out["hypotheses"] = self._nearest(t.hypotheses, e.stamp, self._tol, rank)
         return out
 
     def frames(self, start: int = 0) -> Iterator[FrameSource]:
@@ -701,36 +778,61 @@ class BagInput:
         held: dict[tuple[str, int], tuple[str, bytes]] = {}
         count = dict.fromkeys(roles, 0)
         k = start
+        broken = ""  # why the rest of the bag could not be read
         with self._open() as reader:
             conns = [c for c in reader.connections if c.topic in roles]
-            for conn, _, raw in reader.messages(connections=conns):
-                key = (conn.topic, count[conn.topic])
-                count[conn.topic] += 1
-                if key in last_use:
-                    held[key] = (conn.msgtype, bytes(raw))
-                while k < len(need) and all(v in held for v in need[k].values()):
-                    msgs = {r: (*held[v], v[1]) for r, v in need[k].items()}
-                    yield self._source(k, msgs, reader)
-                    for v in need[k].values():
-                        if last_use.get(v) == k:
-                            held.pop(v, None)
-                    k += 1
-                if k >= len(need):
-                    return
-        for kk in range(k, len(need)):  # the bag ended early (truncated while reading)
-            e = self.entries[kk]
+            try:
+                for conn, _, raw in self._messages(reader, conns):
+                    key = (conn.topic, count[conn.topic])
+                    count[conn.topic] += 1
+                    if key in last_use:
+                        held[key] = (conn.msgtype, bytes(raw))
+                    while k < len(need) and all(v in held for v in need[k].values()):
+                        msgs = {r: (*held[v], v[1]) for r, v in need[k].items()}
+                        yield self._source(k, msgs, reader)
+                        for v in need[k].values():
+                            if last_use.get(v) == k:
+                                held.pop(v, None)
+                        k += 1
+                    if k >= len(need):
+                        return
+            except _BagReadError as exc:  # the frames from here on fail, the run goes on
+                log.warning("%s", exc)
+                broken = f" ({exc})"
+        yield from self._unread(k, broken)  # the bag ended early (truncated or corrupt)
+
+    def _unread(self, start: int, reason: str) -> Iterator[FrameSource]:
+        """The frames from ``start`` on, whose messages the bag did not give (``reason``),
+        each failing when it is loaded."""
+        for k in range(start, len(self.entries)):
+            e = self.entries[k]
 
             def missing(e=e) -> BagFrame:
-                raise InputError(f"{main} at {_stamp_text(e.stamp)}: message not found")
+                where = f"{self.topics.main} at {_stamp_text(e.stamp)}"
+                raise InputError(f"{where}: message not found{reason}")
 
-            yield FrameSource(kk, e.stamp, e.frame_id, missing)
+            yield FrameSource(k, e.stamp, e.frame_id, missing)
 
     def _source(self, k: int, raw: dict[str, tuple[str, bytes, int]], reader) -> FrameSource:
         e = self.entries[k]
         # the typestore itself, so that a frame can be decoded after the reader is closed
         ts = reader.typestore
         deser = ts.deserialize_cdr if reader.is2 else ts.deserialize_ros1
-        return FrameSource(k, e.stamp, e.frame_id, lambda: self._decode(k, raw, deser))
+        return FrameSource(k, e.stamp, e.frame_id, lambda: self._decode_checked(k, raw, deser))
+
+    def _decode_checked(self, k: int, raw: dict[str, tuple[str, bytes, int]], deser) -> BagFrame:
+        """:meth:`_decode`; a message that deserialized but lacks the fields of its type (the
+        bag's message definitions are corrupt) is an InputError naming the frame."""
+        try:
+            return self._decode(k, raw, deser)
+        except SSPError:
+            raise
+        except (AttributeError, TypeError, ValueError, OverflowError, IndexError, KeyError) as exc:
+            where = f"{self.topics.main} at {_stamp_text(self.entries[k].stamp)}"
+            raise InputError(
+                f"{where}: malformed message (do the bag's message definitions fit its data?): "
+                f"{type(exc).__name__}: {exc}"
+            ) from exc
 
     # -- decoding
     def _decode(self, k: int, raw: dict[str, tuple[str, bytes, int]], deser) -> BagFrame:
@@ -819,9 +921,11 @@ class BagInput:
         where = f"{topic} (bag time {_stamp_text(frame.stamp_ns)})"
         try:
             doc = json.loads(msg.data)
-        except ValueError as exc:
+            hf = parse_hypotheses(doc, where)
+        except RecursionError:
+            raise InputError(f"{where}: invalid JSON: nested too deeply to read") from None
+        except json.JSONDecodeError as exc:
             raise InputError(f"{where}: invalid JSON: {exc}") from None
-        hf = parse_hypotheses(doc, where)
         frame.hypotheses = [
             Hypothesis(
                 self._class(h.class_name, where),
@@ -876,6 +980,14 @@ class BagInput:
                 )
         frame.hypotheses = hyps
         frame.hypotheses_frame = "camera"
+
+
+class _BagReadError(InputError):
+    """The bag library failed while reading the messages of ``path`` (a corrupt chunk,
+    record or index)."""
+
+    def __init__(self, path: Path, exc: Exception) -> None:
+        super().__init__(f"{path}: cannot read the bag (corrupt?): {type(exc).__name__}: {exc}")
 
 
 class _Closing:

@@ -17,12 +17,17 @@ from ssp.camera import Camera
 from ssp.errors import InvalidPoseError, PerceptionError
 from ssp.geometry import transform_points, validate_pose
 
-__all__ = ["MM_DEPTH_MEDIAN", "DepthCloud", "cloud_from_depth"]
+__all__ = ["MM_DEPTH_MEDIAN", "PLAUSIBLE_DEPTH", "DepthCloud", "cloud_from_depth", "depth_doubt"]
 
 log = logging.getLogger(__name__)
 
 #: A depth image (m) whose median valid depth exceeds this is taken to be in millimetres.
 MM_DEPTH_MEDIAN = 20.0
+#: The median valid depth (m) of a plausible scene; outside, the depth scale is suspect.
+PLAUSIBLE_DEPTH = (0.1, 10.0)
+#: With a known camera pose: the median depth is within this factor of the camera's distance
+#: to the world origin (the scene's centre, on the table), else the depth scale is suspect.
+PLAUSIBLE_DEPTH_RATIO = 3.0
 
 
 @dataclass(eq=False)
@@ -84,6 +89,43 @@ def cloud_from_depth(
     if len(zs) == 0:
         log.warning("cloud_from_depth: the depth image has no valid pixel")
     return DepthCloud(points=pts, labels=labels, pixels=np.column_stack([rows, cols]))
+
+
+def depth_doubt(
+    depth: np.ndarray,
+    *,
+    raw_dtype: np.dtype | None = None,
+    origin_distance: float | None = None,
+    scale_note: str = "",
+) -> str | None:
+    """What is suspicious about a depth image ``(H, W)`` already in metres (0 = no return),
+    or None: an 8-bit raw image (``raw_dtype``: a depth sensor writes 16 bits; 8 bits hold at
+    most 255 units), a median valid depth outside :data:`PLAUSIBLE_DEPTH`, or (with
+    ``origin_distance``, the camera's distance to the world origin, m) a median depth more than
+    :data:`PLAUSIBLE_DEPTH_RATIO` times larger or smaller than it. ``scale_note`` says how the
+    depth was scaled (e.g. ``" (depth_scale 0.1 mm per unit)"``). Never raises."""
+    if raw_dtype is not None and np.dtype(raw_dtype).itemsize == 1:
+        return (
+            f"the depth image is 8-bit ({np.dtype(raw_dtype)}): depth sensors write 16-bit "
+            "images, 8 bits hold at most 255 depth units; was it converted for viewing?"
+        )
+    z = np.asarray(depth, dtype=float)
+    valid = z[np.isfinite(z) & (z > 0)]
+    if not len(valid):
+        return None
+    median = float(np.median(valid))
+    lo, hi = PLAUSIBLE_DEPTH
+    hint = f"{scale_note}: is the depth scale right?"
+    if not lo <= median <= hi:
+        return f"the median depth is {median:.3g} m, outside {lo:g}-{hi:g} m{hint}"
+    if origin_distance is not None and np.isfinite(origin_distance) and origin_distance > 0:
+        ratio = median / float(origin_distance)
+        if not 1 / PLAUSIBLE_DEPTH_RATIO <= ratio <= PLAUSIBLE_DEPTH_RATIO:
+            return (
+                f"the median depth is {median:.3g} m but the camera is {origin_distance:.3g} m "
+                f"from the scene's origin ({ratio:.2g} times){hint}"
+            )
+    return None
 
 
 def _depth_metres(depth: np.ndarray, camera: Camera, depth_scale: float | None) -> np.ndarray:

@@ -34,6 +34,16 @@ taken. What is not handled: without ``up_hint``, a wall with more inliers than t
 floor with more inliers than the table wins too; a box top whose table holds less than
 ``min_fraction`` of the cloud is taken for the table.
 
+A cloud with no table
+---------------------
+The largest plane of a cloud without a table is an object's face (or coplanar faces of
+several). :func:`table_frame` refuses it (:func:`not_a_table`: narrower than
+:data:`FACE_MAX_EXTENT` with more points behind it than in front, where a table has the
+objects in front of it) with a :class:`~ssp.errors.TableNotFoundError` that says so: the
+frame fails rather than getting a world frame, and gravity, along that face (another face
+next frame: the objects would churn). Falling back to the camera frame is no answer either:
+the physics needs to know where down is, and a guess would be as wrong, silently.
+
 Why not a library: open3d's ``segment_plane`` would pull a large binary dependency (~460 MB with
 its Python dependencies, needs glibc >= 2.35) for one function; scikit-learn's
 ``RANSACRegressor`` fits a height field ``z = f(x, y)`` (not a plane in 3-D, and fails for planes
@@ -55,11 +65,14 @@ from ssp.geometry import invert, make_pose
 from ssp.kdtree import KDTree
 
 __all__ = [
+    "FACE_BEYOND_FRACTION",
+    "FACE_MAX_EXTENT",
     "MAX_SUPPORT_STEP",
     "Plane",
     "TableTracker",
     "T_world_cam_from_plane",
     "fit_plane",
+    "not_a_table",
     "table_frame",
 ]
 
@@ -67,6 +80,11 @@ log = logging.getLogger(__name__)
 
 #: Largest height (m) of a parallel plane above the support that is taken for an object's top.
 MAX_SUPPORT_STEP = 0.35
+#: A fitted plane narrower than this (m) with more points behind it than in front is an
+#: object's face, not a table (:func:`not_a_table`).
+FACE_MAX_EXTENT = 0.5
+#: ... when at least this fraction of the cloud lies behind it.
+FACE_BEYOND_FRACTION = 0.1
 
 _SUBSET = 2000  # points every RANSAC sample is scored on
 _TOP = 5  # best samples re-scored on all points
@@ -214,9 +232,55 @@ def T_world_cam_from_plane(plane: Plane, points_cam: np.ndarray) -> np.ndarray:
 
 def table_frame(points_cam: np.ndarray, **kw) -> tuple[np.ndarray, Plane]:
     """``(T_world_cam (4, 4), plane)``: :func:`fit_plane` of a camera-frame cloud ``(N, 3)``
-    (m; keywords are passed on) and :func:`T_world_cam_from_plane`."""
+    (m; keywords are passed on) and :func:`T_world_cam_from_plane`.
+
+    Raises:
+        TableNotFoundError: no plane qualifies, or the plane found is not a support but the
+            face of an object (:func:`not_a_table`): the frame is refused rather than given a
+            world frame (and gravity) along an object's face, which would change from frame
+            to frame with the face found.
+    """
     plane = fit_plane(points_cam, **kw)
+    doubt = not_a_table(points_cam, plane, float(kw.get("distance", 0.006)))
+    if doubt is not None:
+        raise TableNotFoundError(doubt)
     return T_world_cam_from_plane(plane, points_cam), plane
+
+
+def not_a_table(points_cam: np.ndarray, plane: Plane, distance: float = 0.006) -> str | None:
+    """Why the plane fitted to a camera-frame cloud is the face of an object and not a table,
+    or None when it may be the table.
+
+    Objects stand on a table, between it and the camera; the rest of an object lies behind
+    its own face. So the plane is taken for an object's face when more of the points lie
+    beyond it (away from the camera, more than ``2 distance``) than in front of it, those are
+    at least :data:`FACE_BEYOND_FRACTION` of the cloud, and the plane is narrower than
+    :data:`FACE_MAX_EXTENT` (an object's size, not a table's; a floor seen past a wide table's
+    edge is beyond it too).
+    """
+    pts, finite = _finite_points(points_cam)
+    inl = np.asarray(plane.inliers, dtype=bool)[finite]
+    if len(pts) == 0 or np.count_nonzero(inl) < 3:
+        return None
+    n = np.asarray(plane.normal, dtype=float)
+    n, d = n / np.linalg.norm(n), float(plane.offset) / float(np.linalg.norm(n))
+    if d < 0:  # the camera (origin) on the positive side
+        n, d = -n, -d
+    sd = pts @ n + d
+    beyond = float(np.count_nonzero(sd < -2 * distance)) / len(pts)
+    front = float(np.count_nonzero(sd > 2 * distance)) / len(pts)
+    _, _, extent = _inlier_fit(pts, inl)
+    if beyond > front and beyond >= FACE_BEYOND_FRACTION and extent < FACE_MAX_EXTENT:
+        return (
+            f"no table: the plane found ({np.count_nonzero(inl)} points, "
+            f"{100 * np.count_nonzero(inl) / len(pts):.0f} % of the cloud, {extent:.2f} m wide) "
+            f"has {100 * beyond:.0f} % of the points behind it and {100 * front:.0f} % in front "
+            "of it: it is the face of an object, not a table the objects stand on; without a "
+            "table ssp cannot tell where gravity points: give the camera pose (scene.json "
+            "T_world_cam, a BOP scene's cam_R_w2c/cam_t_w2c, a bag's --world-frame) or a cloud "
+            "that shows the table"
+        )
+    return None
 
 
 # ------------------------------------------------------------------------------------------

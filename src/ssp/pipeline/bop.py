@@ -118,6 +118,7 @@ class BopSource:
         warnings: list[str] = []
         hyps, hyp_frame = self._hypotheses(k, warnings)
         sf = self.scene.load(k, masks=self.use_masks)
+        warnings.extend(sf.warnings)  # a suspicious depth image (once per scene)
         if (
             hyps is None
             and self.mode != "estimated"
