@@ -214,3 +214,28 @@ def test_two_processes_estimate_the_same_hypotheses_as_one():
         assert a.class_name == b.class_name and a.segment == b.segment and a.score == b.score
         np.testing.assert_array_equal(a.T_world_obj, b.T_world_obj)
     assert LANES_STAGE not in one.timings and two.timings[LANES_STAGE] > 0.0
+
+
+def test_the_clis_live_displays_run_no_thread(monkeypatch):
+    """On a terminal the CLI's progress bar and status spinner are redrawn by the calling
+    thread, so a run's process stays single-threaded and the search can fork its lanes."""
+    import io
+    import threading
+
+    from ssp.cli import common
+
+    def terminal():
+        return common._Console(file=io.StringIO(), force_terminal=True, force_interactive=True)
+
+    monkeypatch.setattr(common, "err_console", terminal())
+    before = threading.active_count()
+    with common.progress_bar() as bar:
+        task = bar.add_task("frames", total=3)
+        for _ in range(3):
+            bar.advance(task)
+            assert threading.active_count() == before
+    status_console = terminal()
+    with status_console.status("timing") as status:
+        status.update("still timing")
+        assert threading.active_count() == before
+    assert "still timing" in status_console.file.getvalue()

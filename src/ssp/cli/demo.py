@@ -29,7 +29,7 @@ def demo(
         return
     from ssp.eval.sequence_demo import run_sequence_demo
 
-    with console.status("ssp demo") as status:
+    with console.status("ssp demo") as status:  # a line per frame in a log (PlainStatus)
         result = run_sequence_demo(out, load_config(config), progress=status.update)
     print_table1(result)
     console.print(f"{result['seconds']:.0f} s; open [bold]{Path(out) / 'report.html'}[/]")

@@ -24,6 +24,7 @@ from ssp.cli.common import (
     get_parallel,
     load_config,
     load_library,
+    print_warnings,
     progress_bar,
     restore_signals,
     stop_on_sigterm,
@@ -36,11 +37,11 @@ if TYPE_CHECKING:
 __all__ = ["run_cmd"]
 
 
-def _bag_option(name: str, what: str):
+def _bag_option(name: str, what: str, default: str = "detected"):
     return typer.Option(
         None,
         name,
-        help=f"ROS bag input: the {what} (default: detected).",
+        help=f"ROS bag input: the {what} (default: {default}).",
         show_default=False,
         rich_help_panel="ROS bag input",
     )
@@ -105,10 +106,14 @@ TopicHypothesesOption = _bag_option(
     "--topic-hypotheses", "Detection3DArray (or JSON String) topic of the hypotheses"
 )
 WorldFrameOption = _bag_option(
-    "--world-frame", "tf frame of the world (z up, table top at z = 0) for the camera pose"
+    "--world-frame",
+    "tf frame of the world (z up, table top at z = 0) for the camera pose",
+    "none: the table plane, fitted to the frames",
 )
 ClassMapOption = _bag_option(
-    "--class-map", "detection class id -> class: ID=CLASS,... or a JSON/YAML file"
+    "--class-map",
+    "detection class id -> class: ID=CLASS,... or a JSON/YAML file",
+    "none: the class ids are the class names",
 )
 MasksOption = typer.Option(
     None,
@@ -206,9 +211,15 @@ def run_cmd(
     summary = _run_one(opts, lib, out, cfg, resume=resume is not None, overwrite=overwrite,
                        bag_opts=bag_opts, results_bag=results_bag, record=record)  # fmt: skip
     _print_run(summary, opts.input)
-    if record is not None:
-        console.print(f"wrote [bold]{record}[/]; view it with: ssp view {record}")
+    if record is not None:  # a resume records into a new file next to the earlier one
+        rrd = next((f for f in summary.files if Path(f).parent == record.parent
+                    and Path(f).name.startswith(record.stem)), record)  # fmt: skip
+        console.print(f"view the recording with: ssp view {rrd}")
     if not summary.done:
+        err_console.print(
+            f"[bold red]no frame succeeded[/] (0 of {summary.frames} frames done): see the "
+            "errors above"
+        )
         raise typer.Exit(1)
 
 
@@ -314,7 +325,7 @@ def _run_one(
 
             def report(done: int, total: int, message: str) -> None:
                 frames_done[0] = done
-                progress.update(task, completed=done, total=total, description=message[:60])
+                progress.update(task, completed=done, total=total, description=message)
                 stopped()
 
             summary = run(
@@ -373,8 +384,7 @@ def _print_run(summary, input_path: Path) -> None:
         bug = f"failed ({f['error_type']}, a bug: please report it)"
         tag = bug if f["unexpected"] else "skipped"
         console.print(f"[red]{tag}[/] {f['frame']}: {escape(f['error'])}", highlight=False)
-    for w in summary.warnings:
-        console.print(f"[yellow]warning[/] {w['frame']}: {escape(w['warning'])}", highlight=False)
+    print_warnings(((w["frame"], w["warning"]) for w in summary.warnings), full="summary.json")
     if info["unexpected_errors"]:
         console.print(
             f"[bold red]{info['unexpected_errors']} frames failed with unexpected errors[/] "
@@ -424,7 +434,9 @@ def _run_many(
                 load_config(config),
                 parallel=parallel,
                 overwrite=overwrite,
-                progress=lambda done, total, name: progress.update(task, completed=done),
+                progress=lambda done, total, name: progress.update(
+                    task, completed=done, description=str(name)
+                ),
                 hypotheses=hypotheses,
                 classes=classes,
                 method=method,

@@ -54,7 +54,9 @@ def run_sequence_demo(
     record: bool = True,
 ) -> dict:
     """Run the demo; returns the Table I result dict plus ``files``, ``seconds`` and
-    ``recording`` (the path of ``run.rrd``, or None: ``record`` off or rerun not installed)."""
+    ``recording`` (the path of ``run.rrd``, or None: ``record`` off or rerun not installed).
+    ``progress(message)``: what it is doing, and after ssp's update of each frame
+    ``frame N/TOTAL: ssp kept K objects (S s)``."""
     t0 = time.perf_counter()
     config = config if config is not None else SSPConfig()
     lib = ObjectLibrary.builtin(config.library)
@@ -69,10 +71,17 @@ def run_sequence_demo(
         if i + 1 == len(seq.frames) or seq.frames[i + 1].static_group != f.static_group
     }
     outputs: dict[int, dict[str, list]] = {}
+    started = [time.perf_counter()]
+
+    def frame_started(_message: str) -> None:  # run_table1's, before each frame
+        started[0] = time.perf_counter()
 
     def keep(_s: int, i: int, method: str, dets) -> None:
         if i in last_of_stage and method in DRAWN:
             outputs.setdefault(i, {})[method] = [(d[0], d[1]) for d in dets]
+        if method == "ssp" and progress is not None:
+            seconds = time.perf_counter() - started[0]
+            progress(f"frame {i + 1}/{len(seq)}: ssp kept {len(dets)} objects ({seconds:.2f} s)")
 
     out = Path(out)
     with ExitStack() as stack:
@@ -90,8 +99,11 @@ def run_sequence_demo(
                 last[0] = est
 
         result = run_table1(
-            [seq], lib, config, METHODS, progress=progress, on_output=keep, on_estimate=on_estimate
-        )
+            [seq], lib, config, METHODS, progress=frame_started, on_output=keep,
+            on_estimate=on_estimate,
+        )  # fmt: skip
+    if progress:
+        progress("writing the report")
     files = write_table1(result, out)
     frames = []
     for i in sorted(outputs):

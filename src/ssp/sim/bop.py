@@ -3,9 +3,11 @@
 :func:`simulate_to_disk` writes a BOP dataset as the toolkit publishes it
 (``docs/bop_datasets_format.md``; read by :mod:`ssp.io.bop`, which reads published datasets
 too): ``DATASET/camera.json``, ``DATASET/models/`` (``obj_XXXXXX.ply`` in mm and
-``models_info.json`` with the symmetries, :func:`write_bop_models`), ``DATASET/models.json``
-(ssp: obj_id -> class) and one scene per sequence in ``DATASET/test/<scene_id:06d>/``.
-One sequence is one BOP scene folder:
+``models_info.json`` with the symmetries, :func:`write_bop_models`), ``DATASET/models_eval/``
+(the same files: the meshes are already the exact models the toolkit evaluates with),
+``DATASET/test_targets_bop19.json`` (the BOP19 test targets, :func:`bop_targets`),
+``DATASET/models.json`` (ssp: obj_id -> class) and one scene per sequence in
+``DATASET/test/<scene_id:06d>/``. One sequence is one BOP scene folder:
 
 ``scene_gt.json``
     ``{im_id: [{obj_id, cam_R_m2c (9 floats, row-major), cam_t_m2c (mm), inst_id}]}``, the
@@ -22,6 +24,10 @@ One sequence is one BOP scene folder:
     intrinsics of the images: ``width, height, fx, fy, cx, cy, depth_scale``.
 ``depth/000000.png``
     16-bit depth in units of ``depth_scale`` mm (``DEPTH_SCALE`` = 0.1: 0.1 mm units), 0 = none.
+``rgb/000000.png``
+    8-bit RGB image of the same size: not a rendering of colour but each class's flat colour
+    (:data:`CLASS_COLORS`, the table grey) shaded from the depth image's normals
+    (:func:`ssp.sim.render.shade`): no texture, so a stand-in for RGB estimators' input.
 ``mask_visib/000000_000000.png``
     8-bit visible mask (255) of the ``k``-th object of ``scene_gt`` in frame ``im_id``.
 ``instance/000000.png``
@@ -65,11 +71,13 @@ from ssp.io.bop import DEPTH_SCALE, BopScene, load_json
 from ssp.io.bop import open_bop as _open
 from ssp.sim.generate import generate_sequence
 from ssp.sim.hypotheses import HypothesisNoise
+from ssp.sim.render import TABLE, shade
 from ssp.sim.sequence import SimFrame, SimSequence
 
 __all__ = [
     "DEPTH_SCALE",
     "BopScene",
+    "bop_targets",
     "open_bop",
     "read_bop",
     "sim_frame",
@@ -95,13 +103,40 @@ def _bbox(mask: np.ndarray) -> list[int]:
     return [x0, y0, int(xs.max()) - x0 + 1, int(ys.max()) - y0 + 1]
 
 
+#: Colours of the classes in ``rgb/`` (by ``obj_id``, cycling), of the table, and of the
+#: distractors (objects not in the library).
+CLASS_COLORS = (
+    (0.85, 0.33, 0.10),
+    (0.00, 0.45, 0.74),
+    (0.93, 0.69, 0.13),
+    (0.47, 0.67, 0.19),
+    (0.49, 0.18, 0.56),
+    (0.30, 0.75, 0.93),
+    (0.64, 0.08, 0.18),
+    (0.95, 0.50, 0.70),
+)
+TABLE_COLOR = (0.72, 0.70, 0.66)
+DISTRACTOR_COLOR = (0.45, 0.42, 0.40)
+
+
+def _rgb(frame: SimFrame, camera, obj_id: Mapping[str, int]) -> np.ndarray:
+    """The ``rgb/`` image of a frame (:func:`ssp.sim.render.shade`): each class its colour,
+    the table grey, shaded from the frame's depth."""
+    colors = {TABLE: TABLE_COLOR}
+    for k, (cls, _) in enumerate(frame.gt.values()):
+        colors[k] = CLASS_COLORS[(obj_id[cls] - 1) % len(CLASS_COLORS)]
+    for k in range(len(frame.gt), len(frame.gt) + len(frame.distractors)):
+        colors[k] = DISTRACTOR_COLOR
+    return shade(frame.depth, frame.instance, camera, colors)
+
+
 def write_bop(seq: SimSequence, out_dir, scene_id: int = 1) -> Path:
     """Write ``seq`` as a BOP scene folder ``out_dir`` (created; files overwritten).
 
     Returns the folder path.
     """
     out = Path(out_dir)
-    for sub in ("depth", "mask_visib", "instance"):
+    for sub in ("depth", "mask_visib", "instance", "rgb"):
         (out / sub).mkdir(parents=True, exist_ok=True)
     info = dict(seq.info)
     sources = info.pop("hypothesis_sources", None)
@@ -176,6 +211,7 @@ def write_bop(seq: SimSequence, out_dir, scene_id: int = 1) -> Path:
             raise ValueError(f"frame {f.index}: depth beyond {65535 * DEPTH_SCALE / 1000} m")
         _png(out / "depth" / f"{f.index:06d}.png", np.where(depth > 0, units, 0).astype(np.uint16))
         _png(out / "instance" / f"{f.index:06d}.png", (inst.astype(np.int32) + 2).astype(np.uint16))
+        _png(out / "rgb" / f"{f.index:06d}.png", _rgb(f, cam, obj_id))
 
     write_json(out / "scene_gt.json", scene_gt)
     write_json(out / "scene_camera.json", scene_camera)
@@ -328,6 +364,41 @@ def write_bop_models(library: Mapping, classes, out_dir) -> Path:
     return out
 
 
+#: Ground-truth instances less visible than this are not test targets (BOP19; the same
+#: threshold as :data:`ssp.eval.bop_metrics.MIN_VISIB`).
+TARGET_MIN_VISIB = 0.1
+#: The dataset's list of test targets, as the BOP toolkit's evaluation reads it.
+TARGETS_JSON = "test_targets_bop19.json"
+
+
+def bop_targets(scene_dir, scene_id: int) -> list[dict]:
+    """The BOP19 test targets of a scene folder: per image and ``obj_id``, ``inst_count``
+    ground-truth instances at least :data:`TARGET_MIN_VISIB` visible (``scene_gt_info.json``),
+    as ``{scene_id, im_id, obj_id, inst_count}`` sorted by ``im_id`` and ``obj_id``."""
+    info = load_json(Path(scene_dir) / "scene_gt_info.json")
+    targets = []
+    for im in sorted(info, key=int):
+        counts: dict[int, int] = {}
+        for entry in info[im]:
+            if entry["visib_fract"] >= TARGET_MIN_VISIB:
+                counts[int(entry["obj_id"])] = counts.get(int(entry["obj_id"]), 0) + 1
+        targets += [
+            {"scene_id": int(scene_id), "im_id": int(im), "obj_id": o, "inst_count": n}
+            for o, n in sorted(counts.items())
+        ]
+    return targets
+
+
+def _copy_models(src: Path, dst: Path) -> None:
+    """``models_eval/``: the files of ``models/`` (the meshes are already the exact models)."""
+    import shutil
+
+    dst.mkdir(parents=True, exist_ok=True)
+    for f in sorted(src.iterdir()):
+        if f.is_file():
+            shutil.copyfile(f, dst / f.name)
+
+
 #: ``progress(done, total, path)``: called after each sequence is written.
 Progress = Callable[[int, int, Path], None]
 
@@ -365,7 +436,9 @@ def simulate_to_disk(
     Returns:
         The scene folders ``out_dir/<experiment>/test/<i:06d>``, in order. Sequences are
         generated and written one at a time. ``out_dir/<experiment>`` is a BOP dataset as the
-        toolkit publishes it (module docstring): ``camera.json``, ``models/`` and ``test/``.
+        toolkit publishes it (module docstring): ``camera.json``, ``models/``,
+        ``models_eval/``, ``test_targets_bop19.json`` (rewritten after each scene) and
+        ``test/``.
     """
     if library is None:
         from ssp.library import ObjectLibrary
@@ -375,6 +448,7 @@ def simulate_to_disk(
         )
     root = Path(out_dir) / experiment
     paths = []
+    targets: list[dict] = []
     classes: list[str] | None = None
     for i in range(int(sequences)):
         t0 = time.perf_counter()
@@ -394,8 +468,11 @@ def simulate_to_disk(
             classes = [c for _, c in sorted(load_json(p / "models.json")["obj_ids"].items(),
                                             key=lambda kv: int(kv[0]))]  # fmt: skip
             write_bop_models(library, classes, root / "models")
+            _copy_models(root / "models", root / "models_eval")
             write_json(root / "models.json", load_json(p / "models.json"))
             write_json(root / "camera.json", load_json(p / "camera.json"))
+        targets += bop_targets(p, i)
+        write_json(root / TARGETS_JSON, targets)  # every scene written so far
         paths.append(p)
         if progress is not None:
             progress(i + 1, int(sequences), p)

@@ -20,6 +20,10 @@ Lateral (x-y) noise, the growth of noise at grazing incidence, shadows of the pr
 baseline (a real structured-light sensor sees no depth where the projector is occluded),
 dark, specular or transparent surfaces, multipath, spatially correlated noise, rolling shutter,
 lens distortion, and anti-aliasing (each pixel is one ray, so silhouettes are hard edges).
+
+Colour (:func:`shade`) is not rendered by ray casting: it is a flat colour per object shaded
+from the normals of the (noisy) depth image, a stand-in for a camera's RGB image with no
+texture, material, shadow or light of a real scene.
 """
 
 from __future__ import annotations
@@ -44,6 +48,7 @@ __all__ = [
     "image_window",
     "look_at",
     "render",
+    "shade",
 ]
 
 #: Instance value of a pixel that sees the table top.
@@ -354,3 +359,91 @@ def cloud(
         if camera != result.camera:
             raise ValueError("cloud: camera differs from the one the result was rendered with")
     return result.points_world(depth=depth), result.labels(depth=depth)
+
+
+#: Colours of :func:`shade`: RGB in 0..1.
+RGB = tuple[float, float, float]
+
+
+def _smooth_per_label(depth: np.ndarray, labels: np.ndarray, size: int) -> np.ndarray:
+    """``depth`` averaged over a ``size`` x ``size`` window, among the valid pixels of the same
+    label only (an object's depth is never mixed with the table's behind it)."""
+    from scipy.ndimage import uniform_filter
+
+    out = np.zeros_like(depth)
+    valid = depth > 0
+    for lab in np.unique(labels[valid]):
+        m = valid & (labels == lab)
+        rows, cols = np.flatnonzero(m.any(axis=1)), np.flatnonzero(m.any(axis=0))
+        box = np.s_[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]  # the label's pixels
+        mb = m[box]
+        s = uniform_filter(np.where(mb, depth[box], 0.0), size=size, mode="constant")
+        c = uniform_filter(mb.astype(float), size=size, mode="constant")
+        out[box][mb] = s[mb] / c[mb]
+    return out
+
+
+def shade(
+    depth: np.ndarray,
+    instance: np.ndarray,
+    camera: Camera,
+    colors: dict[int, RGB],
+    *,
+    background: RGB = (0.0, 0.0, 0.0),
+    ambient: float = 0.3,
+    smooth: int = 5,
+) -> np.ndarray:
+    """A colour image ``(H, W, 3)`` uint8 of a depth image: each pixel the flat colour of what
+    it sees, Lambertian-shaded by a light at the camera.
+
+    Args:
+        depth: ``(H, W)`` depth, m (0: no depth), e.g. with sensor noise.
+        instance: ``(H, W)`` instance value of each pixel (as :class:`RenderResult`).
+        camera: the intrinsics of ``depth``.
+        colors: instance value -> RGB (0..1); values not in it are ``background``.
+        background: colour of the pixels that see nothing (:data:`NO_HIT`) or an unknown value.
+        ambient: the brightness of a surface seen edge-on (1: no shading).
+        smooth: window (pixels) the depth is averaged over, per instance, before the normals
+            are taken (the normals of single noisy pixels are noise).
+
+    The normal of a pixel is that of its neighbours' back-projected points (central
+    differences of the smoothed depth); the brightness is ``ambient + (1 - ambient) |n . l|``
+    with ``l`` the direction to the camera. A pixel whose normal is unknown (no depth, or a
+    neighbour of another instance or without depth) gets ``|n . l| = 0.7``. Deterministic;
+    no texture, shadows, reflections or lens effects.
+    """
+    depth = np.asarray(depth, dtype=float)
+    instance = np.asarray(instance)
+    if depth.shape != instance.shape or depth.shape != camera.shape:
+        raise ValueError(
+            f"shade: depth {depth.shape}, instance {instance.shape} and camera {camera.shape} "
+            "differ in shape"
+        )
+    H, W = depth.shape
+    base = np.empty((H, W, 3))
+    base[:] = background
+    colored = np.zeros((H, W), dtype=bool)
+    for value, rgb in colors.items():
+        m = instance == value
+        base[m] = rgb
+        colored |= m
+    z = _smooth_per_label(depth, instance, max(1, int(smooth)))
+    P = camera.backproject(z)
+    cos = np.full((H, W), 0.7)
+    ok = z > 0
+    same = ok[1:-1, 1:-1].copy()
+    for a, b in ((np.s_[1:-1, 2:], np.s_[1:-1, :-2]), (np.s_[2:, 1:-1], np.s_[:-2, 1:-1])):
+        same &= ok[a] & ok[b] & (instance[a] == instance[1:-1, 1:-1])
+        same &= instance[b] == instance[1:-1, 1:-1]
+    du = P[1:-1, 2:] - P[1:-1, :-2]
+    dv = P[2:, 1:-1] - P[:-2, 1:-1]
+    n = np.cross(dv, du)
+    p = P[1:-1, 1:-1]
+    norm = np.linalg.norm(n, axis=-1) * np.linalg.norm(p, axis=-1)
+    same &= norm > 0
+    c = np.abs(np.einsum("ijk,ijk->ij", n, p)) / np.where(same, norm, 1.0)
+    inner = cos[1:-1, 1:-1]
+    inner[same] = c[same]
+    light = ambient + (1.0 - ambient) * np.clip(cos, 0.0, 1.0)
+    light[~colored] = 1.0  # the background is not lit
+    return np.round(np.clip(base * light[..., None], 0.0, 1.0) * 255.0).astype(np.uint8)
