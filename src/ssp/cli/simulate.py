@@ -39,7 +39,8 @@ def simulate(
     config: Path | None = ConfigOption,
     cache: Path | None = CacheOption,
 ) -> None:
-    """Write synthetic sequences (depth, masks, ground truth, hypotheses) in BOP layout."""
+    """Write synthetic sequences (depth, shaded rgb, masks, ground truth, test targets,
+    hypotheses) in BOP layout."""
     from ssp.sim.bop import simulate_to_disk
 
     experiment = check_experiment(experiment)
