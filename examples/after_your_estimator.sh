@@ -36,3 +36,28 @@ $SSP refine pub/structure --hypotheses est_structure-test.csv --out out-pub --ov
 $SSP refine pub/structure --hypotheses est_structure-test.csv --out out-pubgt --masks gt --overwrite
 $SSP evaluate pub/structure est_structure-test.csv out-pub/est-ssp_structure-test.csv \
   out-pubgt/est-ssp_structure-test.csv --out ar-pub.json
+# the figures the docs quote, in one file: copy it to docs/results/after-your-estimator.json
+# (tests/test_docs_numbers.py checks that README.md and docs/after-your-estimator.md say them)
+python3 - <<'PY'
+import json
+from pathlib import Path
+
+
+def row(result: dict) -> dict:
+    return {k: round(result[k], 3) for k in ("AR", "AR_VSD", "AR_MSSD", "AR_MSPD")}
+
+
+out = {}
+for exp in ("structure", "isolated"):
+    ar = json.loads(Path(f"ar-{exp}.json").read_text())
+    est, ssp = ar[f"est_{exp}-test.csv"], ar[f"est-ssp_{exp}-test.csv"]
+    out[exp] = {"targets": est["targets"], "estimator": row(est), "ssp": row(ssp)}
+pub = json.loads(Path("ar-pub.json").read_text())
+out["published"] = {
+    "estimator": row(pub["est_structure-test.csv"]),
+    "no_masks": row(pub["out-pub/est-ssp_structure-test.csv"]),
+    "gt_masks": row(pub["out-pubgt/est-ssp_structure-test.csv"]),
+}
+Path("after-your-estimator.json").write_text(json.dumps(out, indent=2) + "\n")
+print(json.dumps(out, indent=2))
+PY
