@@ -44,7 +44,7 @@ from ssp.io.hypotheses import write_hypotheses
 from ssp.parser import SceneEstimate, SceneParser, parse_sequence
 from ssp.perception import segmentation
 from ssp.pipeline.run import run
-from ssp.pipeline.summary import TIMING_KEYS
+from ssp.pipeline.summary import without_timings
 from ssp.scene import Frame, FrameError
 from ssp.sim.bop import simulate_to_disk
 from ssp.sim.generate import generate_sequence
@@ -102,12 +102,8 @@ def folder_ref(lib, folder, tmp_path_factory):
 
 
 def _strip(obj, drop=()):
-    """``obj`` without wall times (:data:`TIMING_KEYS`) and ``drop`` keys, at every level."""
-    if isinstance(obj, dict):
-        return {k: _strip(v, drop) for k, v in obj.items() if k not in TIMING_KEYS + drop}
-    if isinstance(obj, list):
-        return [_strip(v, drop) for v in obj]
-    return obj
+    """``obj`` without wall times and ``drop`` keys, at every level."""
+    return without_timings(obj, tuple(drop))
 
 
 def _error_class(name: str) -> type:

@@ -36,7 +36,7 @@ from ssp.io._files import atomic_write_text, write_json
 from ssp.io.clouds import write_cloud
 from ssp.pipeline.executor import ItemFailure, Parallel, map_items
 from ssp.pipeline.run import run
-from ssp.pipeline.summary import TIMING_KEYS
+from ssp.pipeline.summary import without_timings
 from ssp.sim.bop import simulate_to_disk
 
 FRAMES = 4
@@ -69,11 +69,7 @@ def long_scene(lib, tmp_path_factory):
 
 
 def _strip(obj):
-    if isinstance(obj, dict):
-        return {k: _strip(v) for k, v in obj.items() if k not in TIMING_KEYS + ("files",)}
-    if isinstance(obj, list):
-        return [_strip(v) for v in obj]
-    return obj
+    return without_timings(obj, ("files",))
 
 
 def _load(p: Path):

@@ -19,7 +19,7 @@ from ssp.errors import ArgumentError
 from ssp.eval import tower
 from ssp.eval.table1 import SequenceSpec, run_table1
 from ssp.pipeline.executor import ItemError, ItemFailure, Parallel, map_items
-from ssp.pipeline.summary import TIMING_KEYS
+from ssp.pipeline.summary import without_timings
 
 SERIAL = Parallel()
 PROCESSES = Parallel("processes", 2)
@@ -123,11 +123,7 @@ def test_tower_is_the_serial_one_in_parallel(lib, ray_cluster):
 
 # ------------------------------------------------------------------------------ ssp run
 def _strip(obj):
-    if isinstance(obj, dict):
-        return {k: _strip(v) for k, v in obj.items() if k not in TIMING_KEYS + ("files",)}
-    if isinstance(obj, list):
-        return [_strip(v) for v in obj]
-    return obj
+    return without_timings(obj, ("files",))
 
 
 def _results(out: Path) -> dict:

@@ -26,7 +26,7 @@ from ssp.config import SSPConfig
 from ssp.errors import ArgumentError
 from ssp.io.results import BopCsvWriter
 from ssp.pipeline.run import run
-from ssp.pipeline.summary import TIMING_KEYS
+from ssp.pipeline.summary import without_timings
 from ssp.sim.bop import simulate_to_disk
 
 FRAMES = 10
@@ -52,11 +52,7 @@ def reference(lib, scene, tmp_path_factory):
 
 
 def _strip(obj):
-    if isinstance(obj, dict):
-        return {k: _strip(v) for k, v in obj.items() if k not in TIMING_KEYS + ("files",)}
-    if isinstance(obj, list):
-        return [_strip(v) for v in obj]
-    return obj
+    return without_timings(obj, ("files",))
 
 
 def _rows(out: Path) -> list[str]:

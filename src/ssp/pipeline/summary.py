@@ -11,11 +11,22 @@ import numpy as np
 
 from ssp.io._files import to_jsonable
 
-__all__ = ["TIMING_KEYS", "RunSummary"]
+__all__ = ["TIMING_KEYS", "RunSummary", "without_timings"]
 
 #: Keys holding wall times, in frame JSONs (also under ``perception``) and summary records:
 #: the only values that differ between two runs of one input (or a run and its resume).
 TIMING_KEYS = ("seconds", "timings", "perception_s", "parser_s", "sec_per_frame")
+
+
+def without_timings(obj: Any, drop: tuple[str, ...] = ()) -> Any:
+    """``obj`` (JSON-like: dicts, lists, values) without its wall times (:data:`TIMING_KEYS`)
+    and the keys in ``drop``, at every level: what two runs of one input, or a run and its
+    resume, must agree on."""
+    if isinstance(obj, dict):
+        return {k: without_timings(v, drop) for k, v in obj.items() if k not in TIMING_KEYS + drop}
+    if isinstance(obj, list):
+        return [without_timings(v, drop) for v in obj]
+    return obj
 
 
 @dataclass
