@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -131,3 +132,103 @@ def test_models_show_lists_detected_symmetries(tmp_path):
     det = info["detected_symmetries"]
     assert det["discrete_symmetries"] == 6 and det["axes"][0]["order"] == 6
     assert info["discrete_symmetries"] == 1  # listed, not used (no opt-in)
+
+
+LMO = Path(__file__).parents[1] / ".." / "shared" / "data" / "lmo-megapose"
+
+
+def _bop_turn(deg: float, axis=(0, 0, 1), offset_mm=(10.0, -20.0, 0.0)) -> list[float]:
+    """A models_info ``symmetries_discrete`` entry (mm): ``deg`` about ``axis`` through
+    ``offset_mm``, written with six decimals as BOP publishes them."""
+    T = sym.rotation_transform(axis, deg, offset_mm)
+    return [round(float(x), 6) for x in T.ravel()]
+
+
+@pytest.mark.parametrize("deg", [179.81, 178.47, 181.2])
+def test_published_near_half_turns_snap_to_the_half_turn_with_a_warning(deg, caplog):
+    """LM-O's eggbox (179.81 deg) and glue (178.47 deg) stopped ssp refine (issue 30)."""
+    info = {"diameter": 100.0, "symmetries_discrete": [_bop_turn(deg)]}
+    with caplog.at_level("WARNING", logger="ssp.library.symmetry"):
+        s = Symmetry.from_bop(info, scale=1e-3, name="models_info.json: obj_id 10")
+    assert len(s.discrete) == 2 and not s.approximate
+    half = sym.rotation_transform([0, 0, 1], 180, [0.010, -0.020, 0.0])
+    assert np.allclose(s.discrete[1], half, atol=1e-9)  # the exact element, same axis line
+    said = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    shown = min(deg, 360 - deg)  # 181.2 about z is 178.8 about -z
+    assert len(said) == 1 and "obj_id 10" in said[0] and f"{shown:.2f} deg" in said[0]
+    assert "half turn" in said[0]
+
+
+def test_near_quarter_turn_snaps_and_rounding_is_silent(caplog):
+    with caplog.at_level("WARNING", logger="ssp.library.symmetry"):
+        four = Symmetry.from_bop({"symmetries_discrete": [_bop_turn(90.6)]}, scale=1e-3)
+        assert len(four.discrete) == 4
+        assert any("90.60 deg" in r.getMessage() for r in caplog.records)
+        caplog.clear()
+        # 60 degrees with six digits (0.866025): rounding, an exact group without a word
+        six = Symmetry.from_bop({"symmetries_discrete": [_bop_turn(60.0)]}, scale=1e-3)
+    assert len(six.discrete) == 6 and not caplog.records
+
+
+@pytest.mark.parametrize("deg", [172.3456, 37.1234, 100.1234])
+def test_turns_far_from_every_finite_group_are_still_errors(deg):
+    with pytest.raises(ModelError, match=rf"obj_id 3: discrete symmetry 1 turns by {deg:.2f}.*"
+                       "finite group"):  # fmt: skip
+        Symmetry.from_bop({"symmetries_discrete": [_bop_turn(deg)]}, 1e-3, name="obj_id 3")
+
+
+def test_screw_and_reflection_are_errors():
+    screw = np.array(_bop_turn(180.0)).reshape(4, 4)
+    screw[2, 3] = 30.0  # 30 mm along the axis: a screw motion
+    with pytest.raises(ModelError, match="screw motion"):
+        Symmetry.from_bop({"diameter": 100.0, "symmetries_discrete": [screw.ravel().tolist()]})
+    mirror = np.diag([1.0, 1.0, -1.0, 1.0])
+    with pytest.raises(ModelError, match="not a rigid transform"):
+        Symmetry.from_bop({"symmetries_discrete": [mirror.ravel().tolist()]})
+
+
+def test_near_elements_about_slightly_different_axes_load_as_listed(caplog):
+    """A 4-fold axis listed as three elements whose axes differ by half a degree: no exact
+    group, but one within the tolerance: used as listed (as the BOP toolkit does)."""
+    axes = [(0, 0, 1), (0.008, 0, 1), (0, 0.008, 1)]
+    info = {"diameter": 100.0, "symmetries_discrete": [
+        _bop_turn(d, a) for d, a in zip((90.0, 180.0, 270.0), axes, strict=True)]}  # fmt: skip
+    with caplog.at_level("WARNING", logger="ssp.library.symmetry"):
+        s = Symmetry.from_bop(info, scale=1e-3, name="obj_id 7")
+    assert s.approximate and 4 <= len(s.discrete) <= 8
+    assert any("obj_id 7" in r.getMessage() and "within" in r.getMessage()
+               for r in caplog.records)  # fmt: skip
+
+
+def test_models_yaml_near_half_turn_loads(tmp_path, caplog):
+    """The same tolerance for models.yaml's generators (symmetries, symmetries_discrete)."""
+    trimesh.creation.box((0.04, 0.04, 0.02)).export(tmp_path / "tile.stl")
+    (tmp_path / "models.yaml").write_text(
+        "objects:\n  tile:\n    symmetries: ['rotate 179.5 about z']\n"
+    )
+    with caplog.at_level("WARNING", logger="ssp.library.symmetry"):
+        from ssp.library.properties import read_folder
+
+        (entry,) = read_folder(tmp_path)
+    assert len(entry.symmetry.discrete) == 2
+    assert any("179.50 deg" in r.getMessage() for r in caplog.records)
+
+
+@pytest.mark.skipif(not LMO.is_dir(), reason="needs ../shared/data/lmo-megapose")
+def test_published_lmo_models_info_loads(caplog):
+    """What ssp refine --models loads from LM-O's published models_info.json."""
+    from ssp.library.properties import read_bop_models
+
+    with caplog.at_level("WARNING", logger="ssp.library.symmetry"):
+        entries = {e.name: e for e in read_bop_models(LMO / "models")}
+    assert len(entries) == 8
+    for name in ("obj_000010", "obj_000011"):
+        d = entries[name].symmetry.discrete
+        assert len(d) == 2 and np.allclose(d[1] @ d[1], np.eye(4), atol=1e-12)
+    said = " ".join(r.getMessage() for r in caplog.records)
+    assert "179.81 deg" in said and "178.47 deg" in said
+    info = json.loads((LMO / "models" / "models_info.json").read_text())
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="ssp.library.symmetry"):
+        Symmetry.from_bop(info["10"], 1e-3, name="models_info.json: obj_id 10")
+    assert "obj_id 10" in caplog.records[0].getMessage()

@@ -26,7 +26,11 @@ segmentation it simulates) and ``models.json``; published scenes have none of th
 * **classes** are ``obj_XXXXXX`` (the model file names:
   :func:`ssp.library.properties.read_bop_models`) unless a ``models.json`` beside the
   scene or the dataset names them;
-* ground truth (``scene_gt.json``, ``mask_visib/``) is optional and only for evaluation.
+* ground truth (``scene_gt.json``, ``mask_visib/``) is optional and only for evaluation. Its
+  rotations are read as published (:func:`published_rotation`): LM-O's are orthonormal only to
+  about 1e-3, so each is replaced by its nearest rotation (SVD), with one warning per file
+  when any deviates more than :data:`ROTATION_WARN`; a matrix far from any rotation is an
+  error naming the file, image and entry.
 
 :func:`open_bop` reads the JSON files of a scene; :meth:`BopScene.load` reads one frame's images
 when it is needed, so a long scene is never in memory at once and one unreadable image fails that
@@ -48,6 +52,7 @@ from PIL import Image
 
 from ssp.camera import Camera
 from ssp.errors import ArgumentError, InputError
+from ssp.geometry import ORTHONORMAL_TOL
 from ssp.io._files import file_problem, read_json
 from ssp.perception.depth import depth_doubt
 from ssp.scene import Hypothesis
@@ -64,7 +69,10 @@ __all__ = [
     "is_bop_scene",
     "mask_source",
     "open_bop",
+    "published_rotation",
     "read_png",
+    "read_targets",
+    "rotation_deviation",
 ]
 
 #: Depth PNG unit written by ssp, mm (0.1 mm: depths up to 6.5 m).
@@ -74,6 +82,14 @@ DEPTH_SCALE = 0.1
 MAX_IMAGE_PIXELS = 25_000_000
 #: Seconds between consecutive ``im_id`` of a published scene (which has no stamps).
 DEFAULT_PERIOD = 1.0 / 30.0
+#: A published rotation deviating from orthonormal (max ``|R R^T - I|``) by more than this is
+#: re-orthonormalised with a warning: ssp's own tolerance for a pose (``ORTHONORMAL_TOL``,
+#: what six printed digits give with a margin). Below it the nearest rotation is taken silently.
+ROTATION_WARN = ORTHONORMAL_TOL
+#: Farther than this from orthonormal (or a reflection, det < 0) a "rotation" is an error: 0.1
+#: is a hundred times LM-O's published error (1e-3) and a matrix that far off (a scale of 5 %,
+#: a shear, a transposed or garbled row) is a wrong file, not rounding.
+ROTATION_MAX = 0.1
 log = logging.getLogger(__name__)
 
 SPLITS = ("test", "val", "train", "train_pbr", "train_real", "train_synt", "test_primesense")
@@ -81,8 +97,9 @@ SPLITS = ("test", "val", "train", "train_pbr", "train_real", "train_synt", "test
 
 #: What segmentation a run uses on a BOP scene: ``auto`` the one an ssp scene simulates
 #: (``instance/``) and none for a published scene; ``gt`` the ground-truth ``mask_visib`` (an
-#: upper bound: never the default); ``none`` no masks (the cloud above the table is clustered).
-MASK_MODES = ("auto", "gt", "none")
+#: upper bound: never the default); ``none`` no masks (the cloud above the table is clustered);
+#: ``silhouettes`` the given hypotheses' rendered silhouettes (:mod:`ssp.perception.silhouettes`).
+MASK_MODES = ("auto", "gt", "none", "silhouettes")
 
 
 def mask_source(masks: str, simulated: bool) -> str | None:
@@ -90,7 +107,9 @@ def mask_source(masks: str, simulated: bool) -> str | None:
     :data:`MASK_MODES`; ArgumentError otherwise) on a scene ``simulated`` by ssp or not."""
     if masks not in MASK_MODES:
         raise ArgumentError(f"masks must be one of {', '.join(MASK_MODES)}, got {masks!r}")
-    return {"gt": "gt", "none": None}.get(masks, "scene" if simulated else None)
+    return {"gt": "gt", "none": None, "silhouettes": None}.get(
+        masks, "scene" if simulated else None
+    )
 
 
 def load_json(path: Path) -> Any:
@@ -135,6 +154,93 @@ def _png_size(path: Path) -> tuple[int, int] | None:
     if len(head) < 24 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
         return None
     return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+
+
+def rotation_deviation(R: np.ndarray) -> np.ndarray:
+    """How far 3x3 matrices ``(..., 3, 3)`` are from orthonormal: ``max |R R^T - I|``."""
+    R = np.asarray(R, dtype=float)
+    return np.abs(R @ np.swapaxes(R, -1, -2) - np.eye(3)).max(axis=(-2, -1))
+
+
+def published_rotation(values: Any, where: str) -> np.ndarray:
+    """The rotation (3x3) nearest a published one (9 numbers, row-major): the SVD's
+    ``U V^T``, so a rotation printed with few digits (LM-O's ground truth: about 1e-3) is a
+    rotation again. Warning about it is the caller's (:data:`ROTATION_WARN`: once per file).
+
+    Raises:
+        InputError: not 9 finite numbers, a reflection (det < 0) or farther than
+            :data:`ROTATION_MAX` from orthonormal; the message starts with ``where`` (file,
+            image, row and key, e.g. ``".../scene_gt.json: im_id 3, entry 0: cam_R_m2c"``).
+    """
+    try:
+        M = np.asarray(values, dtype=float)
+    except (TypeError, ValueError):
+        M = np.zeros(0)
+    if M.size != 9 or not np.all(np.isfinite(M)):
+        raise InputError(f"{where} must be 9 numbers (3x3, row-major, finite), got {values!r:.80}")
+    M = M.reshape(3, 3)
+    dev, det = float(rotation_deviation(M)), float(np.linalg.det(M))
+    if det <= 0 or dev > ROTATION_MAX:
+        raise InputError(
+            f"{where} is not a rotation (|R R^T - I| = {dev:.2g}, det {det:.3f}; at most "
+            f"{ROTATION_MAX:g} off is re-orthonormalised, a reflection never)"
+        )
+    U, _, Vt = np.linalg.svd(M)
+    return U @ Vt
+
+
+def _warn_rotations(path: Path, scene_gt: Mapping[str, Any]) -> None:
+    """One warning when rotations (``cam_R_m2c``) of ``scene_gt.json`` deviate from
+    orthonormal by more than :data:`ROTATION_WARN` (malformed entries are left to
+    :meth:`BopScene.load`, which names them)."""
+    found: list[tuple[float, str, int]] = []
+    for im, entries in scene_gt.items():
+        for j, g in enumerate(entries if isinstance(entries, list) else []):
+            try:
+                R = np.asarray(g["cam_R_m2c"], dtype=float).reshape(3, 3)
+            except (KeyError, TypeError, ValueError):
+                continue
+            found.append((float(rotation_deviation(R)), str(im), j))
+    off = [f for f in found if f[0] > ROTATION_WARN]
+    if off:
+        worst = max(off)
+        log.warning(
+            "%s: %d of %d rotations (cam_R_m2c) are orthonormal only to %.1e (worst: im_id %s, "
+            "entry %d); each is replaced by its nearest rotation (SVD)",
+            path,
+            len(off),
+            len(found),
+            worst[0],
+            worst[1],
+            worst[2],
+        )
+
+
+#: The BOP19 test targets of a dataset (``DATASET/test_targets_bop19.json``).
+TARGETS_FILE = "test_targets_bop19.json"
+
+
+def read_targets(dataset: str | os.PathLike) -> dict[tuple[int, int], dict[int, int]] | None:
+    """``(scene_id, im_id) -> {obj_id: inst_count}`` from the dataset's
+    :data:`TARGETS_FILE` (a list of ``{scene_id, im_id, obj_id, inst_count}``), or None when
+    the dataset has none.
+
+    Raises:
+        InputError: a malformed file (named).
+    """
+    path = Path(dataset) / TARGETS_FILE
+    if not path.is_file():
+        return None
+    doc = load_json(path)
+    out: dict[tuple[int, int], dict[int, int]] = {}
+    try:
+        for t in doc:
+            key = (int(t["scene_id"]), int(t["im_id"]))
+            out.setdefault(key, {})[int(t["obj_id"])] = int(t.get("inst_count", 1))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise InputError(f"{path}: expected a list of {{scene_id, im_id, obj_id, inst_count}}: "
+                         f"{exc!r}") from exc  # fmt: skip
+    return out
 
 
 def is_bop_scene(path: str | os.PathLike) -> bool:
@@ -200,7 +306,8 @@ class BopFrame:
         im_id: BOP image id; ``stamp`` its time, s.
         camera: the image's intrinsics.
         T_world_cam: camera pose in the scene's world frame, or None (no world frame given).
-        depth: ``(H, W)`` float32, m (0 = no return).
+        depth: ``(H, W)`` float32, m (0 = no return); None when not read (``load(k,
+            depth=False)``).
         instance: ``(H, W)`` int16 segmentation: ``k`` = ``k``-th object, -1 table or
             background with depth, -2 nothing; the simulated segmentation of an ssp scene, the
             ground-truth masks of a published one, None when there are neither.
@@ -217,7 +324,7 @@ class BopFrame:
     stamp: float
     camera: Camera
     T_world_cam: np.ndarray | None
-    depth: np.ndarray
+    depth: np.ndarray | None
     instance: np.ndarray | None
     gt: dict[str, tuple[str, np.ndarray]]
     visib_fract: dict[str, float]
@@ -342,9 +449,12 @@ class BopScene:
     def _depth_path(self, k: int) -> Path:
         return self.path / "depth" / f"{self.im_ids[k]:06d}.png"
 
-    def load(self, k: int, *, masks: str | None = "scene") -> BopFrame:
+    def load(self, k: int, *, masks: str | None = "scene", depth: bool = True) -> BopFrame:
         """Read the ``k``-th frame (0-based position, not ``im_id``): depth, segmentation,
         ground truth (camera frame) and the scene's hypotheses.
+
+        ``depth=False`` reads no image (``BopFrame.depth`` is None; ``masks`` must be None):
+        what an evaluation without VSD needs, on a published dataset without depth images.
 
         ``masks``: ``"scene"`` the segmentation an ssp scene simulates (``instance/``), else
         the ground-truth ``mask_visib``; ``"gt"`` always ``mask_visib``; None no segmentation.
@@ -362,16 +472,9 @@ class BopScene:
             gt: dict[str, tuple[str, np.ndarray]] = {}
             for j, g in enumerate(self._scene_gt.get(key, [])):
                 T_co = np.eye(4)
-                try:
-                    R = np.asarray(g["cam_R_m2c"], dtype=float)
-                except (TypeError, ValueError):
-                    R = np.zeros(0)
-                if R.size != 9:
-                    raise InputError(
-                        f"{d / 'scene_gt.json'}: im_id {im}, entry {j}: cam_R_m2c must be 9 "
-                        f"numbers (3x3, row-major), got {g['cam_R_m2c']!r:.80}"
-                    )
-                T_co[:3, :3] = R.reshape(3, 3)
+                T_co[:3, :3] = published_rotation(
+                    g["cam_R_m2c"], f"{d / 'scene_gt.json'}: im_id {im}, entry {j}: cam_R_m2c"
+                )
                 T_co[:3, 3] = np.asarray(g["cam_t_m2c"], dtype=float).reshape(3) / 1000.0
                 cls = self.classes.get(int(g["obj_id"]), f"obj_{int(g['obj_id']):06d}")
                 gt[str(g.get("inst_id", f"{cls}_{j}"))] = (cls, T_co)
@@ -392,6 +495,34 @@ class BopScene:
                 f"{d / 'scene_camera.json'}: im_id {im}: depth_scale "
                 f"{depth_scale!r} must be a positive number (mm per unit)"
             )
+        instance, from_gt = (None, False)
+        if not depth:
+            if masks is not None:
+                raise ArgumentError("a frame's segmentation needs its depth: masks=None")
+            image, warnings = None, []
+        else:
+            image, warnings = self._depth(k, depth_scale, camera, T_wc)
+        if image is not None and masks is not None:
+            instance, from_gt = self._instance(k, len(ids), image, gt_only=masks == "gt")
+        return BopFrame(
+            im_id=int(im),
+            stamp=self.stamps[k],
+            camera=camera,
+            T_world_cam=T_wc,
+            depth=image,
+            instance=instance,
+            gt=gt,
+            visib_fract=visib,
+            hypotheses=hl,
+            static_group=self.static_groups[k],
+            instance_is_gt=from_gt,
+            warnings=warnings,
+        )
+
+    def _depth(
+        self, k: int, depth_scale: float, camera: Camera, T_wc: np.ndarray | None
+    ) -> tuple[np.ndarray, list[str]]:
+        """The depth image of frame ``k`` (m, float32) and the warnings about it."""
         raw = read_png(self._depth_path(k))
         if raw.ndim != 2:
             raise InputError(
@@ -403,24 +534,7 @@ class BopScene:
                 f"{self._depth_path(k)}: {depth.shape[1]} x {depth.shape[0]} "
                 f"pixels, the camera has {camera.width} x {camera.height}"
             )
-        warnings = self._doubt_depth(k, raw, depth, depth_scale, T_wc)
-        instance, from_gt = (None, False)
-        if masks is not None:
-            instance, from_gt = self._instance(k, len(ids), depth, gt_only=masks == "gt")
-        return BopFrame(
-            im_id=int(im),
-            stamp=self.stamps[k],
-            camera=camera,
-            T_world_cam=T_wc,
-            depth=depth,
-            instance=instance,
-            gt=gt,
-            visib_fract=visib,
-            hypotheses=hl,
-            static_group=self.static_groups[k],
-            instance_is_gt=from_gt,
-            warnings=warnings,
-        )
+        return depth, self._doubt_depth(k, raw, depth, depth_scale, T_wc)
 
     def _doubt_depth(
         self,
@@ -578,6 +692,7 @@ def open_bop(path, library: Mapping | None = None, *, period: float = DEFAULT_PE
         if not isinstance(doc, Mapping):
             raise InputError(f"{d / name}: expected an object {{im_id: ...}}")
     classes = _classes(d)
+    _warn_rotations(gt_path, scene_gt)
     try:
         if simulated:
             frames = meta["frames"]

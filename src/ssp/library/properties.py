@@ -447,7 +447,9 @@ def read_bop_models(folder: str | Path) -> list[ModelEntry]:
         name = f"obj_{int(key):06d}"
         mesh = folder / f"{name}.ply"
         try:
-            sym = Symmetry.from_bop(info[key] or {}, scale=UNIT_SCALES["mm"])
+            sym = Symmetry.from_bop(
+                info[key] or {}, scale=UNIT_SCALES["mm"], name=f"{info_path}: obj_id {key}"
+            )
         except ModelError as exc:
             raise ModelError(f"{info_path}: obj_id {key}: {exc}") from exc
         problem = None if mesh.is_file() else ModelFileError(f"{mesh}: no such mesh file")

@@ -6,6 +6,13 @@ finite group (identity included): whatever set is given is closed under composit
 (:func:`close_group`), so two generators of a square bar's symmetries give its 8 elements.
 Continuous ones are rotation axes (through ``offset``).
 
+Declared symmetries are read as published (:func:`snap_symmetry`): a rotation a few digits off
+an exact turn ``360 k / n`` degrees is snapped to it (silently when the difference is rounding,
+with a warning naming the object and the angle when it is up to :data:`SNAP_TOLERANCE_DEG`: LM-O
+publishes its eggbox's half turn as 179.81 degrees and its glue's as 178.47); one farther from
+any such turn is an error. Elements that are each near a group element but about slightly
+different axes are used as given when they close within the tolerance (:func:`close_group`).
+
 :func:`detect_symmetries` finds approximate symmetries of a shape in the BOP way: a candidate
 transform is a symmetry when the maximum surface distance it causes (MSSD: the largest distance
 of a moved surface point from the surface) is at most a tolerance in metres. Candidates are the
@@ -18,6 +25,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from fractions import Fraction
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -42,6 +50,30 @@ DETECT_ORDERS = tuple(range(2, 9))
 DETECT_REFERENCE_POINTS = 40_000
 #: Default MSSD tolerance of the detection, m.
 DETECT_TOLERANCE = 0.002
+#: A declared discrete symmetry whose rotation misses an exact turn ``360 k / n`` degrees
+#: (``n`` in :data:`SNAP_ORDERS`) by at most this many degrees is snapped to that turn, with a
+#: warning; farther from every such turn it is an error. Why 2 degrees: LM-O's published glue
+#: misses its half turn by 1.53 degrees (the eggbox by 0.19), so published files load with a
+#: margin; distinct turns of orders up to 8 are at least 360 / 56 = 6.4 degrees apart, so the turn
+#: within 2 degrees is never ambiguous; and a 2 degree snap moves a surface point by at most
+#: 2 sin(1 deg) r, 1.7 % of the diameter: a third of BOP's strictest MSSD threshold (5 % of the
+#: diameter), about what a symmetry measured on a scan is uncertain by. A wider tolerance would
+#: quietly accept a typo (a 175 degree turn) as a half turn.
+SNAP_TOLERANCE_DEG = 2.0
+#: The orders ``n`` a near turn is snapped to (1: a near-identity, dropped).
+SNAP_ORDERS = (1, *DETECT_ORDERS)
+#: A rotation this close (rad) to a turn ``360 k / n`` is that turn written with six decimals
+#: (a published 60 degrees: cos 0.5, sin 0.866025; they are off by at most about 1e-6 rad),
+#: snapped without a warning. Orders above those of :data:`SNAP_ORDERS` (up to
+#: :data:`MAX_GROUP`: a declared 1 degree turn) are accepted only this close: tight, as nearly
+#: any angle is within 5e-5 rad of some turn of order up to 360.
+ROUNDING_TOLERANCE = 2e-6
+#: A declared symmetry's rotation may deviate from orthonormal by this much (max |R R^T - I|,
+#: six published digits give 1e-6); it is re-orthonormalised (nearest rotation, SVD).
+RIGID_TOLERANCE = 1e-3
+#: Length (m) that turns the angle tolerance into a translation tolerance when the object's
+#: size is not known (a tabletop object's radius); BOP models give their diameter.
+DEFAULT_REACH = 0.1
 
 
 def rotation_transform(
@@ -71,6 +103,111 @@ def _same(A: np.ndarray, B: np.ndarray) -> bool:
     )
 
 
+def _nearest_turn(angle: float, tolerance: float) -> tuple[int, int, bool] | None:
+    """``(k, n, quiet)`` of the turn ``2 pi k / n`` that ``angle`` (rad, in [0, pi]) stands
+    for: the nearest of order in :data:`SNAP_ORDERS` within ``tolerance`` (rad; smallest order
+    first), else one of order up to :data:`MAX_GROUP` within :data:`ROUNDING_TOLERANCE`; None
+    when there is none. ``quiet``: within :data:`ROUNDING_TOLERANCE` (printed digits)."""
+    err, n = min(
+        (abs(angle - 2.0 * np.pi * round(angle * n / (2.0 * np.pi)) / n), n) for n in SNAP_ORDERS
+    )
+    if err <= tolerance:
+        return int(round(angle * n / (2.0 * np.pi))), n, err <= ROUNDING_TOLERANCE
+    frac = Fraction(angle / (2.0 * np.pi)).limit_denominator(MAX_GROUP)
+    if abs(angle - 2.0 * np.pi * float(frac)) <= ROUNDING_TOLERANCE:
+        return frac.numerator, frac.denominator, True
+    return None
+
+
+def _rigid_rotation(T: np.ndarray, what: str) -> np.ndarray:
+    """The nearest rotation (SVD) of ``T``'s 3x3 block; ModelError when it is no rigid
+    motion within :data:`RIGID_TOLERANCE` (or not finite, or a reflection)."""
+    R = T[:3, :3]
+    if not np.all(np.isfinite(T)):
+        raise ModelError(f"{what} is not finite")
+    err = float(np.abs(R @ R.T - np.eye(3)).max())
+    if err > RIGID_TOLERANCE or np.linalg.det(R) <= 0:
+        raise ModelError(
+            f"{what} is not a rigid transform (|R R^T - I| = {err:.1e}, "
+            f"det {np.linalg.det(R):.3f}; a reflection is not a rigid motion)"
+        )
+    U, _, Vt = np.linalg.svd(R)
+    return U @ Vt
+
+
+def snap_symmetry(
+    T: np.ndarray,
+    what: str,
+    tolerance_deg: float = SNAP_TOLERANCE_DEG,
+    reach: float = DEFAULT_REACH,
+) -> np.ndarray:
+    """A declared discrete symmetry ``T`` (4x4, m) as the exact group element it stands for.
+
+    Its rotation (re-orthonormalised, SVD) turns by ``angle`` about ``axis``; when ``angle`` is
+    within :data:`ROUNDING_TOLERANCE` of a turn ``360 k / n`` (``n`` <= :data:`MAX_GROUP`) it is
+    snapped to it silently, else to the turn of order ``n`` in :data:`SNAP_ORDERS` within
+    ``tolerance_deg`` degrees, with a warning naming ``what`` and both angles. The snapped
+    transform keeps the rotation axis (the line ``T`` leaves fixed) and drops any shift along
+    it (a screw motion generates an infinite group), which must be within
+    ``tolerance_deg`` (rad) x ``reach`` (m: the object's radius).
+
+    Raises:
+        ModelError: not a rigid motion, or farther from every such turn (or screwing farther)
+            than the tolerance: no finite group is near it. The message names ``what``.
+    """
+    T = np.asarray(T, dtype=float).reshape(4, 4)
+    R = _rigid_rotation(T, what)
+    rotvec = Rotation.from_matrix(R).as_rotvec()
+    angle = float(np.linalg.norm(rotvec))
+    axis = rotvec / angle if angle > 1e-12 else np.array([0.0, 0.0, 1.0])
+    t = T[:3, 3]
+    tol = np.radians(float(tolerance_deg))
+    turn = _nearest_turn(angle, tol)
+    if turn is None:
+        raise ModelError(
+            f"{what} turns by {np.degrees(angle):.2f} deg about {np.round(axis, 3).tolist()}, "
+            f"more than {tolerance_deg:g} deg from every turn 360 k / n (n <= "
+            f"{SNAP_ORDERS[-1]}): it does not close into a finite group"
+        )
+    k, n, quiet = turn
+    shift = float(axis @ t) if angle > 1e-12 else float(np.linalg.norm(t))
+    if angle < 1e-12 and abs(shift) <= SAME_TRANSLATION:
+        return T
+    if abs(shift) > tol * reach:
+        raise ModelError(
+            f"{what} shifts by {1000 * shift:.2f} mm along its rotation axis (a screw motion, "
+            f"more than {tolerance_deg:g} deg x {1000 * reach:.0f} mm): it does not close into "
+            "a finite group"
+        )
+    exact = 2.0 * np.pi * k / n
+    if quiet and abs(angle - exact) < 1e-12 and abs(shift) <= 1e-12:
+        return T
+    # the point of the axis: (I - R) o = t across the axis (least squares; o orthogonal to it)
+    o = np.linalg.lstsq(np.eye(3) - R, t - shift * axis, rcond=None)[0] if angle > 1e-12 else t
+    out = rotation_transform(axis, np.degrees(exact), o)
+    if not quiet or abs(shift) > SAME_TRANSLATION:
+        log.warning(
+            "%s turns by %.2f deg about %s, not an exact turn: snapped to %s (%.6g deg%s; "
+            "tolerance %g deg)",
+            what,
+            np.degrees(angle),
+            np.round(axis, 4).tolist(),
+            "the identity (dropped)" if n == 1 else "the half turn" if n == 2 else f"{k}/{n} turn",
+            np.degrees(exact),
+            f", {1000 * shift:.3f} mm shift along the axis dropped" if abs(shift) > 1e-9 else "",
+            tolerance_deg,
+        )
+    return out
+
+
+def _same_within(A: np.ndarray, B: np.ndarray, angle: float, shift: float) -> bool:
+    """Whether rigid ``A`` and ``B`` differ by at most ``angle`` (rad) and ``shift`` (m)."""
+    c = (np.trace(A[:3, :3].T @ B[:3, :3]) - 1.0) / 2.0
+    return bool(
+        np.arccos(np.clip(c, -1.0, 1.0)) <= angle and np.linalg.norm(A[:3, 3] - B[:3, 3]) <= shift
+    )
+
+
 def _already_closed(transforms) -> np.ndarray | None:
     """The set with the identity first when it already is a group (vectorised check), else
     None. Keeps the common case (a declared group, e.g. a cube's 24) cheap."""
@@ -93,11 +230,18 @@ def close_group(
     transforms: Sequence[np.ndarray] | np.ndarray,
     what: str = "symmetries",
     max_elements: int | None = None,
+    *,
+    tolerance_deg: float = 0.0,
+    reach: float = DEFAULT_REACH,
 ):
     """The group ``(S, 4, 4)`` generated by rigid ``transforms`` (identity first, then the
     given ones in order, then their products in the order found); tolerance-based dedup.
 
-    Logs a warning when it has more than :data:`LARGE_GROUP` elements.
+    Logs a warning when it has more than :data:`LARGE_GROUP` elements. With ``tolerance_deg``,
+    transforms that generate no finite group exactly (near turns about slightly different
+    axes) but do within twice that angle (and twice that angle, rad, x ``reach`` m of
+    translation) give that approximate group, with a warning: the elements as found, as the
+    BOP toolkit uses the listed ones.
 
     Raises:
         ModelError: it does not close within ``max_elements`` (default :data:`MAX_GROUP`)
@@ -110,10 +254,36 @@ def close_group(
     gens = [
         np.asarray(T, dtype=float).reshape(4, 4) for T in np.asarray(transforms).reshape(-1, 16)
     ]
+    try:
+        group = _closure(gens, _same, cap, what)
+    except ModelError:
+        if tolerance_deg <= 0:
+            raise
+        tol = 2.0 * np.radians(tolerance_deg)
+
+        def near(A: np.ndarray, B: np.ndarray) -> bool:
+            return _same_within(A, B, tol, tol * reach)
+
+        group = _closure(gens, near, min(cap, 2 * LARGE_GROUP), what)
+        log.warning(
+            "%s are a group only within %g deg (%d elements): used as listed, as the BOP "
+            "toolkit does",
+            what,
+            tolerance_deg,
+            len(group),
+        )
+    if len(group) > LARGE_GROUP:
+        log.warning("%s generate %d elements (a large group); check them", what, len(group))
+    return np.stack(group)
+
+
+def _closure(gens: list[np.ndarray], same, cap: int, what: str) -> list[np.ndarray]:
+    """Identity, ``gens`` and their products, deduplicated by ``same(A, B)``; ModelError when
+    ``cap`` elements are reached."""
     group: list[np.ndarray] = [np.eye(4)]
 
     def add(T: np.ndarray) -> bool:
-        if any(_same(T, G) for G in group):
+        if any(same(T, G) for G in group):
             return False
         group.append(T)
         if len(group) >= cap:
@@ -135,9 +305,7 @@ def close_group(
                 if add(T):
                     new.append(T)
         frontier = new
-    if len(group) > LARGE_GROUP:
-        log.warning("%s generate %d elements (a large group); check them", what, len(group))
-    return np.stack(group)
+    return group
 
 
 @dataclass(frozen=True)
@@ -158,10 +326,14 @@ class ContinuousSymmetry:
 
 @dataclass(frozen=True)
 class Symmetry:
-    """Discrete transforms ``(S, 4, 4)`` (first one the identity) and continuous axes."""
+    """Discrete transforms ``(S, 4, 4)`` (first one the identity) and continuous axes.
+
+    ``approximate``: the discrete transforms are a group only within a tolerance (declared
+    near turns about slightly different axes, :func:`close_group`): taken as they are."""
 
     discrete: np.ndarray = field(default_factory=lambda: np.eye(4)[None])
     continuous: tuple[ContinuousSymmetry, ...] = ()
+    approximate: bool = field(default=False, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         d = np.asarray(self.discrete, dtype=float).reshape(-1, 4, 4)
@@ -171,7 +343,7 @@ class Symmetry:
         R = d[:, :3, :3]
         if not np.allclose(R @ np.swapaxes(R, 1, 2), np.eye(3), atol=1e-5):
             raise ModelError("discrete symmetries must be rigid transforms")
-        if len(d) > 1:
+        if len(d) > 1 and not self.approximate:
             closed = close_group(d[1:], "discrete symmetries")
             if len(closed) > len(d):
                 log.info(
@@ -207,8 +379,16 @@ class Symmetry:
         return np.einsum("aij,bjk->abik", self.discrete, rots).reshape(-1, 4, 4)
 
     @classmethod
-    def from_bop(cls, info: dict, scale: float = 1.0) -> Symmetry:
-        """From a BOP ``models_info`` entry; ``scale`` converts its units to metres (mm: 1e-3)."""
+    def from_bop(cls, info: dict, scale: float = 1.0, name: str = "") -> Symmetry:
+        """From a BOP ``models_info`` entry; ``scale`` converts its units to metres (mm: 1e-3).
+
+        Its discrete symmetries are read as published (:func:`snap_symmetry`: near turns
+        snapped with a warning naming ``name``, e.g. ``"models_info.json: obj_id 10"``), the
+        entry's ``diameter`` giving the translation tolerance.
+
+        Raises:
+            ModelError: a malformed entry, or symmetries far from any finite group.
+        """
         try:
             discrete = [
                 np.asarray(s, dtype=float).reshape(4, 4)
@@ -223,10 +403,37 @@ class Symmetry:
                 )
                 for c in info.get("symmetries_continuous", [])
             )
+            diameter = float(info.get("diameter", 0.0)) * scale
         except (KeyError, TypeError, ValueError) as exc:
             raise ModelError(f"malformed symmetry description {info!r}: {exc}") from exc
-        d = np.stack([np.eye(4), *discrete]) if discrete else np.eye(4)[None]
-        return cls(d, continuous)
+        reach = diameter / 2 if np.isfinite(diameter) and diameter > 0 else DEFAULT_REACH
+        return cls._declared(discrete, continuous, name, reach)
+
+    @classmethod
+    def _declared(
+        cls,
+        discrete: Sequence[np.ndarray],
+        continuous: tuple[ContinuousSymmetry, ...],
+        name: str,
+        reach: float,
+    ) -> Symmetry:
+        """The symmetries of declared discrete generators (m), snapped and closed."""
+        what = f"{name}: " if name else ""
+        gens = [
+            snap_symmetry(T, f"{what}discrete symmetry {i + 1}", reach=reach)
+            for i, T in enumerate(discrete)
+        ]
+        gens = [G for G in gens if not _same(G, np.eye(4))]
+        if not gens:
+            return cls(np.eye(4)[None], continuous)
+        closed = close_group(
+            gens,
+            f"{what}discrete symmetries",
+            tolerance_deg=SNAP_TOLERANCE_DEG,
+            reach=reach,
+        )
+        exact = _already_closed(closed) is not None
+        return cls(closed, continuous, approximate=not exact)
 
     @classmethod
     def from_generators(
@@ -234,10 +441,12 @@ class Symmetry:
         discrete: Sequence[np.ndarray] = (),
         continuous: Sequence[tuple[Sequence[float], Sequence[float]]] = (),
         scale: float | Sequence[float] | np.ndarray = 1.0,
+        name: str = "",
     ) -> Symmetry:
         """The group generated by ``discrete`` 4x4 transforms and the ``continuous``
         ``(axis, offset)`` pairs, all in file units; ``scale`` (one or three factors) converts
-        them to metres (a non-uniform scale must keep every rotation rigid).
+        them to metres (a non-uniform scale must keep every rotation rigid). Near turns are
+        snapped as in :meth:`from_bop` (warnings name ``name``).
 
         Raises:
             ModelError: a transform is not rigid (after scaling) or the group is infinite.
@@ -248,18 +457,17 @@ class Symmetry:
         for i, T in enumerate(discrete):
             T = np.asarray(T, dtype=float).reshape(4, 4)
             U = Sm @ T @ Si
-            if not np.allclose(U[:3, :3] @ U[:3, :3].T, np.eye(3), atol=1e-5):
+            if not np.allclose(U[:3, :3] @ U[:3, :3].T, np.eye(3), atol=RIGID_TOLERANCE):
                 raise ModelError(
                     f"symmetry {i} is not a rigid transform"
                     + ("" if np.all(S == S[0]) else " after the non-uniform scale")
                 )
             gens.append(U)
-        cont = []
-        for axis, offset in continuous:
-            a = S * np.asarray(axis, dtype=float)
-            cont.append(ContinuousSymmetry(a, S * np.asarray(offset, dtype=float)))
-        d = close_group(gens, "discrete symmetries") if gens else np.eye(4)[None]
-        return cls(d, tuple(cont))
+        cont = tuple(
+            ContinuousSymmetry(S * np.asarray(axis, dtype=float), S * np.asarray(offset, float))
+            for axis, offset in continuous
+        )
+        return cls._declared(gens, cont, name, DEFAULT_REACH)
 
     def to_bop(self, scale: float = 1.0) -> dict:
         """BOP ``models_info`` keys; ``scale`` converts metres to the file's units."""
