@@ -24,6 +24,7 @@ from ssp.cli.common import (
     get_parallel,
     load_config,
     load_library,
+    masks_arg,
     print_warnings,
     progress_bar,
     restore_signals,
@@ -98,6 +99,30 @@ MethodOption = typer.Option(
     help="BOP method name in the CSV file name, no '_' (default: ssp).",
     show_default=False,
 )
+SceneIdOption = typer.Option(
+    None,
+    "--scene-id",
+    min=0,
+    help=(
+        "BOP scene_id of the CSV rows (default: a BOP scene's own, else 1): the scene of the "
+        "dataset the frames belong to, to score them against it."
+    ),
+    show_default=False,
+    rich_help_panel="BOP results",
+)
+ObjIdsOption = typer.Option(
+    None,
+    "--obj-ids",
+    help=(
+        'BOP obj_id of each class: a models.json ({"obj_ids": {"1": "cube"}}), a '
+        "BOP models_info.json or models/ folder (obj_000005.ply: obj_id 5), or an earlier "
+        "run's obj_ids.json; it must name every model. Default: the input's own models.json, "
+        "else the obj_XXXXXX model names of a BOP models folder, else the sorted class names."
+    ),
+    show_default=False,
+    metavar="FILE",
+    rich_help_panel="BOP results",
+)
 TopicCloudOption = _bag_option("--topic-cloud", "PointCloud2 topic of the frames")
 TopicDepthOption = _bag_option("--topic-depth", "depth Image topic of the frames")
 TopicCameraInfoOption = _bag_option("--topic-camera-info", "CameraInfo topic")
@@ -120,10 +145,16 @@ MasksOption = typer.Option(
     "--masks",
     help=(
         "BOP scene input: auto (default: an ssp scene's simulated segmentation, none for a "
-        "published one), gt (the ground-truth mask_visib: an upper bound), none."
+        "published one), gt (the ground-truth mask_visib: an upper bound), none, silhouettes "
+        "(the given hypotheses' rendered silhouettes), or FILE: a detector's instance masks, "
+        "the BOP segmentation results JSON (CNOS, SAM-6D, the challenge's default detections; "
+        "every detection used, overlaps to the higher score)."
     ),
     show_default=False,
+    metavar="auto|gt|none|silhouettes|FILE",
 )
+
+
 PeriodOption = typer.Option(
     None,
     "--period",
@@ -157,6 +188,8 @@ def run_cmd(
     hypotheses: str | None = HypothesesOption,
     classes: str | None = ClassesOption,
     method: str | None = MethodOption,
+    scene_id: int | None = SceneIdOption,
+    obj_ids: Path | None = ObjIdsOption,
     config: Path | None = ConfigOption,
     cache: Path | None = CacheOption,
     topic_cloud: str | None = TopicCloudOption,
@@ -186,17 +219,19 @@ def run_cmd(
         check_recording(record)  # before the models load
 
     names = [c.strip() for c in classes.split(",") if c.strip()] if classes else None
+    masks = masks_arg(masks)
     bag_given = _bag_given(topic_cloud, topic_depth, topic_camera_info, topic_mask,
                            topic_hypotheses, world_frame, class_map)  # fmt: skip
     if inputs and len(inputs) > 1:
-        _check_many(resume, bag_given, results_bag, record)
+        _check_many(resume, bag_given, results_bag, record, scene_id)
         _run_many(
             inputs, models, out, overwrite, hypotheses, names, method, config, cache,
             get_parallel(executor, workers, ray_address), masks=masks or "auto", period=period,
+            obj_ids=obj_ids,
         )  # fmt: skip
         return
     given = RunOptions(inputs[0] if inputs else None, models, hypotheses, method, names,
-                       bag_given, masks, period)  # fmt: skip
+                       bag_given, masks, period, scene_id, obj_ids)  # fmt: skip
     out, opts, cfg = _resolve(given, out, resume, overwrite, config)
     if processes is not None:
         cfg.search.processes = cfg.perception.processes = processes
@@ -205,6 +240,10 @@ def run_cmd(
     from ssp.pipeline.manifest import check_out_dir
 
     bop_csv_name("input", opts.method)  # a bad method name fails before the models load
+    if opts.obj_ids is not None:  # so does an unreadable id table
+        from ssp.io.results import ObjectIds
+
+        ObjectIds.from_file(opts.obj_ids)
     if resume is None:
         check_out_dir(out, overwrite)
     lib = load_library(opts.models, config, cache)
@@ -249,10 +288,15 @@ def _bag_given(
     return bag_given
 
 
-def _check_many(resume: Path | None, bag_given: dict, results_bag, record) -> None:
+def _check_many(resume: Path | None, bag_given: dict, results_bag, record, scene_id) -> None:
     """The options several inputs cannot take."""
     if resume is not None:
         raise typer.BadParameter("--resume continues one run: ssp run --resume OUT/<name>")
+    if scene_id is not None:
+        raise typer.BadParameter(
+            "--scene-id names the scene of one input: run each input with its own --scene-id "
+            "(BOP scenes take theirs from their folder)"
+        )
     if bag_given or results_bag is not None or record is not None:
         raise typer.BadParameter(
             "--topic-*, --world-frame, --class-map, --results-bag and --record take one "
@@ -336,6 +380,8 @@ def _run_one(
                 hypotheses=opts.hypotheses,
                 classes=opts.classes,
                 method=opts.method,
+                scene_id=opts.scene_id,
+                obj_ids=opts.obj_ids,
                 progress=report,
                 resume=resume,
                 overwrite=overwrite,

@@ -38,6 +38,7 @@ __all__ = [
     "BopCsvWriter",
     "ObjectIds",
     "bop_csv_name",
+    "bop_model_name",
     "bop_csv_parts",
     "frame_record",
     "read_bop_csv",
@@ -49,6 +50,9 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 BOP_CSV_HEADER = "scene_id,im_id,obj_id,score,R,t,time"
+#: The files of a BOP id table (:meth:`ObjectIds.from_file`).
+MODELS_JSON, MODELS_INFO_JSON = "models.json", "models_info.json"
+_BOP_MODEL = re.compile(r"^obj_(\d+)$")
 _BOP_NAME = re.compile(r"^(?P<method>[^_]+)_(?P<dataset>[^_-]+)-(?P<split>[^_]+)\.csv$")
 
 
@@ -357,7 +361,9 @@ class ObjectIds:
 
     Build it with :meth:`from_classes` (1-based order of the sorted names),
     :meth:`from_models_json` (a BOP ``models.json`` ``obj_ids`` map, as written by
-    ``ssp simulate``), or :meth:`for_input` (the latter when the input folder has one).
+    ``ssp simulate``), :meth:`for_input` (the latter when the input folder has one),
+    :meth:`from_file` (any BOP id table: ``models.json``, ``models_info.json``, a ``models/``
+    folder) or :meth:`from_bop_names` (``obj_000005``: 5).
     """
 
     def __init__(self, ids: Mapping[str, int]) -> None:
@@ -417,6 +423,79 @@ class ObjectIds:
             raise InputError(f"{p}: {exc}") from exc
 
     @classmethod
+    def from_file(cls, path: str | os.PathLike) -> ObjectIds:
+        """The ids of a BOP id table, as given to ``ssp run --obj-ids``:
+
+        * a JSON file with an ``obj_ids`` map (``{"1": "cube", ...}``): a BOP ``models.json``
+          as ``ssp simulate`` writes it, or the ``obj_ids.json`` of an earlier run;
+        * a BOP ``models_info.json`` (``{"1": {"diameter": ...}, ...}``): obj_id ``k`` is the
+          class ``obj_{k:06d}`` (the name ssp gives the model ``obj_00000k.ply``);
+        * a BOP ``models/`` folder: its ``models_info.json``, else its ``models.json``, else
+          its mesh files named ``obj_<digits>`` (``obj_000005.ply``: obj_id 5).
+
+        Raises:
+            InputError: a missing or unreadable file, or one that holds none of these (the
+                message names the file and what is wrong).
+        """
+        p = Path(path)
+        if p.is_dir():
+            for name in (MODELS_INFO_JSON, MODELS_JSON):
+                if (p / name).is_file():
+                    return cls.from_file(p / name)
+            ids = _bop_mesh_ids(p)
+            if not ids:
+                raise InputError(
+                    f"{p}: no {MODELS_INFO_JSON}, no {MODELS_JSON} and no obj_<digits> mesh "
+                    "files: not a BOP models folder"
+                )
+            try:
+                return cls(ids)
+            except ValueError as exc:
+                raise InputError(f"{p}: {exc}") from exc
+        problem = file_problem(p)
+        if problem is not None:
+            raise InputError(f"{p}: {'no such file' if problem == 'does not exist' else problem}")
+        try:
+            doc = json.loads(p.read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise InputError(f"{p}: cannot read: {exc}") from exc
+        if isinstance(doc, Mapping) and "obj_ids" in doc:
+            return cls.from_models_json(p)
+        if isinstance(doc, Mapping) and doc and all(isinstance(v, Mapping) for v in doc.values()):
+            ids: dict[str, int] = {}
+            for key in doc:
+                if not str(key).isdigit() or int(key) < 1:
+                    raise InputError(f"{p}: obj_id {key!r} is not an integer >= 1")
+                ids[bop_model_name(int(key))] = int(key)
+            try:
+                return cls(ids)
+            except ValueError as exc:
+                raise InputError(f"{p}: {exc}") from exc
+        raise InputError(
+            f'{p}: not an id table: expected {{"obj_ids": {{"1": "class", ...}}}} (a BOP '
+            f'{MODELS_JSON}) or a BOP {MODELS_INFO_JSON} ({{"1": {{"diameter": ...}}, ...}})'
+        )
+
+    @classmethod
+    def from_bop_names(cls, classes: Iterable[str]) -> ObjectIds | None:
+        """The ids the names say when every class is named as a BOP model
+        (``obj_000005``: obj_id 5, the model ``obj_000005.ply`` of a BOP ``models/`` folder);
+        None when one is not (or two name one id)."""
+        ids = {}
+        for c in classes:
+            m = _BOP_MODEL.match(c)
+            if m is None or int(m[1]) < 1:
+                return None
+            ids[c] = int(m[1])
+        if not ids or len(set(ids.values())) != len(ids):
+            return None
+        return cls(ids)
+
+    def missing(self, classes: Iterable[str]) -> list[str]:
+        """The ``classes`` that have no obj_id here, sorted."""
+        return sorted(set(classes) - set(self._ids))
+
+    @classmethod
     def for_input(cls, folder: str | os.PathLike, classes: Iterable[str]) -> ObjectIds:
         """:meth:`from_models_json` of ``folder/models.json`` if it exists, else
         :meth:`from_classes`."""
@@ -458,3 +537,19 @@ class ObjectIds:
         """``{"obj_ids": {"1": "cube", ...}}``, the shape of a BOP ``models.json`` (readable by
         :meth:`from_models_json`)."""
         return {"obj_ids": {str(i): c for c, i in self._ids.items()}}
+
+
+def bop_model_name(obj_id: int) -> str:
+    """The class name of BOP obj_id ``obj_id``: its model's file name ``obj_XXXXXX``."""
+    return f"obj_{int(obj_id):06d}"
+
+
+def _bop_mesh_ids(folder: Path) -> dict[str, int]:
+    """``{class: obj_id}`` of the ``obj_<digits>.*`` mesh files in ``folder`` (the class is the
+    file name without its extension, as ssp names a model)."""
+    out: dict[str, int] = {}
+    for p in sorted(folder.iterdir()):
+        m = _BOP_MODEL.match(p.stem)
+        if m is not None and p.suffix.lower() in (".obj", ".ply", ".stl") and int(m[1]):
+            out[p.stem] = int(m[1])
+    return out

@@ -28,8 +28,8 @@ import numpy as np
 
 from ssp.camera import Camera
 from ssp.config import PerceptionConfig, SSPConfig
-from ssp.errors import PerceptionError, UnknownObjectError
-from ssp.geometry import transform_points
+from ssp.errors import InputError, InvalidPoseError, PerceptionError, UnknownObjectError
+from ssp.geometry import transform_points, validate_pose
 from ssp.io.hypotheses import to_world
 from ssp.lanes import LANES_STAGE, ForkLanes
 from ssp.library.model import ObjectModel
@@ -56,7 +56,14 @@ def check_camera_axes(points: np.ndarray) -> None:
     """PerceptionError when a camera-frame cloud ``(N, 3)`` lies mostly behind the camera
     (z <= 0): it is not in OpenCV axes (x right, y down, z forward). An OpenGL-style cloud (y
     up, z backward: PCL's Kinect tutorials) otherwise gave every object 'not in the camera's
-    view' and an upside-down world."""
+    view' and an upside-down world.
+
+    Raises:
+        InputError: ``points`` is not ``(N, 3)``.
+    """
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise InputError(f"points must have shape (N, 3) (x, y, z in m), got {points.shape}")
     front = float(np.mean(points[:, 2] > 0.0)) if len(points) else 1.0
     if front < MIN_IN_FRONT:
         raise PerceptionError(
@@ -88,6 +95,10 @@ class PerceptionResult:
     segments: dict[int, SegmentResult] = field(default_factory=dict)
     verdicts: dict[int, str] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
+    #: the camera of a depth image (:meth:`Perception.from_depth`), for the recording
+    camera: Camera | None = None
+    #: that depth image (H, W), m (0: no return)
+    depth: np.ndarray | None = None
 
     @property
     def seconds_per_segment(self) -> float | None:
@@ -167,8 +178,22 @@ class Perception:
     ) -> SegmentRequest:
         """The estimator's input for segment ``label`` of ``points (N, 3)`` (world, m): its
         points, their normals (``normal_neighbours``, toward ``camera``), its class when the
-        segmentation names one (else every candidate class) and its seed."""
-        seg = points[segmentation.labels == label]
+        segmentation names one (else every candidate class) and its seed.
+
+        Raises:
+            InputError: ``points`` not ``(N, 3)`` with ``N`` the segmentation's length, or
+                ``label`` not one of its segments.
+        """
+        pts = np.asarray(points, dtype=float)
+        n = len(segmentation.labels)
+        if pts.shape != (n, 3):
+            raise InputError(
+                f"points must have shape ({n}, 3) (the segmentation's points), got {pts.shape}"
+            )
+        if label not in {int(k) for k in segmentation.segment_ids}:
+            shown = ", ".join(str(int(k)) for k in segmentation.segment_ids) or "none"
+            raise InputError(f"label {label!r} is not a segment of the segmentation ({shown})")
+        seg = pts[segmentation.labels == label]
         cls = segmentation.classes.get(label)
         return SegmentRequest(
             label=int(label),
@@ -198,9 +223,17 @@ class Perception:
         ``mask`` ``(H, W)`` holds instance labels (negative = table/background); without it
         the cloud above the table is clustered. ``T_world_cam`` None: fitted to the table.
         The other arguments as for :meth:`from_points`.
+
+        Raises:
+            InputError: ``camera`` is not a :class:`~ssp.camera.Camera`, or an argument of
+                :meth:`from_points` that cannot be used.
+            PerceptionError: ``depth`` or ``mask`` not of the camera's image shape, or depth
+                that looks like millimetres (:func:`ssp.perception.depth.cloud_from_depth`).
         """
+        if not isinstance(camera, Camera):
+            raise InputError(f"camera must be an ssp.camera.Camera, got {type(camera).__name__}")
         cloud = cloud_from_depth(depth, camera, mask=mask, depth_scale=depth_scale)
-        return self.from_points(
+        result = self.from_points(
             cloud.points,
             frame="camera",
             stamp=stamp,
@@ -209,6 +242,10 @@ class Perception:
             hypotheses=hypotheses,
             hypotheses_frame=hypotheses_frame,
         )
+        result.camera = camera
+        scale = 1.0 if depth_scale is None else float(depth_scale)
+        result.depth = np.asarray(depth, dtype=float) * scale
+        return result
 
     def from_points(  # noqa: C901
         self,
@@ -223,7 +260,8 @@ class Perception:
         hypotheses: list[Hypothesis] | None = None,
         hypotheses_frame: str = "world",
     ) -> PerceptionResult:
-        """Perceive a cloud ``(N, 3)`` (m).
+        """Perceive a cloud ``(N, 3)`` (m). Rows with a non-finite coordinate (no return in an
+        organised cloud) are dropped, with their labels.
 
         Args:
             frame: ``"camera"``: points in the sensor frame (OpenCV axes); the world frame comes
@@ -236,19 +274,25 @@ class Perception:
             hypotheses: given pose hypotheses, used instead of the estimator.
             hypotheses_frame: ``"world"``, or ``"camera"`` (each ``T_world_obj`` then holds
                 ``T_cam_obj``; moved to the world once ``T_world_cam`` is known).
+
+        Raises:
+            InputError: ``points`` not ``(N, 3)`` numbers or without a finite row, ``labels``
+                not ``N`` integers, ``T_world_cam`` not a rigid ``(4, 4)`` pose, or a
+                ``frame``, ``label_kind`` or ``hypotheses_frame`` not among those above.
+            PerceptionError: the front end cannot process the frame (no table, camera-frame
+                hypotheses without a camera pose, ...).
         """
         t_start = time.perf_counter()
         timings: dict[str, float] = {}
-        pts = np.asarray(points, dtype=float)
-        if pts.ndim != 2 or pts.shape[1] != 3:
-            raise PerceptionError(f"points must have shape (N, 3), got {pts.shape}")
-        finite = np.all(np.isfinite(pts), axis=1)
-        if not finite.any():
-            raise PerceptionError("empty cloud: no finite points")
-        pts = pts[finite]
-        lab = None if labels is None else np.asarray(labels).reshape(-1)[finite]
-        if frame not in ("camera", "world"):
-            raise PerceptionError(f"frame must be 'camera' or 'world', got {frame!r}")
+        pts, lab = _checked_cloud(points, labels)
+        _check_choice("frame", frame, ("camera", "world"))
+        _check_choice("label_kind", label_kind, ("instance", "class", None))
+        _check_choice("hypotheses_frame", hypotheses_frame, ("world", "camera"))
+        if T_world_cam is not None:
+            try:
+                T_world_cam = validate_pose(T_world_cam, "T_world_cam")
+            except InvalidPoseError as exc:
+                raise InputError(str(exc)) from exc
 
         t0 = time.perf_counter()
         if frame == "camera":
@@ -354,3 +398,49 @@ class Perception:
             timings["total"],
         )
         return PerceptionResult(out_frame, segmentation, segments, verdicts, timings)
+
+
+def _check_choice(name: str, value: object, allowed: tuple) -> None:
+    """InputError naming ``name`` unless ``value`` is one of ``allowed``."""
+    if value not in allowed:
+        shown = ", ".join(repr(a) for a in allowed)
+        raise InputError(f"{name} must be one of {shown}, got {value!r}")
+
+
+def _checked_cloud(points: object, labels: object) -> tuple[np.ndarray, np.ndarray | None]:
+    """``points`` as float ``(M, 3)`` without its non-finite rows, and ``labels`` as int64
+    ``(M,)`` (the labels of those rows) or None.
+
+    Raises:
+        InputError: ``points`` not ``(N, 3)`` numbers or no finite row; ``labels`` not ``N``
+            integers (one per point; ``(N, 1)`` is accepted).
+    """
+    try:
+        pts = np.asarray(points, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"points must be an (N, 3) array of numbers (m): {exc}") from exc
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise InputError(f"points must have shape (N, 3) (x, y, z in m), got {pts.shape}")
+    finite = np.all(np.isfinite(pts), axis=1)
+    if not finite.any():
+        raise InputError(f"empty cloud: no finite points (of {len(pts)})")
+    if labels is None:
+        return pts[finite], None
+    lab = np.asarray(labels)
+    if lab.shape not in ((len(pts),), (len(pts), 1)):
+        raise InputError(
+            f"labels must have shape ({len(pts)},) (one per point of the ({len(pts)}, 3) "
+            f"points), got {lab.shape}"
+        )
+    lab = lab.reshape(-1)
+    if lab.dtype == bool or not np.issubdtype(lab.dtype, np.number):
+        raise InputError(f"labels must be integers (negative: background), got dtype {lab.dtype}")
+    if not np.issubdtype(lab.dtype, np.integer):
+        bad = ~np.isfinite(lab) | (lab != np.round(lab))
+        if bad.any():
+            k = int(np.flatnonzero(bad)[0])
+            raise InputError(
+                f"labels must be integers (negative: background): label {k} is {lab[k].item()!r} "
+                f"({int(bad.sum())} of {len(lab)} are not)"
+            )
+    return pts[finite], lab[finite].astype(np.int64)

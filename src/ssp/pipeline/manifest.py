@@ -23,6 +23,7 @@ from ssp import __version__
 from ssp.config import SSPConfig
 from ssp.errors import ArgumentError, OutputLockedError
 from ssp.io._files import file_problem, output_error, refuse_link
+from ssp.io.bop import MASK_MODES
 from ssp.io.rosbag import BagOptions
 from ssp.io.tum import TUM_DIR
 from ssp.pipeline.inputs import input_files
@@ -106,6 +107,8 @@ def run_manifest(
     }
     if estimates is not None:
         manifest["input_files"]["estimates"] = file_stamp(Path(estimates.source))
+    if masks not in MASK_MODES:  # a detections file: a changed one is another input
+        manifest["input_files"]["masks"] = file_stamp(Path(masks))
     return manifest
 
 
@@ -201,6 +204,13 @@ def differences(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
     for k, v in new["options"].items():
         if old.get("options", {}).get(k) != v:
             diffs.append(f"option {k} {old.get('options', {}).get(k)!r} -> {v!r}")
+    ids = _ids_differences(old.get("obj_ids"), new.get("obj_ids"))
+    if ids:
+        was, now = old.get("obj_ids_file"), new.get("obj_ids_file")
+        diffs.append(
+            f"object ids (obj_ids.json) {ids}"
+            + (f" (--obj-ids {was!r} -> {now!r})" if was != now else "")
+        )
     a, b = _flat(old.get("config", {})), _flat(new["config"])
     changed = sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k) and k not in NO_EFFECT)
     if changed:
@@ -218,6 +228,31 @@ def differences(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
             + (f" and {len(files) - 5} more" if len(files) > 5 else "")
         )
     return diffs
+
+
+def _ids_differences(old: Any, new: Any) -> str:
+    """The classes whose BOP ``obj_id`` differ between two ``{"1": "cube", ...}`` maps, in
+    words (``""``: the same; an ``old`` None, a run from before ids were recorded, is not
+    compared)."""
+    if old is None or old == new:
+        return ""
+    a = {c: k for k, c in old.items()} if isinstance(old, dict) else {}
+    b = {c: k for k, c in (new or {}).items()}
+    changed = sorted(c for c in a.keys() | b.keys() if a.get(c) != b.get(c))
+    shown = ", ".join(f"{c} {a.get(c, 'none')} -> {b.get(c, 'none')}" for c in changed[:5])
+    return shown + (f" and {len(changed) - 5} more" if len(changed) > 5 else "")
+
+
+def _recorded_ids(out: Path, old: dict[str, Any]) -> dict[str, Any]:
+    """``old`` (a ``run.json``) with the ids its run wrote: an ``obj_ids.json`` when run.json
+    has none (a run of an ssp that did not record them there)."""
+    if "obj_ids" in old or not (out / OBJ_IDS_JSON).is_file():
+        return old
+    try:
+        ids = json.loads((out / OBJ_IDS_JSON).read_text(encoding="utf-8")).get("obj_ids")
+    except (OSError, ValueError, AttributeError):
+        return old
+    return {**old, "obj_ids": ids} if isinstance(ids, dict) else old
 
 
 def _entries(out: Path) -> list[Path]:
@@ -416,7 +451,7 @@ def prepare_resume(
     the committed frames, in order."""
     old = read_run(out)
     check_links(out, old)
-    diffs = differences(old, manifest)
+    diffs = differences(_recorded_ids(out, old), manifest)
     if diffs:
         raise ArgumentError(
             f"{out}: cannot resume: the run was started with other inputs: "
@@ -464,7 +499,8 @@ class RunOptions:
     """The options of a run that a resume may leave out (None: not given): the input, the
     model folder (None also: the built-in models), the :func:`ssp.pipeline.run.run` options
     ``hypotheses``, ``method``, ``classes``, ``bag`` (empty: not given), ``masks``,
-    ``period``."""
+    ``period``, ``scene_id`` and ``obj_ids`` (an id table file; None for a new run: the
+    input's own scene id and ids)."""
 
     input: Path | None = None
     models: Path | None = None
@@ -474,6 +510,8 @@ class RunOptions:
     bag: dict[str, Any] = field(default_factory=dict)
     masks: str | None = None
     period: float | None = None
+    scene_id: int | None = None
+    obj_ids: Path | None = None
 
     def fresh(self) -> RunOptions:
         """These options for a new run: the defaults of those not given."""
@@ -500,4 +538,11 @@ class RunOptions:
             bag=self.bag or opts.get("bag") or {},
             masks=self.masks or opts.get("masks", "auto"),
             period=self.period if self.period is not None else opts.get("period"),
+            scene_id=self.scene_id if self.scene_id is not None else opts.get("scene_id"),
+            obj_ids=self.obj_ids if self.obj_ids is not None else _path(manifest, "obj_ids_file"),
         )
+
+
+def _path(manifest: Mapping[str, Any], key: str) -> Path | None:
+    value = manifest.get(key)
+    return None if value is None else Path(value)
