@@ -26,6 +26,7 @@ from rich.console import Console, ConsoleDimensions
 from rich.markup import escape
 
 __all__ = [
+    "masks_arg",
     "CacheOption",
     "ConfigOption",
     "ExecutorOption",
@@ -571,3 +572,14 @@ def stopped() -> None:
     """KeyboardInterrupt when a stop was asked for (between frames)."""
     if state.get("stop"):
         raise KeyboardInterrupt
+
+
+def masks_arg(masks: str | None) -> str | None:
+    """``--masks``: a detections file as its absolute path (what run.json records, so a
+    resume from another folder reads the same file), anything else as given (the run
+    checks it)."""
+    from ssp.io.bop import MASK_MODES
+
+    if masks is None or masks in MASK_MODES or not Path(masks).expanduser().is_file():
+        return masks
+    return str(Path(masks).expanduser().resolve())

@@ -18,6 +18,7 @@ from ssp.cli.common import (
     friendly,
     load_config,
     load_library,
+    masks_arg,
     progress_bar,
 )
 
@@ -43,7 +44,8 @@ MasksOption = typer.Option(
     help=(
         "Segmentation: auto (an ssp scene's simulated one, none for a published scene), gt "
         "(the ground-truth mask_visib: an upper bound), none (the cloud above the table is "
-        "clustered)."
+        "clustered), silhouettes (the estimates' rendered silhouettes), or FILE: a detector's "
+        "BOP segmentation results JSON (RLE masks, as CNOS and SAM-6D write them)."
     ),
 )
 
@@ -123,7 +125,7 @@ def refine_cmd(
             split=split,
             scene_ids=_scene_ids(scenes),
             method=method,
-            masks=masks,
+            masks=masks_arg(masks),
             period=period,
             resume=resume,
             overwrite=overwrite,
@@ -167,17 +169,33 @@ def estimate_cmd(
     models: Path | None = DatasetModelsOption,
     config: Path | None = ConfigOption,
     cache: Path | None = CacheOption,
+    noise: str = typer.Option(
+        "depth",
+        "--noise",
+        help=(
+            "depth: the built-in estimator on the depth images; rgb: a simulated RGB estimator "
+            "(MegaPose-like, measured on LM-O: errors mostly in depth along the viewing ray) "
+            "drawn at each image's ground truth (needs scene_gt.json)."
+        ),
+    ),
+    seed: int = typer.Option(0, min=0, help="--noise rgb: the seed of the simulated errors."),
 ) -> None:
     """The built-in pose estimator over a BOP dataset: every hypothesis as a BOP19 CSV row
-    (several per object), the input of `ssp refine`."""
+    (several per object), the input of `ssp refine`; or, with --noise rgb, a simulated RGB
+    estimator's CSV."""
     from ssp.pipeline.refine import estimate
 
+    if noise not in ("depth", "rgb"):
+        raise typer.BadParameter("--noise must be 'depth' or 'rgb'")
     lib, _ = _dataset_library(dataset, models, config, cache)
+    if noise == "rgb":
+        _estimate_rgb(dataset, lib, out, seed, split, scenes)
+        return
     names = [c.strip() for c in classes.split(",") if c.strip()] if classes else None
     with progress_bar() as progress:
         task = progress.add_task("estimating", total=None)
         rep = estimate(dataset, lib, out, load_config(config), split=split,
-                       scene_ids=_scene_ids(scenes), classes=names, masks=masks,
+                       scene_ids=_scene_ids(scenes), classes=names, masks=masks_arg(masks),
                        progress=lambda d, t, m: progress.update(task, completed=d, total=t,
                                                                 description=m[:60]))  # fmt: skip
     for f in rep["failed"]:
@@ -185,6 +203,25 @@ def estimate_cmd(
             f"[red]skipped[/] scene {f['scene']} image {f['im_id']}: {escape(f['error'])}"
         )
     console.print(f"{rep['rows']} hypotheses of {rep['images']} images: wrote [bold]{out}[/]")
+
+
+def _estimate_rgb(dataset: Path, lib, out: Path, seed: int, split, scenes) -> None:
+    """``ssp estimate --noise rgb``: the simulated RGB estimator's CSV."""
+    from ssp.sim.rgb_csv import rgb_estimates
+
+    with progress_bar() as progress:
+        task = progress.add_task("simulating an RGB estimator", total=None)
+
+        def step(d: int, t: int, m: str) -> None:
+            progress.update(task, completed=d, total=t, description=m[:60])
+
+        rep = rgb_estimates(
+            dataset, lib, out, seed=seed, split=split, scene_ids=_scene_ids(scenes), progress=step
+        )
+    console.print(
+        f"{rep['rows']} hypotheses of {rep['images']} images ({rep['missed']} of "
+        f"{rep['targets']} objects missed): wrote [bold]{out}[/]"
+    )
 
 
 @friendly

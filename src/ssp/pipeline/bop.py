@@ -12,20 +12,47 @@ from typing import Any
 import numpy as np
 
 from ssp.config import SSPConfig
-from ssp.errors import InputError, SSPError
-from ssp.io.bop import DEFAULT_PERIOD, mask_source, open_bop
+from ssp.errors import ArgumentError, InputError, SSPError
+from ssp.geometry import invert
+from ssp.io.bop import DEFAULT_PERIOD, MASK_MODES, BopFrame, mask_source, open_bop
+from ssp.io.detections import (
+    Detection,
+    SceneDetections,
+    instance_labels,
+    match_segments,
+    read_detections,
+)
 from ssp.io.results import ObjectIds
 from ssp.perception.depth import cloud_from_depth
 from ssp.perception.pipeline import Perception, PerceptionResult
+from ssp.perception.silhouettes import silhouette_detections
 from ssp.perception.table import TableTracker
 from ssp.pipeline.sources import InputFrame, unknown_class
 
-__all__ = ["BOP_FOLDERS", "BopSource", "bop_object_ids"]
+__all__ = ["BOP_FOLDERS", "BopSource", "bop_object_ids", "check_masks"]
 
 log = logging.getLogger(__name__)
 
 #: The folders of a BOP scene a run reads besides the scene's own files.
 BOP_FOLDERS = ("depth", "instance", "mask_visib")
+
+
+def check_masks(masks: str) -> Path | None:
+    """The detections file ``masks`` names (None: one of :data:`ssp.io.bop.MASK_MODES`).
+
+    Raises:
+        ArgumentError: neither a mode nor an existing file.
+    """
+    if masks in MASK_MODES:
+        return None
+    p = Path(masks).expanduser()
+    if not p.is_file():
+        raise ArgumentError(
+            f"masks must be one of {', '.join(MASK_MODES)} or a detections file (BOP "
+            f"segmentation results JSON), got {masks!r}: "
+            + ("not a file" if p.exists() else "no such file")
+        )
+    return p
 
 
 class BopSource:
@@ -37,12 +64,19 @@ class BopSource:
     :data:`ssp.pipeline.sources.HYPOTHESES_MODES`). The world frame is the scene's
     ``cam_R_w2c`` when every image has one, else the table plane fitted to the depth
     (:class:`ssp.perception.table.TableTracker`: kept while the camera stays put).
-    ``masks`` is one of :data:`ssp.io.bop.MASK_MODES`; ``period`` the seconds between images
-    of a scene without stamps (default :data:`ssp.io.bop.DEFAULT_PERIOD`).
+    ``masks`` is one of :data:`ssp.io.bop.MASK_MODES` or the path of a detector's instance
+    masks (a BOP segmentation results file, :mod:`ssp.io.detections`; ``mask_min_score``
+    drops its detections scoring below it): each image's detections are its instance labels,
+    each label's class the detection's, and each given hypothesis takes the label of the
+    detection of its class it overlaps (:func:`ssp.io.detections.match_segments`); an image
+    without detections has no masks (a warning of the frame). ``mask_description`` says in
+    words which masks the frames get. ``period`` is the seconds between images of a scene
+    without stamps (default :data:`ssp.io.bop.DEFAULT_PERIOD`).
 
     Raises:
-        InputError: the scene cannot be read, or ``mode`` is ``given`` and it has no
-            hypotheses.
+        InputError: the scene cannot be read, ``mode`` is ``given`` and it has no
+            hypotheses, or the detections file cannot be read or has no usable detection of
+            the scene.
         ArgumentError: a bad ``masks``.
     """
 
@@ -59,8 +93,9 @@ class BopSource:
         estimates: Any = None,
         masks: str = "auto",
         period: float | None = None,
+        mask_min_score: float = 0.0,
     ) -> None:
-        mask_source(masks, simulated=True)  # checks ``masks`` before reading
+        det_file = check_masks(masks)  # checks ``masks`` before reading
         self.path, self.library, self.mode = path, library, mode
         self.estimates, self.masks = estimates, masks
         self.scene = open_bop(path, library, period=DEFAULT_PERIOD if period is None else period)
@@ -70,8 +105,40 @@ class BopSource:
         if mode == "given" and not given:
             raise InputError(f"{path}: no hypotheses.json and --hypotheses given")
         self.tracker = None if self.scene.has_world else TableTracker(cfg.perception.table_distance)
-        self.use_masks = mask_source(masks, self.scene.simulated)
+        #: m: how far from a silhouette's rendered depth its pixels may be (the correction's reach)
+        self.max_gap = cfg.correction.max_shift
+        self.detections: SceneDetections | None = None
+        if det_file is None:
+            self.use_masks = mask_source(masks, self.scene.simulated)
+        else:
+            self.use_masks = None  # the scene's own segmentation is not read
+            self.detections = self._read_detections(det_file, mask_min_score)
+        self.mask_description = self._describe_masks(det_file, mask_min_score)
         self.total = len(self.scene)
+
+    def _read_detections(self, det_file: Path, min_score: float) -> SceneDetections:
+        """The detections of this scene in ``det_file`` (:mod:`ssp.io.detections`)."""
+        sc = self.scene
+        sizes = {}
+        for k, im in enumerate(sc.im_ids):
+            cam = sc.camera_of(k)
+            sizes[im] = (cam.height, cam.width)
+        classes = {oid: c for oid, c in sc.classes.items() if c in self.library}
+        return read_detections(det_file).for_scene(sc.scene_id, sizes, classes, min_score=min_score)
+
+    def _describe_masks(self, det_file: Path | None, min_score: float) -> str:
+        """Which masks the frames get, in words."""
+        if det_file is not None:
+            low = f", scores of at least {min_score:g}" if min_score > 0 else ""
+            return f"detections: {det_file}{low}"
+        if self.use_masks is None:
+            return {
+                "none": "none (--masks none)",
+                "silhouettes": "the hypotheses' rendered silhouettes (--masks silhouettes)",
+            }.get(self.masks, "--masks auto: a published scene's only masks are its ground truth's")
+        if self.use_masks == "gt":
+            return "ground truth (mask_visib)"
+        return "the simulated segmentation (instance/), else mask_visib"
 
     def frames(self, start: int = 0) -> Iterator[InputFrame]:
         """The images from position ``start`` on (:class:`~ssp.pipeline.sources.FrameSource`);
@@ -144,16 +211,64 @@ class BopSource:
                     "the table plane moved: the world frame was fitted again (a moving "
                     "camera needs cam_R_w2c/cam_t_w2c in scene_camera.json)"
                 )
-        result = self.perception.from_depth(
-            sf.depth,
-            sf.camera,
+        label_classes = None
+        if self.detections is not None:
+            dets, notes = self.detections.frame(sf.im_id)
+            for note in notes:
+                log.warning("%s", note)
+            warnings.extend(notes)
+            mask, label_classes, hyps = self._instance_masks(dets, sf, hyps, hyp_frame, T_wc)
+        elif mask is None and self.masks != "none":
+            if hyps and self.masks == "silhouettes":
+                T_cf = None if hyp_frame == "camera" else invert(T_wc)
+                ids = {c: oid for oid, c in self.scene.classes.items()}
+                dets = silhouette_detections(hyps, self.library, ids, sf.camera, sf.depth, T_cf,
+                                             im_id=sf.im_id, max_gap=self.max_gap)  # fmt: skip
+                mask, label_classes, hyps = self._instance_masks(dets, sf, hyps, hyp_frame, T_wc)
+            warnings.append(
+                "no masks: segments from the hypotheses' rendered silhouettes (--masks FILE: a "
+                "detector's instance masks)"
+                if mask is not None
+                else f"no masks ({self.mask_description}): the cloud above the table is "
+                "clustered, clutter may become objects (--masks FILE: a detector's instance masks)"
+            )
+        cloud = cloud_from_depth(sf.depth, sf.camera, mask=mask)
+        result = self.perception.from_points(
+            cloud.points,
+            frame="camera",
             stamp=sf.stamp,
             T_world_cam=T_wc,
-            mask=mask,
+            labels=cloud.labels,
+            label_classes=label_classes,
             hypotheses=hyps,
             hypotheses_frame=hyp_frame,
         )
         return result, warnings
+
+    def _instance_masks(
+        self,
+        dets: list[Detection],
+        sf: BopFrame,
+        hyps: list | None,
+        hyp_frame: str,
+        T_wc: np.ndarray,
+    ) -> tuple[np.ndarray | None, dict[int, str] | None, list | None]:
+        """The instance labels ``(H, W)`` of frame ``sf``'s detections ``dets`` (a detector's
+        or the hypotheses' silhouettes), each label's class, and the hypotheses with the label
+        of their detection (``segment``); no labels when there is no detection."""
+        if not dets:
+            return None, None, hyps
+        inst = instance_labels(dets, sf.depth.shape)
+        class_of = self.scene.classes
+        label_classes = {i: class_of[d.obj_id] for i, d in enumerate(inst.detections)}
+        if hyps:
+            T_cam_frame = None if hyp_frame == "camera" else invert(T_wc)
+            hyps, n = match_segments(
+                hyps, inst, class_of, self.library, sf.camera, sf.depth, T_cam_frame
+            )
+            log.info("im_id %d: %d of %d hypotheses on a detection of their class (%d "
+                     "detections)", sf.im_id, n, len(hyps), len(dets))  # fmt: skip
+        return inst.labels.astype(np.int64), label_classes, hyps
 
 
 def bop_object_ids(scene: Path, library: Mapping) -> ObjectIds:

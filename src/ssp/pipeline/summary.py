@@ -48,6 +48,8 @@ class RunSummary:
     warnings: list[dict[str, str]] = field(default_factory=list)
     files: list[str] = field(default_factory=list)
     status: str = "running"
+    #: which masks the frames got, in words (None: the input says nothing of masks)
+    masks: str | None = None
     _done_text: list[str] = field(default_factory=list, init=False, repr=False)  # JSON per record
 
     @property
@@ -107,4 +109,5 @@ class RunSummary:
             "sec_per_frame": float(np.mean(secs)) if secs else None,
             "per_frame": self.done,
             "files": self.files,
+            "masks": self.masks,
         }
