@@ -15,6 +15,7 @@ from ssp.eval.baselines import (
     BestFit,
     Estimator,
     ICPRefine,
+    RaySlide,
     SSPMethod,
     TemporalFilter,
     icp_refine,
@@ -163,6 +164,25 @@ def test_icp_reduces_a_3mm_error(lib):
         assert before[k][0] == pytest.approx(3.0, abs=1e-6)
         assert after[k][0] < 1.0, after
         assert after[k][1] < before[k][1]
+
+
+def test_ray_slide_moves_a_depth_error_along_the_ray(lib):
+    """An RGB estimator's error, 25 mm too far along the viewing ray: the user's simplest fix
+    slides the pose back (within a few mm) without touching the rotation or the lateral
+    position."""
+    gt = {"a": ("cube", pose(0.0, 0.0, yaw_deg=20)), "b": ("bar", pose(0.12, 0.05, 0.01, -30))}
+    cam = T_WORLD_CAM[:3, 3]
+    hyps = []
+    for c, T in gt.values():
+        ray = (T[:3, 3] - cam) / np.linalg.norm(T[:3, 3] - cam)
+        hyps.append(Hypothesis(c, moved(T, 0.025 * ray)))
+    f = sequence(lib, [gt], [hyps]).frame(0)
+    before = errors(lib, gt, Estimator(lib).update(f))
+    after = errors(lib, gt, RaySlide(lib).update(f))
+    for k in gt:
+        assert before[k][0] == pytest.approx(25.0, abs=1e-6)
+        assert after[k][0] < 5.0, after
+        assert after[k][1] == pytest.approx(before[k][1], abs=1e-6)
 
 
 def test_icp_without_data_keeps_the_pose(lib):

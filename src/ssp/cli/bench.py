@@ -13,10 +13,12 @@ from ssp.cli.common import ConfigOption, console, friendly, load_config, progres
 
 __all__ = [
     "bench_calibrate",
+    "bench_docs_figures",
     "bench_estimator_cmd",
     "bench_main",
     "bench_parser_cmd",
     "bench_physics",
+    "bench_rgb_calibration_cmd",
     "bench_soak_cmd",
 ]
 
@@ -378,3 +380,69 @@ def bench_soak_cmd(
         + ("" if half is None else f", over the second half: {half:+.1f} MiB")
         + f"; {s['failed']} failed frames; wrote [bold]{path}[/]"
     )
+
+
+@friendly
+def bench_docs_figures(
+    check: bool = typer.Option(False, "--check", help="Exit 1 when a figure differs."),
+    write: bool = typer.Option(False, "--write", help="Render every complete figure block."),
+    collect: Path | None = typer.Option(
+        None,
+        help="Copy the results files of the bench runs under this folder (one per "
+        "source, named as in examples/docs_figures.sh) into docs/results first.",
+    ),
+    strict: bool = typer.Option(
+        False, "--strict", help="With --check: a figure whose results are missing fails too."
+    ),
+    root: Path = typer.Option(Path("."), help="The repository's root (README.md, docs/)."),
+) -> None:
+    """The figures the docs quote (README.md, docs/*.md), from the bench results under
+    docs/results (ssp.eval.docs_figures): --collect copies them, --write renders every marked
+    block, --check names each block or sentence that says other figures."""
+    from ssp.eval import docs_figures as df
+
+    if collect is not None:
+        for f in df.collect(collect, root):
+            console.print(f"copied [bold]{f}[/]")
+    if write:
+        changed = df.write(root)
+        console.print(f"rewrote {', '.join(changed) if changed else 'nothing'}")
+    problems = df.check(root)
+    for p in problems:
+        color = "yellow" if p.kind == "incomplete" else "red"
+        console.print(f"[{color}]{p.kind}[/] {p}", highlight=False, soft_wrap=True)
+    failed = [p for p in problems if strict or p.kind != "incomplete"]
+    if not problems:
+        console.print("every figure block and sentence matches its results")
+    if check and failed:
+        raise typer.Exit(1)
+
+
+@friendly
+def bench_rgb_calibration_cmd(
+    data: Path = typer.Option(
+        ...,
+        "--data",
+        help=(
+            "A BOP dataset folder with models/models_info.json, test/<scene>/scene_gt.json and "
+            "scene_gt_info.json, and a BOP19 results CSV of an RGB estimator (e.g. "
+            "../shared/data/lmo-megapose)."
+        ),
+    ),
+    out: Path = typer.Option(
+        Path("bench-out/rgb-calibration"), "--out", "-o", help="Output folder."
+    ),
+    csv: Path | None = typer.Option(
+        None, "--csv", help="The results CSV (default: the one in --data)."
+    ),
+) -> None:
+    """How a real RGB pose estimator errs against ground truth: along-ray, lateral and rotation
+    errors, flips, far outliers, misses and rows per target by visible fraction, scores (the
+    numbers behind `--noise rgb`); writes results.json and results.md."""
+    from ssp.eval.rgb_calibration import calibrate_rgb, write_rgb_calibration
+
+    result = calibrate_rgb(data, csv)
+    files = write_rgb_calibration(result, out)
+    console.print(files[1].read_text(), highlight=False)
+    for f in files:
+        console.print(f"wrote [bold]{f}[/]")

@@ -133,7 +133,10 @@ def bench_table1(
             "paper: the paper's protocol (independent Gaussian hypotheses, clean masks, static "
             "scenes); realistic: the realistic estimator stream (gross outliers, flips, class "
             "confusions, false positives, persistent errors, dropouts) in scenes with "
-            "distractors, mask defects and dynamic events (docs/benchmarks.md)."
+            "distractors, mask defects and dynamic events (docs/benchmarks.md); rgb: the same "
+            "scenes with an RGB estimator's stream (MegaPose-like: errors mostly in depth along "
+            "the viewing ray, far outliers, flips, misses by visibility; measured on LM-O by "
+            "ssp bench rgb-calibration)."
         ),
     ),
     methods: str | None = typer.Option(
@@ -172,8 +175,8 @@ def _check_table1_options(hypotheses: str, noise: str) -> None:
     """The --hypotheses and --noise of ``ssp bench table1``."""
     if hypotheses not in ("noisy", "estimated"):
         raise typer.BadParameter("--hypotheses must be 'noisy' or 'estimated'")
-    if noise not in ("paper", "realistic"):
-        raise typer.BadParameter("--noise must be 'paper' or 'realistic'")
+    if noise not in ("paper", "realistic", "rgb"):
+        raise typer.BadParameter("--noise must be 'paper', 'realistic' or 'rgb'")
 
 
 def _table1_parts(command: dict, lib, cfg, parallel) -> list:
@@ -189,8 +192,9 @@ def _table1_parts(command: dict, lib, cfg, parallel) -> list:
             stages=command["stages"],
             frames_per_stage=command["frames_per_stage"],
             stride=command["stride"],
-            realistic=command["noise"] == "realistic",
+            realistic=command["noise"] in ("realistic", "rgb"),
             estimated=command["hypotheses"] == "estimated",
+            rgb=command["noise"] == "rgb",
         )
         for i in range(sequences)
     ]
@@ -308,7 +312,8 @@ def bench_tower(
             "Noisy hypotheses: structure (Table I's structure noise), case-study (its sigmas "
             "scaled so the estimator fluctuates as ObjRecRANSAC did in the paper's Table III) "
             "or realistic (the realistic estimator stream, distractors on the table and mask "
-            "defects: docs/benchmarks.md)."
+            "defects: docs/benchmarks.md), or rgb (realistic with an RGB estimator's stream, "
+            "MegaPose-like: errors mostly in depth along the viewing ray)."
         ),
     ),
     config: Path | None = ConfigOption,
@@ -320,8 +325,10 @@ def bench_tower(
     poses; writes results.json, results.md and a picture of a final tower per method."""
     from ssp.eval.tower import HYPOTHESES, NOISE_PRESETS, write_tower
 
-    if noise not in (*NOISE_PRESETS, "realistic"):
-        raise typer.BadParameter(f"--noise must be one of {', '.join(NOISE_PRESETS)}, realistic")
+    if noise not in (*NOISE_PRESETS, "realistic", "rgb"):
+        raise typer.BadParameter(
+            f"--noise must be one of {', '.join(NOISE_PRESETS)}, realistic, rgb"
+        )
     if hypotheses not in HYPOTHESES:
         raise typer.BadParameter(f"--hypotheses must be one of {', '.join(HYPOTHESES)}")
     names = _methods(methods)
@@ -359,8 +366,8 @@ def _run_tower(
 ) -> tuple[dict, dict]:
     """The tower case study with a progress bar: the result, and a picture of the first
     trial's tower per method."""
-    from ssp.eval.tower import noise_preset, run_tower, tower_picture
-    from ssp.sim.realistic import RealisticNoise, SceneRealism
+    from ssp.eval.tower import run_tower, tower_picture
+    from ssp.sim.realistic import SceneRealism
 
     pictures = {}
     with progress_bar() as progress:
@@ -379,10 +386,20 @@ def _run_tower(
             methods=methods,
             hypotheses=hypotheses,
             frames_per_step=frames_per_step,
-            noise=RealisticNoise() if noise == "realistic" else noise_preset(noise),
-            realism=SceneRealism(events=()) if noise == "realistic" else None,
+            noise=_tower_noise(noise),
+            realism=SceneRealism(events=()) if noise in ("realistic", "rgb") else None,
             progress=lambda msg: progress.update(task, description=msg),
             on_trial=on_trial,
             parallel=parallel,
         )
     return result, pictures
+
+
+def _tower_noise(noise: str):
+    """The tower's hypothesis noise of ``--noise``: a Table I preset, or a realistic stream."""
+    from ssp.eval.tower import noise_preset
+    from ssp.sim.realistic import RealisticNoise
+
+    if noise == "rgb":
+        return RealisticNoise.rgb()
+    return RealisticNoise() if noise == "realistic" else noise_preset(noise)

@@ -10,6 +10,9 @@ label most of the pose's model samples land on).
 
 * ``estimator``: the best-scored hypothesis of each object (the pose estimator alone).
 * ``icp``: the estimator's pose refined by point-to-plane ICP on the object's segment.
+* ``ray_slide``: the estimator's pose slid along its viewing ray to the observed depth (the
+  median depth offset of its silhouette, :func:`ssp.correction.median_slide`): the simplest
+  fix a user of an RGB estimator would write.
 * ``bestfit``: among the (at most ``search.hypotheses_per_object``) hypotheses of each object,
   the one with the best data fit (the ``c`` of Eq. 12, camera-facing samples only); no physics.
 * ``temporal_filter``: the estimator smoothed over time per tracked object.
@@ -35,6 +38,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ssp.config import SSPConfig
+from ssp.correction import camera_view, median_slide
 from ssp.errors import SSPError
 from ssp.eval.metrics import chordal_mean_rotation
 from ssp.geometry import transform_points
@@ -60,6 +64,7 @@ __all__ = [
     "Estimator",
     "ICPFilter",
     "ICPRefine",
+    "RaySlide",
     "Method",
     "SSPMethod",
     "SSPSingleFrame",
@@ -206,6 +211,24 @@ class ICPRefine(Estimator):
                 n_samples=self.config.search.fit_samples,
             )
             out.append(Detection(classes[oid], T, hyps[0].score))
+        return out
+
+
+class RaySlide(Estimator):
+    """The estimator's pose slid along its viewing ray to the depth its silhouette sees
+    (:func:`ssp.correction.median_slide`); unchanged without a camera pose or data."""
+
+    name = "ray_slide"
+
+    def update(self, frame: Frame) -> list[Detection]:
+        frame = frame.validate(self.library)
+        view = camera_view(frame, self.config)
+        out = []
+        for hyps in self._groups(frame).values():
+            h = hyps[0]
+            T = None if view is None else median_slide(h, self.library[h.class_name], view, frame)
+            pose = np.array(h.T_world_obj) if T is None else T
+            out.append(Detection(h.class_name, pose, h.score))
         return out
 
 
@@ -531,6 +554,7 @@ METHODS: dict[str, type] = {
     "ssp": SSPMethod,
     "estimator": Estimator,
     "icp": ICPRefine,
+    "ray_slide": RaySlide,
     "bestfit": BestFit,
     "temporal_filter": TemporalFilter,
     "icp_filter": ICPFilter,

@@ -78,7 +78,8 @@ __all__ = [
 ]
 
 DEFAULT_METHODS = (
-    "ssp", "estimator", "icp", "bestfit", "temporal_filter", "icp_filter", "ssp_single",
+    "ssp", "estimator", "icp", "ray_slide", "bestfit", "temporal_filter", "icp_filter",
+    "ssp_single",
 )  # fmt: skip
 
 #: The paper's Table I: experiment -> row -> ((trans mm mean, std), (rot deg mean, std)).
@@ -256,8 +257,10 @@ def _common(values: list):
 class SequenceSpec:
     """A synthetic sequence to generate where it is run (in a worker, so the images are never
     pickled): :func:`ssp.sim.generate.generate_sequence` with these settings (``realistic``:
-    the realistic estimator stream and scene), then, with ``estimated``, its hypotheses
-    replaced by the perception front end's (:func:`ssp.eval.estimated.estimate_sequence`)."""
+    the realistic estimator stream and scene; with ``rgb`` also, the RGB-estimator stream,
+    :meth:`RealisticNoise.rgb <ssp.sim.realistic.RealisticNoise.rgb>`), then, with
+    ``estimated``, its hypotheses replaced by the perception front end's
+    (:func:`ssp.eval.estimated.estimate_sequence`)."""
 
     experiment: str
     seed: int
@@ -266,6 +269,7 @@ class SequenceSpec:
     stride: int = 1
     realistic: bool = False
     estimated: bool = False
+    rgb: bool = False
 
     def build(self, library, config: SSPConfig) -> tuple[SimSequence, list[dict]]:
         """The sequence and the estimator's records (empty unless ``estimated``)."""
@@ -279,7 +283,9 @@ class SequenceSpec:
             stages=self.stages,
             frames_per_stage=self.frames_per_stage,
             stride=self.stride,
-            hypotheses=RealisticNoise() if self.realistic else None,
+            hypotheses=(RealisticNoise.rgb() if self.rgb else RealisticNoise())
+            if self.realistic
+            else None,
             realism=SceneRealism() if self.realistic else None,
         )
         if not self.estimated:
@@ -671,9 +677,9 @@ def table1_report(
     command: dict | None = None,
 ) -> dict:
     """The result ``ssp bench table1`` writes: :func:`merge_table1` of the parts, with the
-    hypotheses (``noisy`` or ``estimated``) and noise (``paper`` or ``realistic``) settings;
-    for ``realistic``, the realistic protocol's settings and each sequence's events; for
-    estimated hypotheses, the estimator's summary and records
+    hypotheses (``noisy`` or ``estimated``) and noise (``paper``, ``realistic`` or ``rgb``)
+    settings; for ``realistic`` and ``rgb``, the realistic protocol's settings and each
+    sequence's events; for estimated hypotheses, the estimator's summary and records
     (:func:`ssp.eval.estimated.summarize_estimator`); and the ``command`` that ran it."""
     from ssp.sim.realistic import RealisticNoise, SceneRealism
 
@@ -681,9 +687,9 @@ def table1_report(
     records = [{"sequence": p.index, **r} for p in parts for r in p.estimator_records]
     result["hypotheses"] = hypotheses
     result["noise"] = noise
-    if noise == "realistic":
+    if noise in ("realistic", "rgb"):
         result["protocol_settings"] = {
-            "estimator": RealisticNoise().to_dict(),
+            "estimator": (RealisticNoise.rgb() if noise == "rgb" else RealisticNoise()).to_dict(),
             "scene": SceneRealism().to_dict(),
             "events": [p.info.get("events") for p in parts],
             "events_skipped": [p.info.get("events_skipped") for p in parts],

@@ -138,7 +138,7 @@ HYPOTHESES = ("noisy", "estimated")
 #: estimator on development seed 0, trials 0-5: factors (1.1, 4) gave 3.46 mm / 13.5 deg,
 #: (1.1, 5) gave 3.45 mm / 16.9 deg.
 NOISE_PRESETS = {"structure": (1.0, 1.0), "case-study": (1.2, 4.3)}
-DEFAULT_METHODS = ("ssp", "estimator")
+DEFAULT_METHODS = ("ssp", "estimator", "ray_slide")
 
 #: The paper's Table III (5 runs each): method -> measure -> (mean, std).
 PAPER_TABLE3 = {
@@ -400,6 +400,7 @@ def run_trial(
             int(np.random.SeedSequence([seed, trial]).generate_state(1)[0]),
             classes=(CUBE,),
             resting_pose=lambda m, r: random_resting(m, r, REGION),
+            T_world_cam=camera_pose(),  # the static camera of _Camera
         )
     cam = _Camera(library, config, hypotheses, camera, noise, stride, stream, realism, extras)
     method = make_method(method_name, library, config)

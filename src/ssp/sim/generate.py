@@ -653,6 +653,7 @@ def generate_sequence(
             seed,
             classes=[n for n in library if n in used],
             resting_pose=lambda m, r: random_resting(m, r, ISOLATED_REGION),
+            T_world_cam=T_wc,
         )
 
     frames: list[SimFrame] = []

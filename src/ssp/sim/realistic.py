@@ -41,6 +41,13 @@ draws hypotheses that do, each failure with a documented rate and magnitude
   probability ``dropout_start`` per frame; runs last a geometric number of frames (mean
   ``dropout_frames``). Objects below ``hidden_below`` visible are never detected.
 
+**The RGB estimator** (:meth:`RealisticNoise.rgb`, ``rgb_errors`` set; :mod:`ssp.sim.rgb_stream`)
+replaces the per-object draw above: errors mostly in depth along the ray from the camera to
+the object, heavy-tailed, far outliers, flips about model axes, misses by visibility and 1-5
+hypotheses per object, with the rates and quantile tables measured on MegaPose's LM-O results
+(``ssp bench rgb-calibration --data ../shared/data/lmo-megapose``, :mod:`ssp.eval.rgb_calibration`;
+the figures are in :class:`~ssp.sim.rgb_stream.RgbErrors`), persistent over a static view.
+
 Every hypothesis records its source object (None for false positives) and its kind
 (``nominal``, ``gross``, ``flip``, ``confusion``, ``false_positive``, ``distractor``), for
 evaluation only. Hypotheses carry the instance segment they came from when the caller gives the
@@ -68,10 +75,12 @@ import trimesh
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from ssp.errors import ArgumentError
 from ssp.library.model import ObjectModel
 from ssp.probability import pose_change
 from ssp.scene import Hypothesis
 from ssp.sim.hypotheses import random_symmetry
+from ssp.sim.rgb_stream import RgbErrors, RgbObjects
 
 __all__ = [
     "KINDS",
@@ -151,6 +160,26 @@ class RealisticNoise:
     dropout_frames: float = 3.0
     score_temperature: float = 1.0
     score_jitter: float = 0.2
+    rgb_errors: RgbErrors | None = None
+
+    @classmethod
+    def rgb(cls, persistence: float = 0.9) -> RealisticNoise:
+        """The RGB-estimator stream (MegaPose-like; :mod:`ssp.sim.rgb_stream`): errors mostly in
+        depth along the viewing ray, heavy-tailed, far outliers, flips about model axes, misses
+        by visibility, 1-5 hypotheses per object, as measured on LM-O scene 2 by ``ssp bench
+        rgb-calibration --data ../shared/data/lmo-megapose`` (:class:`RgbErrors` has the
+        figures). It replaces the gross outliers, flips, class confusions, dropouts and false
+        positives of the default stream (the measured far outliers, flips, misses and extra
+        detections stand for them); distractors are still taken for library objects. The
+        stream needs the camera pose (``RealisticStream(T_world_cam=...)``)."""
+        return cls(
+            rgb_errors=RgbErrors.megapose_lmo(persistence),
+            gross_rate=0.0,
+            flip_rate=0.0,
+            confusion_rate=0.0,
+            dropout_start=0.0,
+            false_positive_rate=0.0,
+        )
 
     def __post_init__(self) -> None:
         if int(self.k) != self.k or self.k < 1:
@@ -178,7 +207,10 @@ class RealisticNoise:
         return dataclasses.replace(self, **changes)
 
     def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
+        d = dataclasses.asdict(self)
+        if self.rgb_errors is None:
+            del d["rgb_errors"]  # the default stream's settings as before the RGB stream existed
+        return d
 
     def sigma_scale(self, visib_fract: float) -> float:
         """``1 + growth (1 - v)``, ``v`` clipped to ``[0, 1]``."""
@@ -391,6 +423,8 @@ class RealisticStream:
         classes: classes for false positives (default: every class of ``library``).
         resting_pose: ``(model, rng) -> T_world_obj`` a random resting pose on the table in
             the workspace, for plausible false positives (None: they float instead).
+        T_world_cam: the camera pose (4x4); the RGB stream (``noise.rgb_errors``) needs it: its
+            errors are along and across the ray from the camera to each object.
     """
 
     library: Mapping[str, ObjectModel]
@@ -398,13 +432,20 @@ class RealisticStream:
     seed: int
     classes: Sequence[str] | None = None
     resting_pose: Callable[[ObjectModel, np.random.Generator], np.ndarray] | None = None
+    T_world_cam: np.ndarray | None = None
     _objects: dict[str, _ObjectState] = field(default_factory=dict, init=False)
     _distractors: dict[str, bool] = field(default_factory=dict, init=False)
     _false: list[_FalsePositive] = field(default_factory=list, init=False)
     _confusable: dict[str, str] = field(default_factory=dict, init=False)
+    _rgb: RgbObjects | None = field(default=None, init=False)
 
     def __post_init__(self) -> None:
         self.classes = list(self.classes) if self.classes is not None else list(self.library)
+        if self.noise.rgb_errors is not None:
+            if self.T_world_cam is None:
+                raise ArgumentError("the RGB estimator stream needs the camera pose T_world_cam")
+            redraw = (REDRAW_SHIFT, REDRAW_TILT_DEG, REDRAW_VISIBILITY)
+            self._rgb = RgbObjects(self.noise.rgb_errors, self.noise.bias_rho, redraw)
         self._confusable = confusable_classes(
             {c: self.library[c] for c in self.classes}, self.noise.confusion_min_iou
         )
@@ -491,6 +532,8 @@ class RealisticStream:
         nz = self.noise
         rng = self._rng(frame, zlib.crc32(oid.encode()))
         model = self.library[cls]
+        if self._rgb is not None:
+            return self._rgb_object(oid, cls, model, np.asarray(T, dtype=float), v, segment, rng)
         st = self._state(oid, np.asarray(T, dtype=float), v, rng)
         u_drop, u_flip, u_conf = rng.random(3)
         flips = misorientations(model, nz.flip_max_change) if nz.flip_rate > 0 else []
@@ -531,6 +574,21 @@ class RealisticStream:
                 Th = Th @ random_symmetry(sym, rng)
             score = self._score(v, err, rng)
             out.append(StreamHypothesis(Hypothesis(name, Th, score, segment=segment), oid, kind))
+        return out
+
+    def _rgb_object(self, oid, cls, model, T, v, segment, rng) -> list[StreamHypothesis]:
+        """The RGB stream's hypotheses of one object (:class:`RgbObjects`)."""
+        assert self._rgb is not None and self.T_world_cam is not None
+        if v < self.noise.hidden_below:
+            return []
+        axes, _ = _principal_frame(model)
+        centre = np.asarray(model.center_of_mass, dtype=float)
+        drawn = self._rgb.draw(oid, T, v, centre, axes, self.T_world_cam, rng)
+        out = []
+        for Th, score, kind in drawn:
+            if model.symmetry.is_symmetric:
+                Th = Th @ random_symmetry(model.symmetry, rng)
+            out.append(StreamHypothesis(Hypothesis(cls, Th, score, segment=segment), oid, kind))
         return out
 
     # ---------------------------------------------------------------- false positives
