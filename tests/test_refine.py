@@ -13,6 +13,7 @@ from ssp.cli import app
 from ssp.errors import InputError
 from ssp.io.results import read_bop_csv
 from ssp.pipeline.refine import estimate, evaluate, refine, refined_method
+from ssp.pipeline.run import REJECTED_SCORE_SCALE
 from ssp.sim.bop import simulate_to_disk
 
 runner = CliRunner()
@@ -57,13 +58,22 @@ def test_refine_writes_a_bop19_csv_that_beats_the_estimator(lib, dataset, tmp_pa
     assert {(r["scene_id"], r["im_id"]) for r in rows} == {(0, k) for k in range(4)}
     ids = json.loads((root / "models.json").read_text())["obj_ids"]
     assert {r["obj_id"] for r in rows} <= {int(k) for k in ids}
-    # the rows are the per-frame results, moved into the camera frame (t in mm)
+    # the rows are the per-frame results, kept and rejected objects, moved into the camera
+    # frame (t in mm); a rejected object's row scores below every kept one
     frame = json.loads((tmp_path / "out" / "scenes" / "000000" / "frames" / "000003.json")
                        .read_text())  # fmt: skip
     T_cw = np.linalg.inv(np.asarray(frame["T_world_cam"]))
-    t_cam = sorted(tuple(np.round((T_cw @ np.asarray(o["T_world_obj"]))[:3, 3] * 1000, 3))
-                   for o in frame["objects"])  # fmt: skip
-    assert sorted(tuple(np.round(r["t"], 3)) for r in rows if r["im_id"] == 3) == t_cam
+
+    def t_cam(objs):
+        return sorted(tuple(np.round((T_cw @ np.asarray(o["T_world_obj"]))[:3, 3] * 1000, 3))
+                      for o in objs)  # fmt: skip
+
+    rows3 = [r for r in rows if r["im_id"] == 3]
+    assert sorted(tuple(np.round(r["t"], 3)) for r in rows3) == t_cam(
+        frame["objects"] + frame["rejected"]
+    )
+    kept = [r for r in rows3 if r["score"] > REJECTED_SCORE_SCALE]
+    assert sorted(tuple(np.round(r["t"], 3)) for r in kept) == t_cam(frame["objects"])
     assert (tmp_path / "out" / "scenes" / "000000" / "tum").is_dir()
     res = evaluate(root, lib, [est, summary.csv], vsd=False)
     before, after = res[est.name], res[summary.csv.name]
@@ -214,3 +224,27 @@ def test_bad_scene_files_fail_their_frames_only(lib, dataset, tmp_path):
     assert "depth_scale -1" in errors["000002"] and "scene_camera.json" in errors["000002"]
     assert errors["000003"].startswith(f"{scene / 'depth' / '000003.png'}: cannot read the image")
     assert {r["im_id"] for r in read_bop_csv(summary.csv)} == {0}
+
+
+def test_refine_keeps_every_object_the_estimator_reported(lib, dataset, tmp_path):
+    """Never lower AR: an object ssp rejects (here one floating in the camera's view, where the
+    camera sees through it) is still in the CSV, at its pose, scored below every kept object;
+    the frame JSON says why it is doubted."""
+    root, est = dataset
+    rows = est.read_text().splitlines()
+    scene_id, im_id, obj_id, *_ = rows[1].split(",")
+    R = " ".join(f"{v:g}" for v in np.eye(3).ravel())
+    rows.append(f"{scene_id},{im_id},{obj_id},0.99,{R},0 0 250,-1")  # 25 cm from the camera
+    bad = tmp_path / "bad_structure-test.csv"
+    bad.write_text("\n".join(rows) + "\n")
+    summary = refine(root, bad, lib, tmp_path / "out")
+    out = read_bop_csv(summary.csv)
+    near = [r for r in out if r["im_id"] == int(im_id) and r["t"][2] < 300]
+    assert len(near) == 1 and near[0]["obj_id"] == int(obj_id)
+    kept = [r["score"] for r in out if r["im_id"] == int(im_id) and r["t"][2] >= 300]
+    assert kept and near[0]["score"] < min(kept)
+    frame = json.loads(
+        (tmp_path / "out" / "scenes" / f"{int(scene_id):06d}" / "frames" / f"{int(im_id):06d}.json")
+        .read_text()
+    )  # fmt: skip
+    assert any(r["reason"] for r in frame["rejected"])

@@ -41,7 +41,8 @@ def context(parser: SceneParser, frame) -> FrameContext:
 
 def test_the_stages_are_named_in_order_and_live_in_their_concepts_modules():
     names = [s.name for s in STAGES]
-    assert names[:5] == [
+    assert names[:6] == [
+        "depth correction",
         "association",
         "segments",
         "verification of the new",
@@ -50,6 +51,7 @@ def test_the_stages_are_named_in_order_and_live_in_their_concepts_modules():
     ]
     assert names[-1] == "outcome" and len(set(names)) == len(names)
     modules = {s.name: s.run.__module__ for s in STAGES}
+    assert modules["depth correction"] == "ssp.correction"
     assert modules["association"] == "ssp.temporal"
     assert modules["search"] == "ssp.search"
     assert modules["support-retained"] == "ssp.retention"

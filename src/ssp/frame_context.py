@@ -21,6 +21,7 @@ import numpy as np
 
 if TYPE_CHECKING:  # annotations only: the stage modules import this module, not the reverse
     from ssp.config import SSPConfig
+    from ssp.correction import Correction
     from ssp.estimate import ObjectEstimate, Rejected, SceneEstimate
     from ssp.library.library import ObjectLibrary
     from ssp.library.model import ObjectModel
@@ -108,6 +109,14 @@ class FrameContext:
     #: the physics world for ``{id: class}`` (the parser reuses it while the objects stay)
     world_for: Callable[[Mapping[str, str]], World]
 
+    # ---- depth correction (ssp.correction.correct_frame)
+    #: the camera's view of the frame (None without a camera pose; also used by segments)
+    view: CameraView | None = None
+    #: the frame's hypotheses, those the correction moved in their place (None: the frame's)
+    hypotheses: list[Hypothesis] | None = None
+    #: each corrected hypothesis with what was done
+    corrections: list[tuple[Hypothesis, Correction]] = field(default_factory=list)
+
     # ---- association (ssp.temporal.associate_frame)
     association: Association | None = None
     #: detected object -> its hypotheses, best first (at most ``search.hypotheses_per_object``)
@@ -129,7 +138,6 @@ class FrameContext:
     owner: dict[str, int] = _dict()
     #: object -> the label it lies in (instance segments and clusters alike)
     members: dict[str, int] = _dict()
-    view: CameraView | None = None
     trees: SegmentTrees | None = None
 
     # ---- verification of the new (ssp.verification.verify_new_objects)

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ssp.correction import correction_note, correction_of
 from ssp.estimate import ObjectEstimate, SceneEstimate, SupportEdge
 from ssp.frame_context import Known
 from ssp.retention import TriageState
@@ -78,13 +79,19 @@ def transition_modes(ctx: FrameContext) -> None:
                 terms=terms,
                 source=ctx.chosen.get(oid, CandidateSource.CURRENT),
                 fit=float(score.fit[i]),
-                reason=_reason(ctx, oid, T, prev),
+                reason=_with_correction(ctx, oid, _reason(ctx, oid, T, prev)),
                 evidence=verdict.judged.as_dict() if verdict is not None else None,
             )
         )
         ctx.next_known[out_id] = Known(
             model.name, T, ephemeral, float(score.fit[i]), held=oid in ctx.fallbacks
         )
+
+
+def _with_correction(ctx: FrameContext, oid: str, reason: str) -> str:
+    """``reason`` with the depth correction of the object's hypothesis said, when it had one."""
+    fix = correction_of(ctx, oid)
+    return reason if fix is None else f"{reason}; {correction_note(fix)}"
 
 
 def _reason(ctx: FrameContext, oid: str, T: np.ndarray, prev: np.ndarray | None) -> str:
@@ -145,7 +152,10 @@ def scene_estimate(ctx: FrameContext) -> None:
         frame_index=ctx.frame_index,
         objects=objects,
         removed=removed,
-        rejected=tuple(ctx.rejected[k] for k in sorted(ctx.rejected)),
+        rejected=tuple(
+            replace(r, reason=_with_correction(ctx, k, r.reason))
+            for k, r in sorted(ctx.rejected.items())
+        ),
         segments=segment_verdicts(ctx, {o.id for o in objects}),
         warnings=tuple(ctx.warnings),
         support=tuple(support),

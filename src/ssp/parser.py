@@ -5,37 +5,41 @@ the parser's state untouched), takes :attr:`Frame.moved` into the remembered sce
 :data:`STAGES` in order over one :class:`~ssp.frame_context.FrameContext`; each stage lives in
 the module of its concept (docs/algorithm.md maps them to the paper):
 
-1. **association** (:func:`ssp.temporal.associate_frame`): hypotheses grouped per object
+1. **depth correction** (:func:`ssp.correction.correct_frame`): the camera's view of the
+   frame; each hypothesis whose silhouette covers observed surface at another depth slid
+   along its viewing ray to it and aligned (an RGB estimator's error), before anything
+   judges it;
+2. **association** (:func:`ssp.temporal.associate_frame`): hypotheses grouped per object
    (instance ids, else a globally optimal assignment on class and pose distance at the centre
    of mass), one object per instance segment, duplicates of undetected objects dropped; each
    detected object's provisional pose (:func:`ssp.first_guess.first_guess`);
-2. **segments** (:func:`ssp.segments.segment_frame`): each object's points, the camera view;
-3. **verification of the new** (:func:`ssp.verification.verify_new_objects`): a new object the
+3. **segments** (:func:`ssp.segments.segment_frame`): each object's points;
+4. **verification of the new** (:func:`ssp.verification.verify_new_objects`): a new object the
    data supports at none of its hypotheses is rejected before the search;
-4. **triage of the undetected** (:func:`ssp.retention.triage_undetected`): replaced, still
+5. **triage of the undetected** (:func:`ssp.retention.triage_undetected`): replaced, still
    visible, seen empty, hidden (ephemeral) or unseen;
-5. **world** (:func:`ssp.search.prepare_world`): the physics world, data forces, scorer;
-6. **static objects** (:func:`ssp.static.find_static`): which known objects are unchanged, and
+6. **world** (:func:`ssp.search.prepare_world`): the physics world, data forces, scorer;
+7. **static objects** (:func:`ssp.static.find_static`): which known objects are unchanged, and
    whether the whole frame is; then either
-7. the **unchanged shortcut** (:func:`ssp.static.keep_unchanged`: the previous scene,
-   settled), or 8-10:
-8. **first guess** (:func:`ssp.first_guess.first_guess_scene`): every object at its best
+8. the **unchanged shortcut** (:func:`ssp.static.keep_unchanged`: the previous scene,
+   settled), or 9-11:
+9. **first guess** (:func:`ssp.first_guess.first_guess_scene`): every object at its best
    candidate by the terms that need no simulation, settled; its support graph (Alg. 2);
-9. **support-retained** (:func:`ssp.retention.retain_or_remove`): an unseen object that holds
+10. **support-retained** (:func:`ssp.retention.retain_or_remove`): an unseen object that holds
    up objects which would fall without it stays; it and the objects seen empty otherwise go;
-10. **search** (:func:`ssp.search.search_scene`): the layered search (Alg. 3);
-11. **polish** (:func:`ssp.polish.polish_scene`): ICP springs inside the simulation;
-12. **fallbacks** (:func:`ssp.verification.fall_back_to_data`): data wins over physics for new
+11. **search** (:func:`ssp.search.search_scene`): the layered search (Alg. 3);
+12. **polish** (:func:`ssp.polish.polish_scene`): ICP springs inside the simulation;
+13. **fallbacks** (:func:`ssp.verification.fall_back_to_data`): data wins over physics for new
     objects the search moved off their data;
-13. **placement** (:func:`ssp.verification.place_new`): new objects verified at their final
+14. **placement** (:func:`ssp.verification.place_new`): new objects verified at their final
     poses, or put where their data puts them;
-14. **final verdicts** (:func:`ssp.verification.judge_final`): an unverified object stays only
+15. **final verdicts** (:func:`ssp.verification.judge_final`): an unverified object stays only
     when it holds others up;
-15. **re-identification** (:func:`ssp.temporal.reidentify_moved`): a new object where a known
+16. **re-identification** (:func:`ssp.temporal.reidentify_moved`): a new object where a known
     one of its class vanished is that object, moved;
-16. **transition modes** (:func:`ssp.outcome.transition_modes`): output poses (symmetric
+17. **transition modes** (:func:`ssp.outcome.transition_modes`): output poses (symmetric
     snapping), modes, reasons, warnings;
-17. **outcome** (:func:`ssp.outcome.scene_estimate`): the :class:`SceneEstimate`.
+18. **outcome** (:func:`ssp.outcome.scene_estimate`): the :class:`SceneEstimate`.
 
 The parser then commits what the next frame remembers. A frame that raises leaves the state as
 it was.
@@ -51,6 +55,7 @@ from typing import Any
 import numpy as np
 
 from ssp.config import SSPConfig
+from ssp.correction import correct_frame
 from ssp.errors import InvalidPoseError, SSPError, UnknownObjectError
 from ssp.estimate import ObjectEstimate, Rejected, SceneEstimate, SupportEdge
 from ssp.first_guess import first_guess_scene
@@ -293,6 +298,7 @@ def _unchanged(ctx: FrameContext) -> bool:
 
 #: The stages of :meth:`SceneParser.update`, in order (module docstring; docs/algorithm.md).
 STAGES: tuple[Stage, ...] = (
+    Stage("depth correction", correct_frame, timer="correction"),
     Stage("association", associate_frame, timer="association"),
     Stage("segments", segment_frame, timer="segments"),
     Stage("verification of the new", verify_new_objects, timer="verification"),

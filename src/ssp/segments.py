@@ -318,7 +318,7 @@ def segment_frame(ctx: FrameContext) -> None:
         members=members,
         known=set(ctx.known),
     )
-    if frame.T_world_cam is not None:
+    if frame.T_world_cam is not None and ctx.view is None:  # else built by the correction
         ctx.view = CameraView(
             frame.points,
             frame.T_world_cam,

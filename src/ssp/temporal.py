@@ -662,9 +662,10 @@ def _associate(ctx: FrameContext) -> Association:
     cfg, frame, library, known = ctx.config, ctx.frame, ctx.library, ctx.known
     previous = {oid: (k.class_name, k.T_world_obj) for oid, k in known.items()}
     counters = dict(ctx.counters)
-    taken = set(previous) | {h.instance_id for h in frame.hypotheses if h.instance_id}
+    hypotheses = frame.hypotheses if ctx.hypotheses is None else ctx.hypotheses
+    taken = set(previous) | {h.instance_id for h in hypotheses if h.instance_id}
     groups = associate(
-        frame.hypotheses,
+        hypotheses,
         previous,
         {n: m.symmetry for n, m in library.items()},
         max_distance=association_gates(library, cfg.temporal),

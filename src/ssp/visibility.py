@@ -111,6 +111,23 @@ class VisibilityReport:
     unknown: float
 
 
+@dataclass(frozen=True)
+class RayLookup:
+    """What :meth:`CameraView.lookup` found along the rays of an object's F facing samples.
+
+    Attributes:
+        index: (F,) indices of the facing samples among the queried ones.
+        depth: (F,) their camera-frame depths (m, along the optical axis).
+        observed: (F,) the observed depth along each one's ray (m), NaN where none.
+        label: (F,) the observed point's label, -1 where none or without labels.
+    """
+
+    index: np.ndarray
+    depth: np.ndarray
+    observed: np.ndarray
+    label: np.ndarray
+
+
 def _as_points(a: np.ndarray, what: str) -> np.ndarray:
     """``a`` as a finite float64 (n, 3) array, or ``ValueError``."""
     try:
@@ -323,6 +340,55 @@ class CameraView:
             state[found & (diff < -tol) & (self._labels[j] == own_label)] = BEHIND_OWN
         out[facing] = state
         return out
+
+    def lookup(
+        self,
+        points_world: np.ndarray,
+        normals_world: np.ndarray,
+        *,
+        self_spacing: float | None = None,
+    ) -> RayLookup:
+        """What the camera observed along the ray of each facing sample of one object.
+
+        Args:
+            points_world: (M, 3) surface samples (m, world frame).
+            normals_world: (M, 3) their outward normals (world frame).
+            self_spacing: as for :meth:`classify`: samples behind the object's own surface do
+                not face the camera.
+
+        Returns:
+            :class:`RayLookup` over the F facing samples (camera-facing, in front of the
+            camera, not hidden by the object itself): their indices, camera-frame depths, the
+            depth observed along their rays (NaN where none is within the lookup radius) and
+            the observed point's label (-1 where none or without labels).
+        """
+        pts = _as_points(points_world, "points_world")
+        nrm = _as_points(normals_world, "normals_world")
+        if nrm.shape != pts.shape:
+            raise ValueError(
+                f"normals_world: shape {nrm.shape} does not match points_world {pts.shape}"
+            )
+        cam_centre = self._T_world_cam[:3, 3]
+        facing = np.einsum("ij,ij->i", nrm, cam_centre - pts) > 0.0
+        p_cam = pts @ self._T_cam_world[:3, :3].T + self._T_cam_world[:3, 3]
+        facing &= p_cam[:, 2] > MIN_DEPTH
+        if self_spacing is not None and facing.any():
+            hidden = _self_hidden(
+                p_cam[facing], pts[facing], nrm[facing], float(self_spacing), self._depth_tolerance
+            )
+            facing[np.flatnonzero(facing)[hidden]] = False
+        index = np.flatnonzero(facing)
+        depth = p_cam[index, 2].copy()
+        observed = np.full(len(index), np.nan)
+        label = np.full(len(index), -1, dtype=np.int64)
+        if self._tree is not None and len(index):
+            rays = np.ascontiguousarray(p_cam[index, :2] / depth[:, None])
+            dist, idx = self._tree.query(rays, k=1, distance_upper_bound=self._resolution)
+            found = np.isfinite(dist)
+            observed[found] = self._depths[idx[found]]
+            if self._labels is not None:
+                label[found] = self._labels[idx[found]]
+        return RayLookup(index, depth, observed, label)
 
     def report(
         self,

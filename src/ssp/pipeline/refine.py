@@ -32,7 +32,7 @@ from ssp.config import SSPConfig
 from ssp.errors import ArgumentError, InputError, SSPError
 from ssp.geometry import invert
 from ssp.io._files import atomic_write_text, write_json
-from ssp.io.bop import bop_scenes, dataset_root, mask_source, open_bop
+from ssp.io.bop import bop_scenes, dataset_root, open_bop, read_targets
 from ssp.io.results import (
     BOP_CSV_HEADER,
     BopCsvWriter,
@@ -240,10 +240,11 @@ def _refine_scenes(
             estimates=est,
             masks=masks,
             period=period,
+            rejected_rows=True,  # never fewer objects than the estimator reported
         )
         summary.scenes.append({"scene": scene_path.name, "status": s.status, "out": str(sub),
                                "input": s.input, "frames": s.frames, "done": len(s.done),
-                               "failed": len(s.failed)})  # fmt: skip
+                               "failed": len(s.failed), "masks": s.masks})  # fmt: skip
 
 
 def _check_out(out: Path, resume: bool, overwrite: bool) -> None:
@@ -364,10 +365,10 @@ def estimate(
 
     ``masks`` as for :func:`ssp.pipeline.run.run`. Returns ``{csv, images, rows, failed}``.
     """
-    from ssp.pipeline.bop import BopSource  # the perception front end: only when estimating
+    from ssp.pipeline.bop import BopSource, check_masks  # the front end: only when estimating
 
     cfg = config if config is not None else SSPConfig()
-    mask_source(masks, True)  # a bad mode fails before any work
+    check_masks(masks)  # a bad mode or a missing detections file fails before any work
     scenes = bop_scenes(dataset, split)
     if scene_ids is not None:
         scenes = [s for s in scenes if s.name.isdigit() and int(s.name) in set(scene_ids)]
@@ -449,12 +450,20 @@ def evaluate(
         raise InputError(f"{dataset}: the results name scenes {missing} it does not have")
     evaluators = [BopEvaluator(library, vsd=vsd) for _ in tables]
     eye = np.eye(4)
+    # the published targets when the dataset has them (as the toolkit takes them)
+    targets = read_targets(dataset_root(scenes[wanted[0]])) if wanted else None
     for sid in wanted:
         scene = open_bop(scenes[sid], library)
         if not (scenes[sid] / "scene_gt.json").exists():
             raise InputError(f"{scenes[sid]}: no scene_gt.json: nothing to evaluate against")
         for k, im in enumerate(scene.im_ids):
-            f = scene.load(k, masks=None)
+            f = scene.load(k, masks=None, depth=vsd)  # no depth images needed without VSD
+            image_targets = None
+            if targets is not None:
+                image_targets = {
+                    scene.classes.get(o, f"obj_{o:06d}"): n
+                    for o, n in targets.get((sid, im), {}).items()
+                }
             for (_, by_image), ev in zip(tables, evaluators, strict=True):
                 ests = []
                 for row in by_image.get((sid, im), []):
@@ -465,7 +474,7 @@ def evaluate(
                         raise InputError(f"obj_id {row['obj_id']} ({cls}) is not in the library")
                     ests.append((cls, T, row["score"]))
                 ev.add_frame(f.gt, f.visib_fract, ests, f.camera, eye,
-                             depth=f.depth if vsd else None)  # fmt: skip
+                             depth=f.depth if vsd else None, targets=image_targets)  # fmt: skip
             if progress is not None:
                 progress(k + 1, len(scene), f"scene {sid}")
     labels = result_labels([p for p, _ in tables])

@@ -11,10 +11,13 @@ hypotheses replace its estimator) and the scene parser. Outputs in ``out``:
 * ``frames/<name>.json``: the parser's estimate (:func:`ssp.io.results.frame_record`) plus the
   front end's timings and hypothesis count, or the error of a failed frame;
 * ``<method>_<dataset>-test.csv``: BOP19 results (poses in the camera frame, t in mm; in the
-  world frame when the camera pose is unknown, as the frame's ``poses_in`` says);
-* ``obj_ids.json``: class name -> BOP ``obj_id``;
+  world frame when the camera pose is unknown, as the frame's ``poses_in`` says), under the
+  input's BOP ``scene_id`` (``scene_id``: a BOP scene's own, else 1) and the classes' BOP
+  ``obj_id`` (``obj_ids``: :func:`ssp.pipeline.inputs.run_object_ids`);
+* ``obj_ids.json``: class name -> BOP ``obj_id`` (``{"obj_ids": {"1": "cube", ...}}``);
 * ``summary.json``: frames done and failed (with the reason), warnings, objects, times;
-* ``run.json``: what the run reads (input files, models, config, options), to check a resume;
+* ``run.json``: what the run reads (input files, models, config, options, the scene id and
+  object ids), to check a resume;
 * ``state.json``: the parser's state after the last finished frame, and where to go on;
 * ``tum/<object id>.txt``: each object's trajectory in the TUM format (:mod:`ssp.io.tum`),
   written when the run ends (finished or stopped).
@@ -56,7 +59,7 @@ from ssp.io._files import atomic_write_text, fsync_dir, to_jsonable
 from ssp.io.results import BopCsvWriter, ObjectIds, bop_csv_name, frame_record, write_json
 from ssp.io.tum import TUM_DIR, write_tum
 from ssp.parser import SceneParser
-from ssp.pipeline.inputs import input_kind, open_source
+from ssp.pipeline.inputs import input_kind, open_source, run_object_ids, run_scene_id
 from ssp.pipeline.manifest import (
     FORMAT_VERSION,
     FRAMES_DIR,
@@ -74,9 +77,18 @@ from ssp.pipeline.manifest import (
 from ssp.pipeline.sources import HYPOTHESES_MODES, FrameSource, InputFrame
 from ssp.pipeline.summary import RunSummary
 
-__all__ = ["run"]
+__all__ = ["KEPT_MIN_SCORE", "REJECTED_SCORE_SCALE", "run"]
 
 log = logging.getLogger(__name__)
+
+#: A kept object's row is scored its fit, at least this (an occluded object kept because it
+#: holds others up may explain none of its surface: it is still the scene's, above any
+#: rejected one).
+KEPT_MIN_SCORE = 1e-3
+#: A rejected object's row (``rejected_rows``) is scored its fit times this: below every kept
+#: object (:data:`KEPT_MIN_SCORE`), so where an object of the class was kept, the kept one is
+#: what BOP's evaluation takes.
+REJECTED_SCORE_SCALE = 5e-4
 
 
 def run(
@@ -88,7 +100,8 @@ def run(
     hypotheses: str = "auto",
     classes: Sequence[str] | None = None,
     method: str = "ssp",
-    scene_id: int = 1,
+    scene_id: int | None = None,
+    obj_ids: str | Path | ObjectIds | Mapping[str, int] | None = None,
     progress: Callable[[int, int, str], None] | None = None,
     resume: bool = False,
     overwrite: bool = False,
@@ -98,6 +111,7 @@ def run(
     period: float | None = None,
     bag: Mapping[str, Any] | None = None,
     record: str | Path | None = None,
+    rejected_rows: bool = False,
 ) -> RunSummary:
     """Run perception and the scene parser over every frame of ``input_path``.
 
@@ -112,7 +126,15 @@ def run(
         classes: the estimator's candidate classes (default: the classes a BOP scene lists,
             else the whole library; fewer classes, faster estimation).
         method: BOP method name (no ``_``).
-        scene_id: BOP ``scene_id`` of the CSV rows.
+        scene_id: BOP ``scene_id`` of the CSV rows; None: a BOP scene's own, else
+            :data:`ssp.pipeline.inputs.DEFAULT_SCENE_ID` (1). A BOP scene refuses another.
+        obj_ids: the BOP ``obj_id`` of each class: an id table (a BOP ``models.json``,
+            ``models_info.json`` or ``models/`` folder, an earlier run's ``obj_ids.json``:
+            :meth:`ssp.io.results.ObjectIds.from_file`), an :class:`ObjectIds` or a
+            ``{class: obj_id}`` mapping, giving an id to every class of ``library``; None:
+            the input's own, else the BOP model names of the library (``obj_000005``: 5),
+            else the sorted class names (:func:`ssp.pipeline.inputs.run_object_ids`).
+            Recorded in ``obj_ids.json`` and ``run.json``: a resume with other ids is refused.
         progress: called as ``progress(done, total, message)`` after each frame.
         resume: continue the run in ``out_dir`` from its saved state (every frame it finished
             is kept; the rest are processed as an uninterrupted run would).
@@ -121,6 +143,11 @@ def run(
         estimates: a BOP scene's hypotheses from an estimator's output file (camera frame,
             :func:`ssp.io.estimators.read_estimates`), instead of its ``hypotheses.json``.
         masks: a BOP scene's segmentation, one of :data:`ssp.io.bop.MASK_MODES`.
+        rejected_rows: the results CSV also gets a row for every object the parser rejected
+            in a frame, at its best (corrected) pose, scored below every kept object
+            (:data:`REJECTED_SCORE_SCALE` x its fit): ``ssp refine`` never drops an object the
+            estimator reported (BOP's recall scores a missing object 0, a doubtful one may
+            still score); the frame JSON's ``rejected`` entries say why each was doubted.
         period: seconds between images of a published BOP scene (no stamps); default
             :data:`ssp.io.bop.DEFAULT_PERIOD`.
         bag: for a ROS bag / MCAP input, :class:`ssp.io.rosbag.BagOptions` as a dict.
@@ -133,7 +160,8 @@ def run(
 
     Raises:
         InputError: the input as a whole cannot be used (missing folder, no frames, bad
-            ``scene.json``, classes of ``scene.json`` not in the library).
+            ``scene.json``, classes of ``scene.json`` not in the library), or an ``obj_ids``
+            table that cannot be read or misses a class of the library.
         ArgumentError: a bad option, an output folder that holds something else, or a
             resume whose input, models, config or options differ from the recorded ones.
         RecordingError: ``record`` given and rerun is not installed or the file cannot be
@@ -150,9 +178,10 @@ def run(
     src = Path(input_path)
     manifest, source, ids = _open_input(
         src, library, cfg, hypotheses=hypotheses, classes=classes, method=method,
-        scene_id=scene_id, models=models, estimates=estimates, masks=masks, period=period,
-        bag=bag,
+        scene_id=scene_id, obj_ids=obj_ids, models=models, estimates=estimates, masks=masks,
+        period=period, bag=bag,
     )  # fmt: skip
+    scene_id = manifest["options"]["scene_id"]
     out = Path(out_dir)
     csv_path = out / manifest["csv"]
     if resume and not out.is_dir():
@@ -160,13 +189,14 @@ def run(
     with lock_out_dir(out):  # one writer at a time (OutputLockedError for a second one)
         summary, state, parser = _start(out, csv_path, src, manifest, source, ids, library, cfg,
                                         resume=resume, overwrite=overwrite)  # fmt: skip
+        summary.masks = getattr(source, "mask_description", None)
         if record is not None and resume:
             record = _resumed_recording(Path(record))
         if record is not None:
             summary.files.append(str(record))
         _run_frames(out, csv_path, source, parser, summary, state, ids, library, cfg,
                     method=method, scene_id=scene_id, resume=resume, progress=progress,
-                    record=record)  # fmt: skip
+                    record=record, rejected_rows=rejected_rows)  # fmt: skip
         summary.status = "finished"
         write_tum(out)
         write_json(out / SUMMARY_JSON, summary.to_dict())
@@ -196,14 +226,16 @@ def _open_input(
     hypotheses: str,
     classes: Sequence[str] | None,
     method: str,
-    scene_id: int,
+    scene_id: int | None,
+    obj_ids: str | Path | ObjectIds | Mapping[str, int] | None,
     models: str | None,
     estimates: Any,
     masks: str,
     period: float | None,
     bag: Mapping[str, Any] | None,
 ) -> tuple[dict[str, Any], FrameSource, ObjectIds]:
-    """Check the options of :func:`run`, then open its input: ``(run.json, source, ids)``."""
+    """Check the options of :func:`run`, then open its input: ``(run.json, source, ids)``;
+    the run's ``scene_id`` and ids are those of ``run.json``."""
     if hypotheses not in HYPOTHESES_MODES:
         raise ArgumentError(
             f"hypotheses must be one of {', '.join(HYPOTHESES_MODES)}, got {hypotheses!r}"
@@ -216,14 +248,18 @@ def _open_input(
         )
     name = src.resolve().stem if kind == "bag" and src.is_file() else src.resolve().name
     csv_name = bop_csv_name(name, method)  # checks the method name
-    manifest = run_manifest(
-        src, kind, library, cfg, csv_name=csv_name, hypotheses=hypotheses, classes=classes,
-        method=method, scene_id=scene_id, models=models, estimates=estimates, masks=masks,
-        period=period, bag=bag,
-    )  # fmt: skip
     source = open_source(src, kind, library, cfg, classes, hypotheses, estimates=estimates,
                          masks=masks, period=period, bag=bag)  # fmt: skip
-    return manifest, source, source.object_ids()
+    ids, ids_from = run_object_ids(src, kind, source, library, obj_ids)
+    manifest = run_manifest(
+        src, kind, library, cfg, csv_name=csv_name, hypotheses=hypotheses, classes=classes,
+        method=method, scene_id=run_scene_id(source, scene_id), models=models,
+        estimates=estimates, masks=masks, period=period, bag=bag,
+    )  # fmt: skip
+    given = obj_ids is not None and not isinstance(obj_ids, ObjectIds | Mapping)
+    manifest.update(obj_ids=ids.to_json()["obj_ids"], obj_ids_from=ids_from,
+                    obj_ids_file=str(Path(obj_ids).resolve()) if given else None)  # fmt: skip
+    return manifest, source, ids
 
 
 def _start(
@@ -282,6 +318,7 @@ def _run_frames(
     resume: bool,
     progress: Callable[[int, int, str], None] | None,
     record: str | Path | None,
+    rejected_rows: bool = False,
 ) -> None:
     """Parse the frames from the saved state on, committing each (module docstring); on any
     exception, the summary says the run stopped, the trajectories are written, and the
@@ -313,7 +350,9 @@ def _run_frames(
                 commit(0, committed_parser)
             for n, frame in enumerate(source.frames(start), start=start):
                 kept: dict[str, Any] = {}
-                frame_json, lines = _run_frame(frame, parser, csv, ids, scene_id, kept)
+                frame_json, lines = _run_frame(
+                    frame, parser, csv, ids, scene_id, kept, rejected_rows=rejected_rows
+                )
                 failed = frame_json["status"] == "failed"
                 if failed and parser.state() != committed_parser:
                     # it failed after the parser took it: go on from the last good frame
@@ -347,10 +386,13 @@ def _run_frame(
     ids: ObjectIds,
     scene_id: int,
     kept: dict[str, Any] | None = None,
+    *,
+    rejected_rows: bool = False,
 ) -> tuple[dict[str, Any], list[str]]:
     """Perceive and parse one frame: ``(frame JSON, CSV lines)``. Nothing is written here;
     a failure anywhere gives a frame JSON with ``status: failed`` and no lines. ``kept``
-    receives the ``perceived`` result and the parser's ``estimate`` of a frame that succeeds."""
+    receives the ``perceived`` result and the parser's ``estimate`` of a frame that succeeds;
+    ``rejected_rows``: as for :func:`run`."""
     t0 = time.perf_counter()
     warnings: list[str] = []
     try:
@@ -366,12 +408,24 @@ def _run_frame(
                 scene_id,
                 source.index,
                 ids[obj.class_name],
-                float(obj.fit),
+                max(float(obj.fit), KEPT_MIN_SCORE),
                 T_cam_world @ obj.T_world_obj,
                 seconds,
             )
             for obj in estimate.objects
         ]
+        if rejected_rows:
+            lines += [
+                csv.format_row(
+                    scene_id,
+                    source.index,
+                    ids[r.class_name],
+                    REJECTED_SCORE_SCALE * float(r.evidence.get("fit", 0.0)),
+                    T_cam_world @ r.T_world_obj,
+                    seconds,
+                )
+                for r in estimate.rejected
+            ]
         extra = {
             "status": "done",
             "perception": {
