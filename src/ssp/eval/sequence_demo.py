@@ -95,7 +95,10 @@ def run_sequence_demo(
                 if est is None or est is last[0]:  # the parser rejected this frame
                     recorder.log_failure(i, f"{i:03d}", "ssp skipped the frame (see the log)")
                 else:
-                    recorder.log_frame(i, frame, est, name=f"{i:03d}", truth=seq.ground_truth(i))
+                    recorder.log_frame(
+                        i, frame, est, name=f"{i:03d}", truth=seq.ground_truth(i),
+                        camera=seq.camera, depth=seq.frames[i].depth,
+                    )  # fmt: skip
                 last[0] = est
 
         result = run_table1(

@@ -1,1 +1,2 @@
-"""Pictures of results: estimate-vs-truth overlays and the HTML report."""
+"""Pictures of results: estimate-vs-truth overlays, the HTML report and 3D recordings of a run
+(:mod:`ssp.viz.record`, what they draw: :mod:`ssp.viz.record_entities`)."""

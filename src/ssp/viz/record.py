@@ -4,24 +4,37 @@
 (:meth:`Recorder.log_frame`) and writes, on the timelines ``frame`` (the frame's position in
 the run, 0-based) and ``time`` (its stamp, s):
 
-* ``world/cloud``: the cloud (world frame, m), coloured by segment label (a fixed palette;
-  table and background, negative labels, grey), at most ``max_points`` points;
+* ``world``: the recording's classes (an ``AnnotationContext``, static: background, table and
+  the five transition modes, :data:`ssp.viz.record_entities.CLASSES`), so the viewer's key
+  has one entry per class, whatever the number of objects;
+* ``world/cloud/objects``: the points of the object segments (labels >= 0; world frame, m),
+  coloured by segment label (a fixed palette), at most ``max_points``;
+  ``world/cloud/table`` and ``world/cloud/background``: the points of no segment on the
+  table (within :data:`~ssp.viz.record_entities.TABLE_BAND` of z = 0) and elsewhere, by class
+  (dim greys), smaller and each cut to a small evenly spaced subset
+  (:func:`~ssp.viz.record_entities.split_cloud`), so they do not swamp the objects;
 * ``world/objects/<id>``: each object's pose ``T_world_obj`` (a transform), its model mesh
   (``mesh``, object frame, logged once when the object appears) coloured by its transition
   mode (:data:`MODE_COLOURS`; slightly translucent, an ephemeral object, kept although
-  unseen, more so: :data:`OBJECT_ALPHA`) and
-  a point at its centre of mass labelled with its id and mode (``label``); an object that
-  leaves the scene is cleared;
-* ``world/hypotheses/<class>``: the frame's pose hypotheses, faint: one mesh per class
-  instanced at every hypothesis pose (the mesh is logged once, the poses per frame);
+  unseen, more so: :data:`OBJECT_ALPHA`) and its one label, its id (``label``: a point of its
+  mode's class above the top of the object, raised clear of its neighbours' labels, on a
+  thin line down to the top, :func:`~ssp.viz.record_entities.place_labels`; ``mode`` and
+  ``ephemeral`` shown when it is selected); an object that leaves the scene is cleared;
+* ``world/hypotheses/<class>``: the frame's pose hypotheses, faint and without labels: one
+  mesh per class instanced at every hypothesis pose (the mesh is logged once, the poses per
+  frame);
 * ``world/truth/<class>``: the ground truth, when given (simulated sequences), likewise;
 * ``world/support``: arrows from each supporter's centre of mass (the table: the point on it
   below the object) to the centre of the object it carries, labelled with the fraction of the
   object's weight;
-* ``world/camera``: the camera pose (OpenCV axes), when known;
+* ``world/camera``: the camera pose ``T_world_cam`` (OpenCV axes), when known, and with the
+  intrinsics (when given) a ``Pinhole`` (the viewer draws its frustum); ``world/camera/depth``:
+  the frame's depth image (``DepthImage``, uint16 mm, ``meter`` 1000) when given (an input
+  that is a cloud has none, and none is made up), shown in a 2D view of its own;
 * ``terms/scene/<term>``: the scene totals (sums over the objects) of the five log-probability
   terms (``stability``, ``collision``, ``support``, ``data``, ``transition``) and ``total``
-  (``log Pr(s | C, D)``); ``terms/objects/<id>/<term>``: each object's terms;
+  (``log Pr(s | C, D)``); ``terms/objects/<id>/<term>``: each object's terms, drawn in its
+  term's colour and without a legend (the scene plot's six entries are the key);
 * ``log``: one line per frame (objects, hypotheses, log-probability), the parser's warnings,
   rejected and removed objects, and failed frames (:meth:`Recorder.log_failure`).
 
@@ -45,7 +58,18 @@ import numpy as np
 
 from ssp.errors import SSPError
 from ssp.estimate import SceneEstimate
-from ssp.scene import Frame, TransitionMode
+from ssp.scene import Frame
+from ssp.viz.record_entities import (
+    BACKGROUND_CLASS,
+    CLASSES,
+    MODE_COLOURS,
+    TABLE_CLASS,
+    depth_millimetres,
+    mode_class,
+    object_top,
+    place_labels,
+    split_cloud,
+)
 
 __all__ = [
     "DEFAULT_MAX_POINTS",
@@ -71,14 +95,6 @@ INSTALL_HINT = "pip install 'sequential-scene-parsing[record]'"
 DEFAULT_MAX_POINTS = 50_000
 #: The five log-probability terms, in :class:`ssp.probability.ObjectTerms` order.
 TERMS = ("stability", "collision", "support", "data", "transition")
-#: Object colour (RGB) per transition mode.
-MODE_COLOURS: dict[TransitionMode, tuple[int, int, int]] = {
-    TransitionMode.ADDED: (60, 200, 90),
-    TransitionMode.STATIC: (90, 140, 230),
-    TransitionMode.PERTURBED: (245, 160, 40),
-    TransitionMode.SUPPORT_RETAINED: (190, 90, 220),
-    TransitionMode.REMOVED: (230, 60, 60),
-}
 #: Series colour (RGB) per term.
 TERM_COLOURS = {
     "stability": (230, 90, 60),
@@ -102,8 +118,10 @@ GREY = np.array((110, 110, 110), dtype=np.uint8)
 #: Object mesh opacity (0-255): seen, ephemeral (kept unseen). Slightly translucent, so the
 #: support arrows between centres and the object's own points show through.
 OBJECT_ALPHA = (200, 100)
-#: Cloud point radius on screen (ui points): table and background, segments.
-POINT_RADIUS = (1.0, 2.0)
+#: Cloud point radius on screen (ui points) per part of the cloud.
+POINT_RADIUS = {"background": 0.5, "table": 0.75, "objects": 2.0}
+#: Distance (m) of the camera frustum's image plane from the camera centre.
+FRUSTUM_DEPTH = 0.1
 #: The viewer's eye is put at this fraction of the way from the objects to the camera.
 EYE_DISTANCE = 0.6
 HYPOTHESIS_RGBA = (210, 210, 210, 22)
@@ -214,6 +232,8 @@ class Recorder:
         self._meshes: dict[str, dict[str, np.ndarray]] = {}
         self._objects: set[str] = set()  # ids whose mesh is logged and not cleared
         self._instanced: set[str] = set()  # instanced entities whose mesh is logged
+        self._styled: set[str] = set()  # ids whose term series have their style
+        self._depth_shown = False  # a depth image is logged and not cleared
         self._closed = False
         self._layout_sent = False
         self._log_static()
@@ -222,6 +242,13 @@ class Recorder:
     def _log_static(self) -> None:
         rr, rec = self._rr, self._rec
         rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        rec.log(
+            "world",
+            rr.AnnotationContext(
+                [rr.AnnotationInfo(id=i, label=name, color=rgb) for i, name, rgb in CLASSES]
+            ),
+            static=True,
+        )
         for name in (*TERMS, "total"):
             rec.log(
                 f"terms/scene/{name}",
@@ -229,9 +256,13 @@ class Recorder:
                 static=True,
             )
 
-    def _send_layout(self, frame: Frame | None, estimate: SceneEstimate | None) -> None:
+    def _send_layout(
+        self, frame: Frame | None, estimate: SceneEstimate | None, depth: bool = False
+    ) -> None:
         """The viewer's layout (a blueprint): the 3D scene beside the term plots and the log,
-        the eye at the first frame's camera (when known) looking at its objects."""
+        the eye at the first frame's camera (when known) looking at its objects; ``depth``:
+        the first frame has a depth image, shown in a 2D view above the plots (the 3D view
+        leaves it out: back-projected it would draw the cloud twice)."""
         self._layout_sent = True
         rr = self._rr
         bp = rr.blueprint
@@ -250,14 +281,26 @@ class Recorder:
                 position=position.tolist(), look_target=target.tolist(), eye_up=[0.0, 0.0, 1.0]
             )
         try:
+            side = [
+                bp.TimeSeriesView(origin="terms/scene", name="terms (scene)"),
+                bp.TimeSeriesView(
+                    origin="terms/objects",
+                    name="terms (objects)",
+                    plot_legend=bp.PlotLegend(visible=False),  # 5 per object: the scene's key
+                ),
+                bp.TextLogView(origin="log", name="log"),
+            ]
+            if depth:
+                side.insert(0, bp.Spatial2DView(origin="world/camera", name="depth"))
             layout = bp.Blueprint(
                 bp.Horizontal(
-                    bp.Spatial3DView(origin="world", name="scene", eye_controls=eye),
-                    bp.Vertical(
-                        bp.TimeSeriesView(origin="terms/scene", name="terms (scene)"),
-                        bp.TimeSeriesView(origin="terms/objects", name="terms (objects)"),
-                        bp.TextLogView(origin="log", name="log"),
+                    bp.Spatial3DView(
+                        origin="world",
+                        name="scene",
+                        eye_controls=eye,
+                        contents=["+ $origin/**", "- /world/camera/depth"],
                     ),
+                    bp.Vertical(*side),
                     column_shares=[3, 2],
                 ),
                 bp.TimePanel(timeline="frame"),
@@ -296,6 +339,8 @@ class Recorder:
         *,
         name: str | None = None,
         truth: Mapping[str, tuple[str, np.ndarray]] | None = None,
+        camera: Any = None,
+        depth: np.ndarray | None = None,
     ) -> None:
         """Log one parsed frame at ``frame`` = ``index`` and ``time`` = ``frame.stamp`` (s).
 
@@ -305,17 +350,22 @@ class Recorder:
             estimate: the parser's answer for ``frame``.
             name: the frame's name (file stem, BOP ``im_id``), for the log line.
             truth: ground truth ``{id: (class, T_world_obj (4, 4))}``, when known.
+            camera: the intrinsics (:class:`ssp.camera.Camera`: ``width``, ``height``, ``fx``,
+                ``fy``, ``cx``, ``cy``, pixels) of the frame's camera, when known: drawn as
+                a frustum at ``frame.T_world_cam``.
+            depth: the frame's depth image ``(H, W)`` (m; 0 or non-finite: no return) seen by
+                ``camera``, when the input has one.
+
+        Raises:
+            RecordingError: ``depth`` without ``camera``, or not of ``camera``'s size.
         """
-        rr, rec = self._rr, self._rec
         if not self._layout_sent:
-            self._send_layout(frame, estimate)
+            self._send_layout(frame, estimate, depth is not None and camera is not None)
         self._set_time(index, frame.stamp)
         self._log_cloud(frame)
-        if frame.T_world_cam is not None:
-            T = np.asarray(frame.T_world_cam, dtype=float)
-            rec.log("world/camera", rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]))
-            rec.log("world/camera", rr.TransformAxes3D(0.1))
-        self._log_objects(estimate)
+        self._log_camera(frame.T_world_cam, camera, depth)
+        eye = None if frame.T_world_cam is None else np.asarray(frame.T_world_cam)[:3, 3]
+        self._log_objects(estimate, eye)
         self._log_instanced(
             "world/hypotheses",
             [(h.class_name, h.T_world_obj) for h in frame.hypotheses],
@@ -344,26 +394,71 @@ class Recorder:
         self._set_time(index, None)
         self._text(f"frame {index} ({name}) failed: {error}", "ERROR")
 
+    def _log_camera(self, T_world_cam: np.ndarray | None, camera: Any, depth: Any) -> None:
+        """``world/camera``: the pose (axes) and, with ``camera``, a pinhole (the frustum);
+        ``world/camera/depth``: ``depth`` (m) as uint16 mm, or cleared without one."""
+        rr, rec = self._rr, self._rec
+        if depth is not None:
+            shape = np.shape(depth)[:2]
+            if camera is None or shape != (int(camera.height), int(camera.width)):
+                size = None if camera is None else f"{camera.width} x {camera.height}"
+                raise RecordingError(f"a depth image of {shape} (H, W) for a camera of {size}")
+        if T_world_cam is None:  # nowhere to draw it: the frustum and image need the pose
+            camera = depth = None
+        else:
+            T = np.asarray(T_world_cam, dtype=float)
+            rec.log("world/camera", rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]))
+            rec.log("world/camera", rr.TransformAxes3D(0.1))
+        if camera is not None:
+            K = [[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0.0, 0.0, 1.0]]
+            rec.log(
+                "world/camera",
+                rr.Pinhole(
+                    image_from_camera=K,
+                    resolution=[int(camera.width), int(camera.height)],
+                    camera_xyz=rr.ViewCoordinates.RDF,  # OpenCV: x right, y down, z forward
+                    image_plane_distance=FRUSTUM_DEPTH,
+                ),
+            )
+        if depth is not None:
+            rec.log("world/camera/depth", rr.DepthImage(depth_millimetres(depth), meter=1000.0))
+            self._depth_shown = True
+        elif self._depth_shown:  # no image this frame: not the last one's
+            rec.log("world/camera/depth", rr.Clear(recursive=False))
+            self._depth_shown = False
+
     def _log_cloud(self, frame: Frame) -> None:
-        points = np.asarray(frame.points, dtype=np.float32)
-        labels = frame.labels
-        if len(points) > self.max_points:
-            keep = np.linspace(0, len(points) - 1, self.max_points).astype(np.int64)
-            points = points[keep]
-            labels = None if labels is None else np.asarray(labels)[keep]
-        radii = np.full(len(points), POINT_RADIUS[1], dtype=np.float32)
-        if labels is not None:
-            radii[np.asarray(labels) < 0] = POINT_RADIUS[0]
+        """The cloud in three entities (object segments, table, background; module
+        docstring); an empty part is logged empty, so the last frame's does not linger."""
+        rr = self._rr
+        points = np.asarray(frame.points, dtype=np.float32).reshape(-1, 3)
+        labels = None if frame.labels is None else np.asarray(frame.labels)
+        parts = split_cloud(points, labels, self.max_points)
+        objects = parts.objects
         self._rec.log(
-            "world/cloud",
-            self._rr.Points3D(
-                points,
-                colors=label_colours(labels, len(points)),
-                radii=self._rr.Radius.ui_points(radii),
+            "world/cloud/objects",
+            rr.Points3D(
+                points[objects],
+                colors=label_colours(None if labels is None else labels[objects], len(objects)),
+                radii=rr.Radius.ui_points(POINT_RADIUS["objects"]),
             ),
         )
+        for part, idx, cls in (
+            ("table", parts.table, TABLE_CLASS),
+            ("background", parts.background, BACKGROUND_CLASS),
+        ):
+            self._rec.log(
+                f"world/cloud/{part}",
+                rr.Points3D(
+                    points[idx],
+                    class_ids=np.full(len(idx), cls, dtype=np.uint16),
+                    radii=rr.Radius.ui_points(POINT_RADIUS[part]),
+                ),
+            )
 
-    def _log_objects(self, estimate: SceneEstimate) -> None:
+    def _log_objects(self, estimate: SceneEstimate, eye: np.ndarray | None) -> None:
+        """``world/objects/<id>``: pose, mesh and label of each object (``eye``: the camera
+        position, world frame, m, when known); those gone since the last frame cleared."""
         rr, rec = self._rr, self._rec
         present = set()
         for obj in estimate.objects:
@@ -377,15 +472,37 @@ class Recorder:
                 self._objects.add(obj.id)
             else:
                 rec.log(f"{path}/mesh", rr.Mesh3D.from_fields(albedo_factor=rgba))
-            com = np.asarray(self.library[obj.class_name].center_of_mass, dtype=float)
-            tag = f"{obj.id} ({obj.mode}{', ephemeral' if obj.ephemeral else ''})"
-            rec.log(
-                f"{path}/label",
-                rr.Points3D([com], colors=[rgba[:3]], labels=[tag], radii=0.003),
-            )
+        self._log_labels(estimate, eye)
         for oid in sorted(self._objects - present):  # removed, or gone without a word
             rec.log(f"world/objects/{self._part(oid)}", rr.Clear(recursive=True))
             self._objects.discard(oid)
+
+    def _log_labels(self, estimate: SceneEstimate, eye: np.ndarray | None) -> None:
+        """Each object's one label, its id (``world/objects/<id>/label``, object frame): a
+        point of its mode's class above its top (:func:`place_labels`, nearer ``eye`` lower),
+        on a thin line down to its top; ``mode`` and ``ephemeral`` as values shown when it is
+        selected."""
+        rr, rec = self._rr, self._rec
+        tops = [
+            object_top(
+                self.library[o.class_name].mesh.vertices,
+                o.T_world_obj,
+                self.library[o.class_name].center_of_mass,
+            )
+            for o in estimate.objects
+        ]
+        heights = place_labels(np.reshape(tops, (-1, 3)), eye)
+        for obj, top, z in zip(estimate.objects, tops, heights, strict=True):
+            T = np.asarray(obj.T_world_obj, dtype=float)
+            ends = np.array([top, [top[0], top[1], z]])
+            local = (ends - T[:3, 3]) @ T[:3, :3]  # world -> object frame
+            cls = [mode_class(obj.mode)]
+            rec.log(
+                f"world/objects/{self._part(obj.id)}/label",
+                rr.Points3D(local[1:], class_ids=cls, labels=[str(obj.id)], radii=0.002),
+                rr.LineStrips3D([local], class_ids=cls, radii=rr.Radius.ui_points(0.75)),
+                rr.AnyValues(mode=str(obj.mode), ephemeral=bool(obj.ephemeral)),
+            )
 
     def _log_instanced(self, root: str, posed: list[tuple[str, np.ndarray]], rgba) -> None:
         """One mesh entity per class under ``root``, drawn at each of its poses."""
@@ -446,6 +563,11 @@ class Recorder:
                 continue
             terms = obj.terms.as_dict()
             base = f"terms/objects/{self._part(obj.id)}"
+            if obj.id not in self._styled:  # its term's colour and name, as in the scene's
+                self._styled.add(obj.id)
+                for t in TERMS:
+                    style = rr.SeriesLines(colors=[TERM_COLOURS[t]], names=[t])
+                    rec.log(f"{base}/{t}", style, static=True)
             for t in TERMS:
                 totals[t] += terms[t]
                 rec.log(f"{base}/{t}", rr.Scalars(terms[t]))
@@ -488,8 +610,10 @@ class RunRecording:
         perceived: Any = None,
         estimate: SceneEstimate | None = None,
     ) -> None:
-        """Log a finished frame: its perceived result (``perceived.frame``, the parser's input)
-        and estimate, or (``frame_json["status"] == "failed"``) its error."""
+        """Log a finished frame: its perceived result (``perceived.frame``, the parser's input;
+        ``perceived.camera`` and ``perceived.depth``, the intrinsics and depth image (m), when
+        it has them: a frame read from a depth image) and estimate, or
+        (``frame_json["status"] == "failed"``) its error."""
         rec = self.recorder
         if rec is None:
             return
@@ -497,7 +621,14 @@ class RunRecording:
             if frame_json.get("status") == "failed" or estimate is None or perceived is None:
                 rec.log_failure(index, name, str(frame_json.get("error", "failed")))
             else:
-                rec.log_frame(index, perceived.frame, estimate, name=name)
+                rec.log_frame(
+                    index,
+                    perceived.frame,
+                    estimate,
+                    name=name,
+                    camera=getattr(perceived, "camera", None),
+                    depth=getattr(perceived, "depth", None),
+                )
         except Exception:
             log.exception("%s: recording failed at frame %s; the run goes on without it", rec.path,
                           name)  # fmt: skip
