@@ -149,8 +149,10 @@ def ray_shift(residual: np.ndarray, tolerance: float, max_shift: float) -> tuple
     if v.size == 0:
         return 0.0, 0, 0
     ends = np.searchsorted(v, v + 2.0 * tolerance, side="right")
-    counts = ends - np.arange(v.size)
-    centres = np.array([np.median(v[i:j]) for i, j in zip(range(v.size), ends, strict=True)])
+    starts = np.arange(v.size)
+    counts = ends - starts
+    # the median of the sorted window v[i:j]: its middle element(s)
+    centres = 0.5 * (v[(starts + ends - 1) // 2] + v[(starts + ends) // 2])
     ok = np.abs(centres) <= max_shift
     if not ok.any():
         return 0.0, 0, at_zero
@@ -310,16 +312,17 @@ def correct_hypothesis(
     frame: Frame,
     config: SSPConfig,
     taken: Collection[int] = (),
+    look: RayLookup | None = None,
 ) -> tuple[Hypothesis, Correction] | None:
     """The hypothesis slid along its viewing ray to its data's depth and aligned (module
     docstring), with what was done; None when it needs no correction or none is supported.
     ``taken``: instance labels another hypothesis already fits where it is
-    (:func:`claimed_labels`)."""
+    (:func:`claimed_labels`); ``look``: its :func:`_look` at ``h``'s pose when already made."""
     cfg = config.correction
     tol = view.depth_tolerance
     instance = frame.labels is not None and frame.label_kind == "instance"
     T = np.asarray(h.T_world_obj, dtype=float)
-    look = _look(view, model, T)
+    look = _look(view, model, T) if look is None else look
     label = _silhouette_label(look, h.segment, cfg.min_silhouette) if instance else None
     if instance and label is None or label in taken:
         log.debug("%s: no correction: silhouette label %s (taken: %s)", h.class_name, label,
@@ -405,6 +408,7 @@ def claimed_labels(
     view: CameraView,
     frame: Frame,
     config: SSPConfig,
+    looks: Sequence[RayLookup] | None = None,
 ) -> set[int]:
     """The instance labels that a hypothesis fits where it is (at least
     ``correction.claim_support`` of its facing samples on the label's surface). One instance
@@ -412,13 +416,18 @@ def claimed_labels(
     slid onto it. Another object's (the lower block of a stack, hidden behind the cube on it,
     is not moved onto the cube), or a worse hypothesis of the same object (a gross one,
     centimetres off across the ray too: slid onto the surface it would still be wrong, a
-    duplicate beside the object). Empty without instance labels."""
+    duplicate beside the object). Empty without instance labels. ``looks``: each hypothesis'
+    :func:`_look` when already made."""
     claims: set[int] = set()
     if frame.labels is None or frame.label_kind != "instance":
         return claims
     cfg = config.correction
-    for h in hypotheses:
-        look = _look(view, library[h.class_name], np.asarray(h.T_world_obj, dtype=float))
+    for i, h in enumerate(hypotheses):
+        look = (
+            looks[i]
+            if looks is not None
+            else _look(view, library[h.class_name], np.asarray(h.T_world_obj, dtype=float))
+        )
         label = _silhouette_label(look, h.segment, cfg.min_silhouette)
         if label is None:
             continue
@@ -442,9 +451,13 @@ def correct_hypotheses(
     :class:`Correction`."""
     out: list[Hypothesis] = []
     done: list[tuple[Hypothesis, Correction]] = []
-    taken = claimed_labels(hypotheses, library, view, frame, config)
-    for h in hypotheses:
-        fixed = correct_hypothesis(h, library[h.class_name], view, frame, config, taken)
+    looks = [
+        _look(view, library[h.class_name], np.asarray(h.T_world_obj, dtype=float))
+        for h in hypotheses
+    ]
+    taken = claimed_labels(hypotheses, library, view, frame, config, looks)
+    for h, look in zip(hypotheses, looks, strict=True):
+        fixed = correct_hypothesis(h, library[h.class_name], view, frame, config, taken, look)
         if fixed is None:
             out.append(h)
             continue
