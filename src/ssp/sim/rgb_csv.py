@@ -72,7 +72,7 @@ def rgb_estimates(
                 T_world_cam=np.eye(4),
             )
             for k in range(len(scene)):
-                f = scene.load(k, masks=None)
+                f = scene.load(k, masks=None, depth=False)  # ground truth only: no image needed
                 visib = {oid: f.visib_fract.get(oid, 1.0) for oid in f.gt}
                 drawn = stream.draw(k, f.gt, visib)
                 rows = [
