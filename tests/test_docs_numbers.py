@@ -44,6 +44,11 @@ def test_the_readme_quotes_the_worked_example():
         f"{i['estimator']['AR']:.3f} to {i['ssp']['AR']:.3f} on tools"
     ) in text
     assert f"from {p['estimator']['AR']:.3f} to {p['no_masks']['AR']:.3f}" in text
+    rs, ri = RESULTS["rgb_structure"], RESULTS["rgb_isolated"]
+    assert (
+        f"from {rs['estimator']['AR']:.3f} to {rs['ssp']['AR']:.3f} on block structures and from "
+        f"{ri['estimator']['AR']:.3f} to {ri['ssp']['AR']:.3f} on tools"
+    ) in text
 
 
 def test_the_guide_quotes_the_worked_example():
@@ -61,12 +66,38 @@ def test_the_guide_quotes_the_worked_example():
         ("estimator (the CSV)", "estimator"),
         ("none: the cloud above the table is clustered (the default for a published scene)",
          "no_masks"),
+        ("`--masks silhouettes`: the hypotheses' rendered silhouettes", "silhouettes"),
         ("`--masks gt` (the ground-truth `mask_visib`: an upper bound)", "gt_masks"),
     ):  # fmt: skip
         row = f"| {label} | {_cells(p[key])}"
         assert row in text, row
     gt, ssp = p["gt_masks"]["AR"], RESULTS["structure"]["ssp"]["AR"]
     assert f"({gt:.3f} against {ssp:.3f})" in text
+
+
+def test_the_guide_quotes_the_rgb_rows():
+    text = _text("docs/after-your-estimator.md")
+    labels = {"structure": "structure (stacks)", "isolated": "isolated (tools)"}
+    for exp, label in labels.items():
+        r = RESULTS[f"rgb_{exp}"]
+        row = (
+            f"| {label} | {r['targets']} | RGB estimator | {_cells(r['estimator'])} "
+            f"| | | **ssp refine** | {_cells(r['ssp'], bold=True)} "
+            f"| | | ssp refine, kept objects only | {_cells(r['ssp_kept_only'])}"
+        )
+        assert row in text, row
+    p = RESULTS["rgb_published"]
+    for label, key in (
+        ("RGB estimator (the CSV)", "estimator"),
+        ("none: the cloud above the table is clustered (the default)", "no_masks"),
+        ("`--masks silhouettes`: the hypotheses' rendered silhouettes", "silhouettes"),
+        ("`--masks detections.json`: a detector's masks", "detector_masks"),
+    ):
+        row = f"| {label} | {_cells(p[key])}"
+        assert row in text, row
+    s, i = RESULTS["rgb_structure"], RESULTS["rgb_isolated"]
+    gain = (s["ssp"]["AR"] - s["ssp_kept_only"]["AR"], i["ssp"]["AR"] - i["ssp_kept_only"]["AR"])
+    assert f"the rule is worth {gain[0]:.3f} and {gain[1]:.3f} AR here" in text
 
 
 # ------------------------------------------------------------------ every other figure block
