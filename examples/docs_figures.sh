@@ -32,33 +32,37 @@ run() {  # run NAME FILE COMMAND...: writes $W/NAME/FILE; skipped when that file
 }
 
 run t1-isolated-paper-ssp results.json $SSP bench table1 --experiment isolated --sequences 10 --seed 1000 --methods ssp,ssp_single
-run t1-isolated-paper-baselines results.json $SSP bench table1 --experiment isolated --sequences 10 --seed 1000 --methods estimator,icp,bestfit,temporal_filter,icp_filter
+run t1-isolated-paper-baselines results.json $SSP bench table1 --experiment isolated --sequences 10 --seed 1000 --methods estimator,icp,ray_slide,bestfit,temporal_filter,icp_filter
 run t1-isolated-realistic-ssp results.json $SSP bench table1 --experiment isolated --sequences 10 --seed 1000 --noise realistic --methods ssp
-run t1-isolated-realistic-baselines results.json $SSP bench table1 --experiment isolated --sequences 10 --seed 1000 --noise realistic --methods estimator,icp,bestfit,temporal_filter,icp_filter
+run t1-isolated-realistic-baselines results.json $SSP bench table1 --experiment isolated --sequences 10 --seed 1000 --noise realistic --methods estimator,icp,ray_slide,bestfit,temporal_filter,icp_filter
 run t1-isolated-realistic-single results.json $SSP bench table1 --experiment isolated --sequences 10 --seed 1000 --noise realistic --methods ssp_single
 run t1-isolated-estimated results.json $SSP bench table1 --experiment isolated --sequences 10 --seed 1000 --hypotheses estimated --methods ssp,estimator,icp,icp_filter
+run t1-isolated-rgb results.json $SSP bench table1 --experiment isolated --sequences 10 --seed 1000 --noise rgb
 run t1-structure-paper-ssp results.json $SSP bench table1 --experiment structure --sequences 10 --seed 1000 --methods ssp,ssp_single
-run t1-structure-paper-baselines results.json $SSP bench table1 --experiment structure --sequences 10 --seed 1000 --methods estimator,icp,bestfit,temporal_filter,icp_filter
+run t1-structure-paper-baselines results.json $SSP bench table1 --experiment structure --sequences 10 --seed 1000 --methods estimator,icp,ray_slide,bestfit,temporal_filter,icp_filter
 run t1-structure-realistic-ssp results.json $SSP bench table1 --experiment structure --sequences 10 --seed 1000 --noise realistic --methods ssp
-run t1-structure-realistic-baselines results.json $SSP bench table1 --experiment structure --sequences 10 --seed 1000 --noise realistic --methods estimator,icp,bestfit,temporal_filter,icp_filter
+run t1-structure-realistic-baselines results.json $SSP bench table1 --experiment structure --sequences 10 --seed 1000 --noise realistic --methods estimator,icp,ray_slide,bestfit,temporal_filter,icp_filter
 run t1-structure-realistic-single results.json $SSP bench table1 --experiment structure --sequences 10 --seed 1000 --noise realistic --methods ssp_single
 run t1-structure-estimated results.json $SSP bench table1 --experiment structure --sequences 10 --seed 1000 --hypotheses estimated --methods ssp,estimator,icp,icp_filter
+run t1-structure-rgb results.json $SSP bench table1 --experiment structure --sequences 10 --seed 1000 --noise rgb
 run tower-realistic-ssp-1000 results.json $SSP bench tower --trials 10 --seed 1000 --noise realistic --methods ssp
 run tower-realistic-single-1000 results.json $SSP bench tower --trials 10 --seed 1000 --noise realistic --methods ssp_single
-run tower-realistic-base-1000 results.json $SSP bench tower --trials 10 --seed 1000 --noise realistic --methods estimator,icp,bestfit,temporal_filter,icp_filter
+run tower-realistic-base-1000 results.json $SSP bench tower --trials 10 --seed 1000 --noise realistic --methods estimator,icp,ray_slide,bestfit,temporal_filter,icp_filter
 run tower-structure-ssp-1000 results.json $SSP bench tower --trials 10 --seed 1000 --methods ssp
 run tower-structure-estimator-1000 results.json $SSP bench tower --trials 10 --seed 1000 --methods estimator
 run tower-realistic-ssp-2000 results.json $SSP bench tower --trials 10 --seed 2000 --noise realistic --methods ssp
 run tower-realistic-single-2000 results.json $SSP bench tower --trials 10 --seed 2000 --noise realistic --methods ssp_single
-run tower-realistic-base-2000 results.json $SSP bench tower --trials 10 --seed 2000 --noise realistic --methods estimator,icp,bestfit,temporal_filter,icp_filter
+run tower-realistic-base-2000 results.json $SSP bench tower --trials 10 --seed 2000 --noise realistic --methods estimator,icp,ray_slide,bestfit,temporal_filter,icp_filter
 run tower-structure-ssp-2000 results.json $SSP bench tower --trials 10 --seed 2000 --methods ssp
 run tower-structure-estimator-2000 results.json $SSP bench tower --trials 10 --seed 2000 --methods estimator
 run tower-realistic-ssp-3000 results.json $SSP bench tower --trials 10 --seed 3000 --noise realistic --methods ssp
 run tower-realistic-single-3000 results.json $SSP bench tower --trials 10 --seed 3000 --noise realistic --methods ssp_single
-run tower-realistic-base-3000 results.json $SSP bench tower --trials 10 --seed 3000 --noise realistic --methods estimator,icp,bestfit,temporal_filter,icp_filter
+run tower-realistic-base-3000 results.json $SSP bench tower --trials 10 --seed 3000 --noise realistic --methods estimator,icp,ray_slide,bestfit,temporal_filter,icp_filter
 run tower-structure-ssp-3000 results.json $SSP bench tower --trials 10 --seed 3000 --methods ssp
 run tower-structure-estimator-3000 results.json $SSP bench tower --trials 10 --seed 3000 --methods estimator
 run tower-case-study results.json $SSP bench tower --trials 10 --seed 1000 --noise case-study
+run tower-rgb results.json $SSP bench tower --trials 10 --seed 1000 --noise rgb
+run rgb-calibration results.json $SSP bench rgb-calibration --data ../shared/data/lmo-megapose
 run tower-estimated-ssp results.json $SSP bench tower --trials 10 --seed 1000 --hypotheses estimated --methods ssp
 run tower-estimated-estimator results.json $SSP bench tower --trials 10 --seed 1000 --hypotheses estimated --methods estimator
 run parser-compare compare.json $SSP bench parser --links ../shared/data/costar-links --compare 3d6b73d --processes 2 --rev-processes 2

@@ -59,8 +59,9 @@ RESULTS = Path("docs/results")
 BEGIN = re.compile(r"^<!-- figures: ([\w.-]+) -->$")
 END = "<!-- /figures -->"
 SEEDS = (1000, 2000, 3000)
-BASELINES = "estimator,icp,bestfit,temporal_filter,icp_filter"
+BASELINES = "estimator,icp,ray_slide,bestfit,temporal_filter,icp_filter"
 LINKS = "../shared/data/costar-links"
+LMO = "../shared/data/lmo-megapose"
 PARSER_REV = "3d6b73d"
 
 
@@ -87,6 +88,7 @@ def _sources() -> dict[str, Source]:
             Source(f"t1-{e}-realistic-single", f"{base} --noise realistic --methods ssp_single"),
             Source(f"t1-{e}-estimated",
                    f"{base} --hypotheses estimated --methods ssp,estimator,icp,icp_filter"),
+            Source(f"t1-{e}-rgb", f"{base} --noise rgb"),
         ]  # fmt: skip
     tower = "ssp bench tower --trials 10"
     for s in SEEDS:
@@ -101,6 +103,8 @@ def _sources() -> dict[str, Source]:
     est = f"{tower} --seed 1000 --hypotheses estimated --methods"
     out += [
         Source("tower-case-study", f"{tower} --seed 1000 --noise case-study"),
+        Source("tower-rgb", f"{tower} --seed 1000 --noise rgb"),
+        Source("rgb-calibration", f"ssp bench rgb-calibration --data {LMO}"),
         Source("tower-estimated-ssp", f"{est} ssp"),
         Source("tower-estimated-estimator", f"{est} estimator"),
         Source("parser-compare",
@@ -213,10 +217,14 @@ def _realistic(e: str) -> tuple[str, ...]:
     return (f"t1-{e}-realistic-ssp", f"t1-{e}-realistic-baselines", f"t1-{e}-realistic-single")
 
 
-def _realistic_table(e: str) -> Callable[[Results], list[str]]:
+def _realistic_table(e: str, sources: tuple[str, ...] | None = None):
+    """The stream table of experiment ``e`` from ``sources`` (default: the realistic
+    stream's runs)."""
+    sources = _realistic(e) if sources is None else sources
+
     def render(results: Results) -> list[str]:
         rows = []
-        for name, d in _methods(results, _realistic(e)).items():
+        for name, d in _methods(results, sources).items():
             b, a = d["bop"], d["accuracy"]
             rows.append([
                 _name(name), f"{b['AR']:.3f}",
@@ -443,12 +451,14 @@ def _figures() -> dict[str, Figure]:
         Figure("realistic-acceptance", _realistic("structure") + _realistic("isolated"),
                _acceptance),
         Figure("parser-compare", ("parser-compare",), _parser_compare),
+        Figure("tower-rgb", ("tower-rgb",), _tower_report_table(("tower-rgb",))),
     ]  # fmt: skip
     for e in ("structure", "isolated"):
         out += [
             Figure(f"realistic-{e}", _realistic(e), _realistic_table(e)),
             Figure(f"realistic-conditions-{e}", _realistic(e), _conditions_table(e)),
             Figure(f"table1-paper-{e}", _paper(e), _paper_table(e)),
+            Figure(f"rgb-{e}", (f"t1-{e}-rgb",), _realistic_table(e, (f"t1-{e}-rgb",))),
         ]
     return {f.name: f for f in out}
 
@@ -538,6 +548,19 @@ def _readme_tower(results: Results) -> list[str]:
     ]
 
 
+def _rgb_calibration(results: Results) -> list[str]:
+    r = results["rgb-calibration"]
+    o = r["overall"]
+    return [
+        f"its error along the viewing ray has median {o['along_abs_median_mm']:.1f} mm and 75th "
+        f"percentile {o['along_abs_p75_mm']:.1f} mm ({100 * o['along_over_10mm']:.0f} % above "
+        f"10 mm), across it median {o['lateral_median_mm']:.1f} mm; its rotation error median "
+        f"{o['rotation_median_deg']:.1f} deg, with {100 * o['flip_rate']:.1f} % flips (over 30 "
+        f"deg); {100 * o['far_rate']:.1f} % of its best-scored rows are more than 10 cm off, "
+        f"and {100 * r['miss_rate']:.1f} % of the {r['targets']} targets have no row"
+    ]
+
+
 #: Sentences that quote figures, by name.
 QUOTES = {
     q.name: q
@@ -565,6 +588,12 @@ QUOTES = {
             "README.md",
             ("t1-isolated-estimated", "t1-structure-estimated"),
             _readme_estimated,
+        ),
+        Quote(
+            "benchmarks-rgb-calibration",
+            "docs/benchmarks.md",
+            ("rgb-calibration",),
+            _rgb_calibration,
         ),
         Quote(
             "readme-tower",
