@@ -269,3 +269,13 @@ def test_ghost_cubes_are_counted(lib):
         ]
     )
     assert tower.ghosts(tr, lib) == (1, 1)
+
+
+def test_the_cli_default_methods_are_the_library_default():
+    import inspect
+
+    from ssp.cli.experiments import bench_tower
+    from ssp.eval.tower import DEFAULT_METHODS
+
+    option = inspect.signature(bench_tower).parameters["methods"].default
+    assert option.default.split(",") == list(DEFAULT_METHODS)

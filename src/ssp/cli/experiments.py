@@ -301,7 +301,9 @@ def bench_tower(
             "front end's hypotheses on the rendered depth."
         ),
     ),
-    methods: str = typer.Option("ssp,estimator", help="Comma-separated methods to compare."),
+    methods: str = typer.Option(  # ssp.eval.tower.DEFAULT_METHODS
+        "ssp,estimator,ray_slide", help="Comma-separated methods to compare."
+    ),
     frames_per_step: int = typer.Option(
         3, min=1, help="Frames perceived before each pick (the method sees them all)."
     ),
