@@ -87,9 +87,8 @@ def test_refine_masks_silhouettes_segments_by_silhouettes(lib, scene, tmp_path):
     rgb_estimates(scene.parent.parent, lib, est, seed=0)
     out = refine(root, est, lib, tmp_path / "out", masks="silhouettes")
     assert out.done
-    frames = [json.loads(p.read_text()) for p in sorted((tmp_path / "out").glob("scenes/*/frames/*.json"))]
-    assert frames and all(
-        any("rendered silhouettes" in w for w in fr["warnings"]) for fr in frames
-    )
+    found = sorted((tmp_path / "out").glob("scenes/*/frames/*.json"))
+    frames = [json.loads(p.read_text()) for p in found]
+    assert frames and all(any("rendered silhouettes" in w for w in fr["warnings"]) for fr in frames)
     res = evaluate(root, lib, [est, out.csv], vsd=False)
     assert res[out.csv.name]["AR"] >= res[est.name]["AR"]
