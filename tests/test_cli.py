@@ -86,7 +86,7 @@ def test_sequence_demo_writes_the_report(tmp_path):
     page = (tmp_path / "report.html").read_text()
     assert "<td>ssp</td>" in page and "frames/003.png" in page
     assert set(result["methods"]) == {
-        "ssp", "estimator", "icp", "bestfit", "temporal_filter", "icp_filter",
+        "ssp", "estimator", "icp", "ray_slide", "bestfit", "temporal_filter", "icp_filter",
     }  # fmt: skip
     assert result["methods"]["ssp"]["max_penetration_mm"] < 1.0
 

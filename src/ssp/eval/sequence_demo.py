@@ -37,7 +37,7 @@ RECORDING = "run.rrd"
 
 #: Methods in the demo's table (the benchmark's, but the costly memoryless parser), and those
 #: drawn on the frame images.
-METHODS = ("ssp", "estimator", "icp", "bestfit", "temporal_filter", "icp_filter")
+METHODS = ("ssp", "estimator", "icp", "ray_slide", "bestfit", "temporal_filter", "icp_filter")
 DRAWN = ("estimator", "ssp")
 
 
