@@ -128,6 +128,10 @@ def test_run_recording_holds_every_frame(lib, scene, tmp_path):
     assert np.all(np.abs(pts) < 1.0)  # world frame, metres (not mm, not the camera frame)
     table = np.asarray(at(data["/world/cloud/table"], 0, "Points3D:positions"))
     assert len(table) > 1000 and np.all(np.abs(table[:, 2]) <= TABLE_BAND + 1e-6)
+    # a BOP scene's frames carry their camera (a pinhole) and depth image into the recording
+    for n in (0, 2):
+        assert at(data["/world/camera"], n, "Pinhole:image_from_camera") is not None
+        assert at(data["/world/camera/depth"], n, "DepthImage:meter") == [1000.0]
 
     for n, rec in frames.items():
         for o in rec["objects"]:

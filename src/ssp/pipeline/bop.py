@@ -243,6 +243,7 @@ class BopSource:
             hypotheses=hyps,
             hypotheses_frame=hyp_frame,
         )
+        result.camera, result.depth = sf.camera, sf.depth  # for the recording
         return result, warnings
 
     def _instance_masks(
