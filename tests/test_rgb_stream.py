@@ -297,3 +297,19 @@ def test_rgb_estimates_csv_of_a_simulated_dataset(tmp_path, lib):
     best = [r for r in rows if r["im_id"] == f.im_id]
     near = [min(np.linalg.norm(r["t"] - t) for t in truth) for r in best]
     assert np.median(near) < 100.0  # mm: most rows are at an object, in the camera frame
+
+
+def test_rgb_estimates_refuse_a_scene_without_ground_truth(tmp_path, lib):
+    """No scene_gt.json: an InputError naming the scene, and no CSV written."""
+    from ssp.errors import InputError
+    from ssp.sim.bop import simulate_to_disk
+    from ssp.sim.rgb_csv import rgb_estimates
+
+    (scene,) = simulate_to_disk(
+        "structure", 1, 5, out_dir=tmp_path, stages=1, frames_per_stage=1, stride=8, library=lib
+    )
+    (scene / "scene_gt.json").unlink()
+    out = tmp_path / "rgb_sim-test.csv"
+    with pytest.raises(InputError, match=r"no scene_gt.json"):
+        rgb_estimates(scene, lib, out, seed=0)
+    assert not out.exists()

@@ -189,10 +189,22 @@ def published_rotation(values: Any, where: str) -> np.ndarray:
     return U @ Vt
 
 
+#: The ``scene_gt.json`` files already warned about (path, modification time): a command opens
+#: a scene more than once (its ids, its frames, a refine's check), the warning is once a file.
+_WARNED_ROTATIONS: set[tuple[str, int]] = set()
+
+
 def _warn_rotations(path: Path, scene_gt: Mapping[str, Any]) -> None:
     """One warning when rotations (``cam_R_m2c``) of ``scene_gt.json`` deviate from
     orthonormal by more than :data:`ROTATION_WARN` (malformed entries are left to
-    :meth:`BopScene.load`, which names them)."""
+    :meth:`BopScene.load`, which names them); once per file and process."""
+    try:
+        key = (str(path.resolve()), path.stat().st_mtime_ns)
+    except OSError:
+        return
+    if key in _WARNED_ROTATIONS:
+        return
+    _WARNED_ROTATIONS.add(key)
     found: list[tuple[float, str, int]] = []
     for im, entries in scene_gt.items():
         for j, g in enumerate(entries if isinstance(entries, list) else []):

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from ssp.errors import InputError
 from ssp.io.bop import bop_scenes, open_bop
 from ssp.io.results import BopCsvWriter, bop_csv_parts
 from ssp.sim.realistic import RealisticNoise, RealisticStream
@@ -52,11 +53,23 @@ def rgb_estimates(
     Returns:
         ``{csv, images, rows, targets, missed}`` (targets: ground-truth instances; missed:
         those without a hypothesis).
+
+    Raises:
+        InputError: no scene, or a scene without ``scene_gt.json`` (before anything is
+            written).
     """
     noise = noise if noise is not None else RealisticNoise.rgb()
     scenes = [s for s in bop_scenes(dataset, split) if s.name.isdigit()]
     if scene_ids is not None:
         scenes = [s for s in scenes if int(s.name) in set(scene_ids)]
+    if not scenes:
+        raise InputError(f"{dataset}: no BOP scene (a folder with scene_camera.json) in it")
+    no_gt = [str(s) for s in scenes if not (s / "scene_gt.json").is_file()]
+    if no_gt:
+        raise InputError(
+            f"{', '.join(no_gt)}: no scene_gt.json: the simulated RGB estimator draws its "
+            "errors around the ground truth"
+        )
     path = Path(out_csv)
     parts = bop_csv_parts(path.name)
     report: dict[str, Any] = {"csv": str(path), "images": 0, "rows": 0, "targets": 0, "missed": 0}
