@@ -313,3 +313,24 @@ def test_rgb_estimates_refuse_a_scene_without_ground_truth(tmp_path, lib):
     with pytest.raises(InputError, match=r"no scene_gt.json"):
         rgb_estimates(scene, lib, out, seed=0)
     assert not out.exists()
+
+
+def test_calibration_reads_continuous_symmetries_as_the_toolkit():
+    """A cylinder's rotation about its axis is no error (not a flip): the continuous axis is
+    sampled every 5 deg, composed with the discrete symmetries."""
+    from scipy.spatial.transform import Rotation
+
+    from ssp.eval.rgb_calibration import _row_error, _symmetries
+
+    syms = _symmetries(
+        {
+            "1": {
+                "symmetries_continuous": [{"axis": [0, 0, 1], "offset": [0, 0, 0]}],
+                "symmetries_discrete": [np.diag([1.0, -1.0, -1.0, 1.0]).ravel()],
+            }
+        }
+    )
+    assert len(syms[1]) == 2 * 72
+    turn = Rotation.from_euler("zx", [37.0, 180.0], degrees=True).as_matrix()
+    err = _row_error(np.eye(3), np.array([0.0, 0.0, 800.0]), syms[1], turn, [0.0, 0.0, 800.0])
+    assert err["rot"] < 2.6  # within half a 5 deg step

@@ -76,6 +76,16 @@ def hull_box(vertices: np.ndarray, poses) -> tuple[np.ndarray, np.ndarray]:
     return w.min(axis=0), w.max(axis=0)
 
 
+def nearest_rotation(M: np.ndarray) -> np.ndarray:
+    """The rotation nearest ``M`` (3, 3) in the Frobenius norm: ``U V^T`` of its SVD, the last
+    column of ``U`` flipped when that would be a reflection. For a matrix already near a
+    rotation (a published one printed with few digits); callers check how near first."""
+    U, _, Vt = np.linalg.svd(np.asarray(M, dtype=float))
+    if np.linalg.det(U @ Vt) < 0:
+        U[:, -1] *= -1
+    return U @ Vt
+
+
 def rotation_angle(R: np.ndarray) -> float | np.ndarray:
     """Angle (rad, in [0, pi]) of a rotation matrix (3, 3) or stack (n, 3, 3)."""
     c = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
@@ -106,6 +116,5 @@ def validate_pose(T: np.ndarray, what: str = "pose") -> np.ndarray:
             f"det {np.linalg.det(R):.3f})"
         )
     if err > 1e-12:
-        U, _, Vt = np.linalg.svd(R)
-        T[:3, :3] = U @ Vt
+        T[:3, :3] = nearest_rotation(R)
     return T

@@ -51,7 +51,7 @@ import numpy as np
 
 from ssp.camera import Camera
 from ssp.errors import InvalidPoseError
-from ssp.geometry import invert
+from ssp.geometry import invert, nearest_rotation
 from ssp.io.bop import ROTATION_MAX, ROTATION_WARN, rotation_deviation
 from ssp.library.symmetry import Symmetry
 from ssp.sim.render import ImageWindow, image_window, render
@@ -438,8 +438,7 @@ def _published_poses(
             )
         worst = max(worst, dev)
         if dev > 0:
-            U, _, Vt = np.linalg.svd(M[:3, :3])
-            M[:3, :3] = U @ Vt
+            M[:3, :3] = nearest_rotation(M[:3, :3])
         return M
 
     g = {k: (c, clean(f"ground truth {k!r}", T)) for k, (c, T) in gt.items()}

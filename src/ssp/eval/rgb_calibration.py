@@ -37,9 +37,11 @@ from typing import Any
 import numpy as np
 
 from ssp.errors import InputError
+from ssp.geometry import nearest_rotation
 from ssp.io import write_json
 from ssp.io._files import atomic_write_text
 from ssp.io.results import read_bop_csv
+from ssp.library.symmetry import ContinuousSymmetry
 
 __all__ = [
     "QUANTILE_LEVELS",
@@ -59,24 +61,25 @@ QUANTILE_LEVELS = (0.0, 0.02, 0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9,
 FLIP_DEG = 30.0
 
 
-def _rotation(M: np.ndarray) -> np.ndarray:
-    """The rotation nearest to ``M`` (3, 3) (SVD projection)."""
-    U, _, Vt = np.linalg.svd(np.asarray(M, dtype=float))
-    if np.linalg.det(U @ Vt) < 0:
-        U[:, -1] *= -1
-    return U @ Vt
-
-
 def _symmetries(models_info: dict) -> dict[int, list[np.ndarray]]:
-    """obj_id -> its discrete symmetries (4x4, identity first, rotations projected)."""
+    """obj_id -> its symmetries (4x4, mm, identity first), as the BOP toolkit reads them: the
+    discrete ones as published (rotations projected, near turns not snapped), each composed
+    with the continuous axes' rotations every 5 deg (the first axis, as the toolkit does)."""
     out: dict[int, list[np.ndarray]] = {}
     for key, info in models_info.items():
-        syms = [np.eye(4)]
+        discrete = [np.eye(4)]
         for s in info.get("symmetries_discrete", []):
             S = np.asarray(s, dtype=float).reshape(4, 4)
-            S[:3, :3] = _rotation(S[:3, :3])
-            syms.append(S)
-        out[int(key)] = syms
+            S[:3, :3] = nearest_rotation(S[:3, :3])
+            discrete.append(S)
+        turns = [np.eye(4)]
+        for c in info.get("symmetries_continuous", [])[:1]:
+            axis = ContinuousSymmetry(
+                np.asarray(c["axis"], dtype=float) / np.linalg.norm(c["axis"]),
+                np.asarray(c.get("offset", [0, 0, 0]), dtype=float),
+            )
+            turns = [axis.transform(np.radians(a)) for a in range(0, 360, 5)]
+        out[int(key)] = [S @ T for S in discrete for T in turns]
     return out
 
 
@@ -127,10 +130,15 @@ def _scene_targets(scene: Path) -> list[dict[str, Any]]:
         raise InputError(f"{scene}: cannot read scene_gt / scene_gt_info: {exc}") from exc
     out = []
     for im, lst in gt.items():
-        for g, inf in zip(lst, info.get(im, []), strict=False):
+        if len(info.get(im, [])) != len(lst):
+            raise InputError(
+                f"{scene}: im_id {im}: {len(lst)} scene_gt.json entries but "
+                f"{len(info.get(im, []))} in scene_gt_info.json (one each, in the same order)"
+            )
+        for g, inf in zip(lst, info[im], strict=True):
             out.append({
                 "scene_id": int(scene.name), "im_id": int(im), "obj_id": int(g["obj_id"]),
-                "R": _rotation(np.reshape(g["cam_R_m2c"], (3, 3))),
+                "R": nearest_rotation(np.reshape(g["cam_R_m2c"], (3, 3))),
                 "t": np.asarray(g["cam_t_m2c"], dtype=float), "visib": float(inf["visib_fract"]),
             })  # fmt: skip
     return out

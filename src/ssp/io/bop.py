@@ -52,7 +52,7 @@ from PIL import Image
 
 from ssp.camera import Camera
 from ssp.errors import ArgumentError, InputError
-from ssp.geometry import ORTHONORMAL_TOL
+from ssp.geometry import ORTHONORMAL_TOL, nearest_rotation
 from ssp.io._files import file_problem, read_json
 from ssp.perception.depth import depth_doubt
 from ssp.scene import Hypothesis
@@ -185,8 +185,7 @@ def published_rotation(values: Any, where: str) -> np.ndarray:
             f"{where} is not a rotation (|R R^T - I| = {dev:.2g}, det {det:.3f}; at most "
             f"{ROTATION_MAX:g} off is re-orthonormalised, a reflection never)"
         )
-    U, _, Vt = np.linalg.svd(M)
-    return U @ Vt
+    return nearest_rotation(M)
 
 
 #: The ``scene_gt.json`` files already warned about (path, modification time): a command opens

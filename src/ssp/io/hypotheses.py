@@ -38,7 +38,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ssp.errors import InputError, InvalidPoseError
-from ssp.geometry import validate_pose
+from ssp.geometry import nearest_rotation, validate_pose
 from ssp.io._files import read_json, write_json
 from ssp.scene import Hypothesis
 
@@ -197,8 +197,7 @@ def check_rotation(R: np.ndarray, what: str) -> np.ndarray:
             f"{what}: not a rotation (|R R^T - I| = {err:.2e}, det {det:.3f}; tolerance "
             f"{ROTATION_TOL:g})"
         )
-    U, _, Vt = np.linalg.svd(R)
-    return U @ Vt
+    return nearest_rotation(R)
 
 
 def _numbers(value: Any, shape: tuple[int, ...] | None, what: str) -> np.ndarray:

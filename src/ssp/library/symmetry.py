@@ -32,6 +32,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from ssp.errors import ModelError
+from ssp.geometry import nearest_rotation
 
 log = logging.getLogger(__name__)
 
@@ -131,8 +132,7 @@ def _rigid_rotation(T: np.ndarray, what: str) -> np.ndarray:
             f"{what} is not a rigid transform (|R R^T - I| = {err:.1e}, "
             f"det {np.linalg.det(R):.3f}; a reflection is not a rigid motion)"
         )
-    U, _, Vt = np.linalg.svd(R)
-    return U @ Vt
+    return nearest_rotation(R)
 
 
 def snap_symmetry(
