@@ -165,7 +165,7 @@ def ray_shift(residual: np.ndarray, tolerance: float, max_shift: float) -> tuple
 
 def _samples(model: ObjectModel) -> tuple[np.ndarray, np.ndarray, float | None]:
     """Up to :data:`LOOKUP_SAMPLES` surface samples and normals (model frame), and their
-    spacing for the self-occlusion test (None for a nearly convex model)."""
+    spacing for the self-occlusion test (None without samples)."""
     p = np.asarray(model.surface_points, dtype=float)
     n = np.asarray(model.surface_normals, dtype=float)
     if len(p) > LOOKUP_SAMPLES:
@@ -244,8 +244,8 @@ def _coverage(view: CameraView, model: ObjectModel, T: np.ndarray, points: np.nd
     silhouettes agree."""
     if not len(points):
         return 0.0
-    p, n, _ = _samples(model)
-    spacing = float(np.sqrt(model.mesh.area / len(p))) if len(p) else 0.0
+    p, n, spacing_or_none = _samples(model)
+    spacing = spacing_or_none or 0.0
     T_cam_world = np.linalg.inv(view.T_world_cam)
     R, t = T_cam_world[:3, :3], T_cam_world[:3, 3]
     pw = transform_points(T, p)

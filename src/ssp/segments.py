@@ -33,11 +33,11 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ssp.correction import camera_view
 from ssp.geometry import transform_points
 from ssp.kdtree import KDTree
 from ssp.library.model import ObjectModel
 from ssp.scene import Frame
-from ssp.visibility import CameraView
 
 if TYPE_CHECKING:
     from ssp.frame_context import FrameContext
@@ -318,13 +318,8 @@ def segment_frame(ctx: FrameContext) -> None:
         members=members,
         known=set(ctx.known),
     )
-    if frame.T_world_cam is not None and ctx.view is None:  # else built by the correction
-        ctx.view = CameraView(
-            frame.points,
-            frame.T_world_cam,
-            labels=frame.labels,
-            depth_tolerance=cfg.temporal.depth_tolerance,
-        )
+    if ctx.view is None:  # built by the depth correction, unless the stages run by hand
+        ctx.view = camera_view(frame, cfg)
     ctx.cand_poses, ctx.segments, ctx.owner, ctx.members = cand_poses, segments, owner, members
     ctx.trees = SegmentTrees(segments)
 

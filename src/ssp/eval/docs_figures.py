@@ -386,8 +386,8 @@ def _tower_cell(r: dict, trials: int, ghosts: bool) -> str:
     )
 
 
-TOWER_REALISTIC = ("ssp", "ssp_single", "estimator", "icp", "bestfit", "temporal_filter",
-                   "icp_filter")  # fmt: skip
+TOWER_REALISTIC = ("ssp", "ssp_single", "estimator", "icp", "ray_slide", "bestfit",
+                   "temporal_filter", "icp_filter")  # fmt: skip
 
 
 def _tower_realistic(results: Results) -> list[str]:

@@ -38,6 +38,7 @@ from ssp.io.results import (
     BopCsvWriter,
     bop_csv_name,
     bop_csv_parts,
+    bop_model_name,
     read_bop_csv,
 )
 
@@ -461,7 +462,7 @@ def evaluate(
             image_targets = None
             if targets is not None:
                 image_targets = {
-                    scene.classes.get(o, f"obj_{o:06d}"): n
+                    scene.classes.get(o, bop_model_name(o)): n
                     for o, n in targets.get((sid, im), {}).items()
                 }
             for (_, by_image), ev in zip(tables, evaluators, strict=True):
