@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Iterator, Mapping, Sequence
-from functools import partial
+from functools import lru_cache, partial
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +17,7 @@ from ssp.geometry import invert
 from ssp.io.bop import DEFAULT_PERIOD, MASK_MODES, BopFrame, mask_source, open_bop
 from ssp.io.detections import (
     Detection,
+    Detections,
     SceneDetections,
     instance_labels,
     match_segments,
@@ -124,7 +125,8 @@ class BopSource:
             cam = sc.camera_of(k)
             sizes[im] = (cam.height, cam.width)
         classes = {oid: c for oid, c in sc.classes.items() if c in self.library}
-        return read_detections(det_file).for_scene(sc.scene_id, sizes, classes, min_score=min_score)
+        dets = _detections_file(str(det_file.resolve()), *_stamp(det_file))
+        return dets.for_scene(sc.scene_id, sizes, classes, min_score=min_score)
 
     def _describe_masks(self, det_file: Path | None, min_score: float) -> str:
         """Which masks the frames get, in words."""
@@ -270,6 +272,18 @@ class BopSource:
             log.info("im_id %d: %d of %d hypotheses on a detection of their class (%d "
                      "detections)", sf.im_id, n, len(hyps), len(dets))  # fmt: skip
         return inst.labels.astype(np.int64), label_classes, hyps
+
+
+def _stamp(path: Path) -> tuple[int, int]:
+    st = path.stat()
+    return st.st_mtime_ns, st.st_size
+
+
+@lru_cache(maxsize=2)
+def _detections_file(path: str, mtime_ns: int, size: int) -> Detections:
+    """:func:`read_detections` of ``path``, read once while the file is unchanged (a refine
+    opens one scene source per scene, each reading the same file)."""
+    return read_detections(path)
 
 
 def bop_object_ids(scene: Path, library: Mapping) -> ObjectIds:
