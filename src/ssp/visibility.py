@@ -297,37 +297,17 @@ class CameraView:
             self_spacing: spacing of the samples on the object's surface (m) when they are
                 one object's; None: no self-occlusion test.
         """
-        pts = _as_points(points_world, "points_world")
-        nrm = _as_points(normals_world, "normals_world")
-        if nrm.shape != pts.shape:
-            raise ValueError(
-                f"normals_world: shape {nrm.shape} does not match points_world {pts.shape}"
-            )
-        out = np.full(len(pts), NOT_FACING, dtype=np.int8)
-        cam_centre = self._T_world_cam[:3, 3]
-        facing = np.einsum("ij,ij->i", nrm, cam_centre - pts) > 0.0
-        p_cam = pts @ self._T_cam_world[:3, :3].T + self._T_cam_world[:3, 3]
-        facing &= p_cam[:, 2] > MIN_DEPTH
+        facing, self_hidden, p_cam = self._facing(points_world, normals_world, self_spacing)
+        out = np.full(len(facing), NOT_FACING, dtype=np.int8)
+        out[self_hidden] = SELF_HIDDEN
         if not facing.any():
             return out
-        if self_spacing is not None:
-            hidden = _self_hidden(
-                p_cam[facing], pts[facing], nrm[facing], float(self_spacing), self._depth_tolerance
-            )
-            idx_f = np.flatnonzero(facing)
-            out[idx_f[hidden]] = SELF_HIDDEN
-            facing[idx_f[hidden]] = False
-            if not facing.any():
-                return out
         if self._tree is None:
             out[facing] = UNKNOWN
             return out
         p_cam = p_cam[facing]
         depth = p_cam[:, 2]
-        rays = np.ascontiguousarray(p_cam[:, :2] / depth[:, None])
-        # Nearest ray in angle, not the smallest depth: a depth image holds one depth per pixel.
-        dist, idx = self._tree.query(rays, k=1, distance_upper_bound=self._resolution)
-        found = np.isfinite(dist)
+        found, idx = self._nearest_rays(p_cam)
         diff = np.full(len(depth), np.nan)
         diff[found] = self._depths[idx[found]] - depth[found]
         tol = self._depth_tolerance
@@ -340,6 +320,41 @@ class CameraView:
             state[found & (diff < -tol) & (self._labels[j] == own_label)] = BEHIND_OWN
         out[facing] = state
         return out
+
+    def _facing(
+        self, points_world: np.ndarray, normals_world: np.ndarray, self_spacing: float | None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(facing, self_hidden, p_cam)``: (M,) bool, the samples facing the camera in front
+        of it and not behind the object's own surface (``self_spacing``, :func:`_self_hidden`);
+        (M,) bool, those behind it; (M, 3) the samples in the camera frame (m)."""
+        pts = _as_points(points_world, "points_world")
+        nrm = _as_points(normals_world, "normals_world")
+        if nrm.shape != pts.shape:
+            raise ValueError(
+                f"normals_world: shape {nrm.shape} does not match points_world {pts.shape}"
+            )
+        cam_centre = self._T_world_cam[:3, 3]
+        facing = np.einsum("ij,ij->i", nrm, cam_centre - pts) > 0.0
+        p_cam = pts @ self._T_cam_world[:3, :3].T + self._T_cam_world[:3, 3]
+        facing &= p_cam[:, 2] > MIN_DEPTH
+        self_hidden = np.zeros(len(pts), dtype=bool)
+        if self_spacing is not None and facing.any():
+            hidden = _self_hidden(
+                p_cam[facing], pts[facing], nrm[facing], float(self_spacing), self._depth_tolerance
+            )
+            self_hidden[np.flatnonzero(facing)[hidden]] = True
+            facing &= ~self_hidden
+        return facing, self_hidden, p_cam
+
+    def _nearest_rays(self, p_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(found, idx)`` per camera-frame point (N, 3) in front of the camera: whether an
+        observed point's ray is within the angular resolution of its ray, and that point's
+        index. Nearest ray in angle, not the smallest depth: a depth image holds one depth per
+        pixel. Needs observed points."""
+        assert self._tree is not None
+        rays = np.ascontiguousarray(p_cam[:, :2] / p_cam[:, 2:3])
+        dist, idx = self._tree.query(rays, k=1, distance_upper_bound=self._resolution)
+        return np.isfinite(dist), idx
 
     def lookup(
         self,
@@ -362,29 +377,13 @@ class CameraView:
             depth observed along their rays (NaN where none is within the lookup radius) and
             the observed point's label (-1 where none or without labels).
         """
-        pts = _as_points(points_world, "points_world")
-        nrm = _as_points(normals_world, "normals_world")
-        if nrm.shape != pts.shape:
-            raise ValueError(
-                f"normals_world: shape {nrm.shape} does not match points_world {pts.shape}"
-            )
-        cam_centre = self._T_world_cam[:3, 3]
-        facing = np.einsum("ij,ij->i", nrm, cam_centre - pts) > 0.0
-        p_cam = pts @ self._T_cam_world[:3, :3].T + self._T_cam_world[:3, 3]
-        facing &= p_cam[:, 2] > MIN_DEPTH
-        if self_spacing is not None and facing.any():
-            hidden = _self_hidden(
-                p_cam[facing], pts[facing], nrm[facing], float(self_spacing), self._depth_tolerance
-            )
-            facing[np.flatnonzero(facing)[hidden]] = False
+        facing, _, p_cam = self._facing(points_world, normals_world, self_spacing)
         index = np.flatnonzero(facing)
         depth = p_cam[index, 2].copy()
         observed = np.full(len(index), np.nan)
         label = np.full(len(index), -1, dtype=np.int64)
         if self._tree is not None and len(index):
-            rays = np.ascontiguousarray(p_cam[index, :2] / depth[:, None])
-            dist, idx = self._tree.query(rays, k=1, distance_upper_bound=self._resolution)
-            found = np.isfinite(dist)
+            found, idx = self._nearest_rays(p_cam[index])
             observed[found] = self._depths[idx[found]]
             if self._labels is not None:
                 label[found] = self._labels[idx[found]]
@@ -422,9 +421,7 @@ class CameraView:
         p_cam = pts @ self._T_cam_world[:3, :3].T + self._T_cam_world[:3, 3]
         ok = p_cam[:, 2] > MIN_DEPTH
         depth = p_cam[ok, 2]
-        rays = np.ascontiguousarray(p_cam[ok, :2] / depth[:, None])
-        dist, idx = self._tree.query(rays, k=1, distance_upper_bound=self._resolution)
-        found = np.isfinite(dist)
+        found, idx = self._nearest_rays(p_cam[ok])
         hidden = np.zeros(len(depth), dtype=bool)
         j = idx[found]
         hidden[found] = (self._depths[j] < depth[found] - self._depth_tolerance) & (
