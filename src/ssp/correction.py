@@ -38,7 +38,8 @@ For each hypothesis of a frame with a camera pose, :func:`correct_hypothesis`:
    never slides a hypothesis onto a segment another hypothesis already explains
    (:func:`claimed_labels`). On the realistic depth-estimator stream the slides these refuse
    are gross hypotheses (fit 0.2-0.5 after the slide) that would otherwise be made plausible;
-   on the RGB stream nearly every true depth error fits 0.8-1.0 after it.
+   on the RGB stream nearly every true depth error fits 0.8-1.0 after it (each refusal is a
+   debug line: ``ssp -vv bench table1 --sequences 1 --noise realistic|rgb --methods ssp``).
 
 A hypothesis whose depth already fits, or whose silhouette meets no observed surface, is left
 as it is. The corrected hypothesis replaces the estimator's in the frame's hypotheses before
