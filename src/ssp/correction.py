@@ -286,8 +286,9 @@ def _doubt(
     frame: Frame,
     config: SSPConfig,
     label: int | None,
-) -> str | None:
-    """Why the corrected pose ``T`` (its lookup ``look``) is not believed, or None: too few of
+) -> tuple[str | None, float]:
+    """Why the corrected pose ``T`` (its lookup ``look``) is not believed (None: it is), and
+    the fraction of its unhidden samples that fit. Not believed: too few of
     its unhidden samples fit (``correction.min_fit``), too much of it is seen through
     (``correction.max_seen_through``), or with instance labels its silhouette covers too
     little of its segment (``correction.min_coverage``)."""
@@ -295,15 +296,15 @@ def _doubt(
     instance = frame.labels is not None and frame.label_kind == "instance"
     fit = _fit(look, _silhouette(look, label, instance), tol)
     if fit < cfg.min_fit:
-        return f"{fit:.2f} of its unhidden samples fit"
+        return f"{fit:.2f} of its unhidden samples fit", fit
     through = _through(look, tol)
     if through > cfg.max_seen_through:
-        return f"{through:.2f} seen through"
+        return f"{through:.2f} seen through", fit
     if instance and label is not None:
         covered = _coverage(view, model, T, _surface_points(frame, label, True))
         if covered < cfg.min_coverage:
-            return f"its silhouette covers {covered:.2f} of segment {label}"
-    return None
+            return f"its silhouette covers {covered:.2f} of segment {label}", fit
+    return None, fit
 
 
 def correct_hypothesis(
@@ -369,10 +370,11 @@ def correct_hypothesis(
             if aligned_support > after:
                 T1, after, aligned = T2, aligned_support, True
                 look1 = look2
-    doubt = _doubt(view, model, T1, look1, frame, config, label)
+    doubt, fit = _doubt(view, model, T1, look1, frame, config, label)
     if doubt is not None:
         log.debug("%s: no correction at %.1f mm: %s", h.class_name, 1000 * shift, doubt)
         return None
+    log.debug("%s: %.2f of its unhidden samples fit at %.1f mm", h.class_name, fit, 1000 * shift)
     moved = float(np.linalg.norm(T1[:3, 3] - T[:3, 3]))
     fix = Correction(shift, moved, before, after, aligned, label)
     return replace(h, T_world_obj=T1), fix
