@@ -125,8 +125,11 @@ class SceneEstimate:
         warnings: doubts about the whole scene (physics or data contradict the output).
         support: support edges with the fraction of the supported object's weight.
         log_prob: ``log Pr(s | C, D)``, the sum of every object's terms.
-        timings: wall seconds per stage (``association``, ``segments``, ``world``,
-            ``forces``, ``stepping``, ``contacts``, ``scoring``, ``total``); with
+        timings: exclusive wall seconds per stage (``validation``, ``correction``,
+            ``association``, ``segments``, ``verification``, ``world``, ... each stage of
+            :data:`ssp.parser.STAGES` under its timer name, and the steps timed inside them:
+            ``forces``, ``stepping``, ``contacts``, ``scoring``, ``icp``) and ``total``, the
+            whole update; the stages add up to ``total`` (:func:`ssp.timing.stage_sum`). With
             ``search.processes`` > 1 the stages include the lane processes' seconds, and
             ``lanes`` is what those processes worked in all (``total + lanes``: CPU seconds).
         hypotheses_tested: candidate simulations run by the search.

@@ -60,7 +60,8 @@ class Stage:
         name: the stage's name (logs, errors, :data:`ssp.parser.STAGES`).
         run: ``run(ctx)``, filling the stage's fields of the :class:`FrameContext`.
         timer: the :class:`~ssp.timing.StageTimer` entry its wall time is added to (None: its
-            own steps time themselves: stepping, forces, contacts, scoring, icp).
+            name); the steps timed inside it (stepping, forces, contacts, scoring, icp) keep
+            their own entries, and its entry their exclusive rest.
         when: run only when ``when(ctx)`` is true (None: always).
     """
 

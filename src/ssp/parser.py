@@ -220,15 +220,16 @@ class SceneParser:
         """
         timer = StageTimer()
         with timer("total"):
-            frame = frame.validate(self.library)
-            if self._last_stamp is not None and frame.stamp < self._last_stamp:
-                raise FrameError(
-                    f"frame stamp {frame.stamp} is earlier than the previous frame's "
-                    f"({self._last_stamp}); frames must come in time order"
-                )
-            known_before = dict(self._known)
-            gone = self._apply_moved(frame.moved or {})
-            ctx = self.frame_context(frame, timer)
+            with timer("validation"):
+                frame = frame.validate(self.library)
+                if self._last_stamp is not None and frame.stamp < self._last_stamp:
+                    raise FrameError(
+                        f"frame stamp {frame.stamp} is earlier than the previous frame's "
+                        f"({self._last_stamp}); frames must come in time order"
+                    )
+                known_before = dict(self._known)
+                gone = self._apply_moved(frame.moved or {})
+                ctx = self.frame_context(frame, timer)
             try:
                 run_stages(ctx, STAGES)
             except BaseException:
@@ -243,7 +244,10 @@ class SceneParser:
         estimate = ctx.estimate
         if frame.moved:
             estimate = report_moved(estimate, frame.moved, gone)
-        return replace(estimate, timings=dict(timer.seconds))
+        # exclusive seconds per stage (they add up to ``total`` but for what no stage holds)
+        timings = {k: v for k, v in timer.own.items() if k != "total"}
+        timings["total"] = timer.seconds["total"]
+        return replace(estimate, timings=timings)
 
     def frame_context(self, frame: Frame, timer: StageTimer | None = None) -> FrameContext:
         """A fresh context for the validated ``frame`` over the parser's remembered scene (what
@@ -320,17 +324,14 @@ STAGES: tuple[Stage, ...] = (
 
 
 def run_stages(ctx: FrameContext, stages: Sequence[Stage]) -> None:
-    """Run ``stages`` in order over ``ctx`` (each under its timer entry, when it has one; a
-    stage whose ``when`` is false is skipped)."""
+    """Run ``stages`` in order over ``ctx``, each under its timer entry (its ``timer``, else
+    its name); a stage whose ``when`` is false is skipped."""
     for stage in stages:
         if stage.when is not None and not stage.when(ctx):
             continue
         log.debug("frame %d: %s", ctx.frame_index, stage.name)
-        if stage.timer is None:
+        with ctx.timer(stage.timer or stage.name):
             stage.run(ctx)
-        else:
-            with ctx.timer(stage.timer):
-                stage.run(ctx)
 
 
 def parse_sequence(

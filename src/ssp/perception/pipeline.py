@@ -20,7 +20,6 @@ Segments and candidate classes:
 from __future__ import annotations
 
 import logging
-import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
@@ -84,10 +83,17 @@ class PerceptionResult:
         segments: per segment label, the estimator's result (empty when hypotheses were given).
         verdicts: per segment label, what the front end made of it, in words: the points it
             removed (flying pixels, stray pieces) and the hypotheses it found, or why none.
-        timings: wall seconds per stage (``table``, ``segmentation``, ``normals``,
-            ``hypotheses``, ``total``); ``normals`` and ``hypotheses`` are summed over the
-            segments, and with ``perception.processes`` > 1 over the processes that ran them
-            (``lanes``: what the forked ones worked).
+        timings: exclusive wall seconds per stage, in the order they ran, and ``total``
+            (from the :class:`~ssp.timing.StageTimer`'s start: the frame's source starts it
+            before reading): the source's (``read``: files and decoding, ``world frame``: the
+            table fit of a camera without pose, ``masks``: detections to labels, ``cloud``:
+            depth to points), then ``checks`` (input validation), ``table``, ``segmentation``,
+            ``cleaning``, ``normals``, ``hypotheses`` (the estimator; both summed over the
+            segments), ``estimation`` (the estimator's rest: forking, waiting for the other
+            processes) and ``frame``. They add up to ``total`` (:func:`ssp.timing.stage_sum`).
+            With ``perception.processes`` > 1, ``normals`` and ``hypotheses`` are those the
+            calling process ran, and ``lanes`` what the forked ones worked (CPU seconds, not
+            in the sum).
     """
 
     frame: Frame
@@ -217,12 +223,14 @@ class Perception:
         depth_scale: float | None = None,
         hypotheses: list[Hypothesis] | None = None,
         hypotheses_frame: str = "world",
+        timer: StageTimer | None = None,
     ) -> PerceptionResult:
         """Perceive a depth image ``(H, W)`` (m, 0 = no return) seen by ``camera``.
 
         ``mask`` ``(H, W)`` holds instance labels (negative = table/background); without it
         the cloud above the table is clustered. ``T_world_cam`` None: fitted to the table.
-        The other arguments as for :meth:`from_points`.
+        The other arguments as for :meth:`from_points` (the depth to points step is timed as
+        ``cloud``).
 
         Raises:
             InputError: ``camera`` is not a :class:`~ssp.camera.Camera`, or an argument of
@@ -232,7 +240,9 @@ class Perception:
         """
         if not isinstance(camera, Camera):
             raise InputError(f"camera must be an ssp.camera.Camera, got {type(camera).__name__}")
-        cloud = cloud_from_depth(depth, camera, mask=mask, depth_scale=depth_scale)
+        timer = timer if timer is not None else StageTimer()
+        with timer("cloud"):
+            cloud = cloud_from_depth(depth, camera, mask=mask, depth_scale=depth_scale)
         result = self.from_points(
             cloud.points,
             frame="camera",
@@ -241,6 +251,7 @@ class Perception:
             labels=cloud.labels,
             hypotheses=hypotheses,
             hypotheses_frame=hypotheses_frame,
+            timer=timer,
         )
         result.camera = camera
         scale = 1.0 if depth_scale is None else float(depth_scale)
@@ -259,6 +270,7 @@ class Perception:
         label_classes: Mapping[int, str] | None = None,
         hypotheses: list[Hypothesis] | None = None,
         hypotheses_frame: str = "world",
+        timer: StageTimer | None = None,
     ) -> PerceptionResult:
         """Perceive a cloud ``(N, 3)`` (m). Rows with a non-finite coordinate (no return in an
         organised cloud) are dropped, with their labels.
@@ -274,6 +286,8 @@ class Perception:
             hypotheses: given pose hypotheses, used instead of the estimator.
             hypotheses_frame: ``"world"``, or ``"camera"`` (each ``T_world_obj`` then holds
                 ``T_cam_obj``; moved to the world once ``T_world_cam`` is known).
+            timer: the frame's timer, when the caller timed steps of its own (reading) before
+                (:attr:`PerceptionResult.timings`); None: a new one.
 
         Raises:
             InputError: ``points`` not ``(N, 3)`` numbers or without a finite row, ``labels``
@@ -282,114 +296,73 @@ class Perception:
             PerceptionError: the front end cannot process the frame (no table, camera-frame
                 hypotheses without a camera pose, ...).
         """
-        t_start = time.perf_counter()
-        timings: dict[str, float] = {}
-        pts, lab = _checked_cloud(points, labels)
-        _check_choice("frame", frame, ("camera", "world"))
-        _check_choice("label_kind", label_kind, ("instance", "class", None))
-        _check_choice("hypotheses_frame", hypotheses_frame, ("world", "camera"))
-        if T_world_cam is not None:
-            try:
-                T_world_cam = validate_pose(T_world_cam, "T_world_cam")
-            except InvalidPoseError as exc:
-                raise InputError(str(exc)) from exc
+        timer = timer if timer is not None else StageTimer()
+        with timer("checks"):
+            pts, lab = _checked_cloud(points, labels)
+            _check_choice("frame", frame, ("camera", "world"))
+            _check_choice("label_kind", label_kind, ("instance", "class", None))
+            _check_choice("hypotheses_frame", hypotheses_frame, ("world", "camera"))
+            if T_world_cam is not None:
+                try:
+                    T_world_cam = validate_pose(T_world_cam, "T_world_cam")
+                except InvalidPoseError as exc:
+                    raise InputError(str(exc)) from exc
+            if frame == "camera":
+                check_camera_axes(pts)
 
-        t0 = time.perf_counter()
-        if frame == "camera":
-            check_camera_axes(pts)
-            if T_world_cam is None:
-                T_world_cam, _ = table_frame(pts, distance=self.cfg.table_distance)
-            pts = transform_points(np.asarray(T_world_cam, dtype=float), pts)
-        timings["table"] = time.perf_counter() - t0
+        with timer("table"):
+            if frame == "camera":
+                if T_world_cam is None:
+                    T_world_cam, _ = table_frame(pts, distance=self.cfg.table_distance)
+                pts = transform_points(np.asarray(T_world_cam, dtype=float), pts)
 
-        t0 = time.perf_counter()
-        instance = lab is not None and label_kind != "class"
-        segmentation = segment_cloud(
-            pts,
-            lab,
-            None if instance else label_classes,
-            table_height=self.cfg.table_height,
-            tolerance=self.cfg.cluster_tolerance,
-            min_points=self.cfg.min_segment_points,
-        )
-        if instance and label_classes:
-            segmentation.classes.update(
-                {k: v for k, v in label_classes.items() if k in segmentation.classes}
+        with timer("segmentation"):
+            instance = lab is not None and label_kind != "class"
+            segmentation = segment_cloud(
+                pts,
+                lab,
+                None if instance else label_classes,
+                table_height=self.cfg.table_height,
+                tolerance=self.cfg.cluster_tolerance,
+                min_points=self.cfg.min_segment_points,
             )
-        timings["segmentation"] = time.perf_counter() - t0
+            if instance and label_classes:
+                segmentation.classes.update(
+                    {k: v for k, v in label_classes.items() if k in segmentation.classes}
+                )
 
         segments: dict[int, SegmentResult] = {}
         if hypotheses is not None and hypotheses_frame == "camera":
             if T_world_cam is None:
                 raise PerceptionError("camera-frame hypotheses need the camera pose")
-            hypotheses = to_world(hypotheses, T_world_cam)
+            with timer("frame"):
+                hypotheses = to_world(hypotheses, T_world_cam)
         verdicts: dict[int, str] = {}
         if instance:  # instance masks of real sensors: drop flying pixels and stray pieces
-            for label in segmentation.segment_ids:
-                idx = np.flatnonzero(segmentation.labels == label)
-                cleaned = clean_segment(
-                    pts[idx],
-                    tolerance=self.cfg.cluster_tolerance,
-                    min_points=self.cfg.min_segment_points,
-                )
-                segmentation.labels[idx[~cleaned.keep]] = -1
-                if cleaned.describe():
-                    verdicts[int(label)] = f"removed {cleaned.describe()}"
+            with timer("cleaning"):
+                for label in segmentation.segment_ids:
+                    idx = np.flatnonzero(segmentation.labels == label)
+                    cleaned = clean_segment(
+                        pts[idx],
+                        tolerance=self.cfg.cluster_tolerance,
+                        min_points=self.cfg.min_segment_points,
+                    )
+                    segmentation.labels[idx[~cleaned.keep]] = -1
+                    if cleaned.describe():
+                        verdicts[int(label)] = f"removed {cleaned.describe()}"
         if hypotheses is None:
-            hypotheses = []
-            cam = None if T_world_cam is None else np.asarray(T_world_cam)[:3, 3]
-            seg_labels = [int(label) for label in segmentation.segment_ids]
-            for label in seg_labels:
-                cls = segmentation.classes.get(label)
-                if cls is not None and cls not in self.library:
-                    raise UnknownObjectError(f"segment {label}: class {cls!r} not in the library")
-
-            def one(label: int, _base=None) -> tuple[float, SegmentResult]:
-                """Normals and hypotheses of one segment: ``(normals seconds, result)``."""
-                t0 = time.perf_counter()
-                request = self.segment_request(pts, segmentation, label, cam, instance)
-                t_nrm = time.perf_counter() - t0
-                return t_nrm, request.run(self.estimator)
-
-            if self.cfg.processes > 1 and len(seg_labels) > 1:
-                # what estimate() caches is built here, before the fork, so every lane has it
-                named = [segmentation.classes.get(label) for label in seg_labels]
-                self.estimator.prepare(
-                    [c for c in named if c is not None]
-                    + (list(self.classes) if None in named else [])
-                )
-            lane_timer = StageTimer()
-            with ForkLanes(one, self.cfg.processes, lane_timer) as lanes:
-                results = lanes.run(None, seg_labels)
-            if LANES_STAGE in lane_timer.seconds:
-                timings[LANES_STAGE] = lane_timer.seconds[LANES_STAGE]
-            t_normals = 0.0
-            for label, (t_nrm, res) in zip(seg_labels, results, strict=True):
-                t_normals += t_nrm
-                segments[label] = res
-                if instance:  # one object per segment: never grouped with another segment's
-                    hypotheses.extend(replace(h, segment=label) for h in res.hypotheses)
-                else:
-                    hypotheses.extend(res.hypotheses)
-                found = (
-                    "; ".join(f"{len(o)} hypotheses of {o[0].class_name}" for o in res.objects)
-                    if res.objects
-                    else f"no hypothesis: {res.stopped}"
-                )
-                verdicts[label] = "; ".join(v for v in (verdicts.get(label), found) if v)
-                if not res.objects:
-                    log.info("segment %d: %s", label, verdicts[label])
-            timings["normals"] = t_normals
-            timings["hypotheses"] = sum(r.seconds for r in segments.values())
-        timings["total"] = time.perf_counter() - t_start
-        out_frame = Frame(
-            stamp=stamp,
-            points=pts,
-            hypotheses=list(hypotheses),
-            labels=segmentation.labels,
-            T_world_cam=None if T_world_cam is None else np.asarray(T_world_cam, dtype=float),
-            label_kind="instance" if instance else "cluster",
-        )
+            hypotheses = self._estimate(pts, segmentation, T_world_cam, instance, segments,
+                                        verdicts, timer)  # fmt: skip
+        with timer("frame"):
+            out_frame = Frame(
+                stamp=stamp,
+                points=pts,
+                hypotheses=list(hypotheses),
+                labels=segmentation.labels,
+                T_world_cam=None if T_world_cam is None else np.asarray(T_world_cam, dtype=float),
+                label_kind="instance" if instance else "cluster",
+            )
+        timings = {**timer.own, "total": timer.elapsed()}
         log.debug(
             "perceived %d points, %d segments, %d hypotheses in %.2f s",
             len(pts),
@@ -398,6 +371,64 @@ class Perception:
             timings["total"],
         )
         return PerceptionResult(out_frame, segmentation, segments, verdicts, timings)
+
+    def _estimate(
+        self,
+        pts: np.ndarray,
+        segmentation: Segmentation,
+        T_world_cam: np.ndarray | None,
+        instance: bool,
+        segments: dict[int, SegmentResult],
+        verdicts: dict[int, str],
+        timer: StageTimer,
+    ) -> list[Hypothesis]:
+        """The estimator's hypotheses for every segment of ``pts`` (world, m), with their
+        results in ``segments`` and what was found in ``verdicts`` (per label); timed as
+        ``normals``, ``hypotheses`` and ``estimation`` (forked lanes: ``lanes``)."""
+        hypotheses: list[Hypothesis] = []
+        cam = None if T_world_cam is None else np.asarray(T_world_cam)[:3, 3]
+        seg_labels = [int(label) for label in segmentation.segment_ids]
+        for label in seg_labels:
+            cls = segmentation.classes.get(label)
+            if cls is not None and cls not in self.library:
+                raise UnknownObjectError(f"segment {label}: class {cls!r} not in the library")
+
+        def one(label: int, _base=None) -> SegmentResult:
+            """Normals and hypotheses of one segment (a forked lane times them on its own
+            copy of ``timer``: what it worked is ``lanes``)."""
+            with timer("normals"):
+                request = self.segment_request(pts, segmentation, label, cam, instance)
+            with timer("hypotheses"):
+                return request.run(self.estimator)
+
+        lane_timer = StageTimer()
+        with timer("estimation"):
+            if self.cfg.processes > 1 and len(seg_labels) > 1:
+                # what estimate() caches is built here, before the fork, so every lane has it
+                named = [segmentation.classes.get(label) for label in seg_labels]
+                self.estimator.prepare(
+                    [c for c in named if c is not None]
+                    + (list(self.classes) if None in named else [])
+                )
+            with ForkLanes(one, self.cfg.processes, lane_timer) as lanes:
+                results = lanes.run(None, seg_labels)
+        for label, res in zip(seg_labels, results, strict=True):
+            segments[label] = res
+            if instance:  # one object per segment: never grouped with another segment's
+                hypotheses.extend(replace(h, segment=label) for h in res.hypotheses)
+            else:
+                hypotheses.extend(res.hypotheses)
+            found = (
+                "; ".join(f"{len(o)} hypotheses of {o[0].class_name}" for o in res.objects)
+                if res.objects
+                else f"no hypothesis: {res.stopped}"
+            )
+            verdicts[label] = "; ".join(v for v in (verdicts.get(label), found) if v)
+            if not res.objects:
+                log.info("segment %d: %s", label, verdicts[label])
+        if LANES_STAGE in lane_timer.seconds:  # forked: the lanes' CPU seconds, apart
+            timer.add(LANES_STAGE, lane_timer.seconds[LANES_STAGE])
+        return hypotheses
 
 
 def _check_choice(name: str, value: object, allowed: tuple) -> None:

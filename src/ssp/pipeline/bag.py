@@ -30,6 +30,7 @@ from ssp.perception.depth import cloud_from_depth
 from ssp.perception.pipeline import Perception, PerceptionResult
 from ssp.perception.table import TableTracker
 from ssp.pipeline.sources import InputFrame
+from ssp.timing import StageTimer
 
 __all__ = ["BagSource", "bag_input_files", "write_run_results_bag"]
 
@@ -91,10 +92,11 @@ class BagSource:
             return cloud_from_depth(f.depth, f.camera).points
         return np.asarray(f.points, dtype=float)
 
-    def _world(self, f, warnings: list[str]) -> np.ndarray | None:
+    def _world(self, f, warnings: list[str], timer: StageTimer) -> np.ndarray | None:
         if f.T_world_cam is not None:
             return f.T_world_cam
-        T_wc, moved = self.tracker.update(self._camera_points(f))
+        with timer("world frame"):
+            T_wc, moved = self.tracker.update(self._camera_points(f))
         if moved:
             warnings.append("the table plane moved: the world frame was fitted again")
         return T_wc
@@ -114,7 +116,9 @@ class BagSource:
         log.warning("%s", warnings[-1])
 
     def _perceive(self, fs) -> tuple[PerceptionResult, list[str]]:
-        f = fs.load()
+        timer = StageTimer()  # the frame's: reading and the world frame here
+        with timer("read"):
+            f = fs.load()
         warnings = list(f.warnings)
         for w in warnings:
             log.warning("%s", w)
@@ -132,21 +136,23 @@ class BagSource:
                 f.depth,
                 f.camera,
                 stamp=f.stamp,
-                T_world_cam=self._world(f, warnings),
+                T_world_cam=self._world(f, warnings, timer),
                 mask=f.labels,
                 hypotheses=hyps,
                 hypotheses_frame=f.hypotheses_frame,
+                timer=timer,
             )
         else:
             result = self.perception.from_points(
                 f.points,
                 frame="camera",
                 stamp=f.stamp,
-                T_world_cam=self._world(f, warnings),
+                T_world_cam=self._world(f, warnings, timer),
                 labels=f.labels,
                 label_kind="instance",
                 hypotheses=hyps,
                 hypotheses_frame=f.hypotheses_frame,
+                timer=timer,
             )
         return result, warnings
 

@@ -29,6 +29,7 @@ from ssp.perception.pipeline import Perception, PerceptionResult
 from ssp.perception.silhouettes import silhouette_detections
 from ssp.perception.table import TableTracker
 from ssp.pipeline.sources import InputFrame, unknown_class
+from ssp.timing import StageTimer
 
 __all__ = ["BOP_FOLDERS", "BopSource", "bop_object_ids", "check_masks"]
 
@@ -185,19 +186,21 @@ class BopSource:
 
     def _perceive(self, k: int) -> tuple[PerceptionResult, list[str]]:
         warnings: list[str] = []
-        hyps, hyp_frame = self._hypotheses(k, warnings)
-        sf = self.scene.load(k, masks=self.use_masks)
-        warnings.extend(sf.warnings)  # a suspicious depth image (once per scene)
-        if (
-            hyps is None
-            and self.mode != "estimated"
-            and self.estimates is None
-            and self.scene.has_entry(k)
-        ):
-            hyps = list(sf.hypotheses)
-        for i, h in enumerate(hyps or []):
-            if h.class_name not in self.library:
-                raise InputError(f"hypothesis {i}: {unknown_class(h.class_name, self.library)}")
+        timer = StageTimer()  # the frame's: reading, world frame, masks and cloud here
+        with timer("read"):
+            hyps, hyp_frame = self._hypotheses(k, warnings)
+            sf = self.scene.load(k, masks=self.use_masks)
+            warnings.extend(sf.warnings)  # a suspicious depth image (once per scene)
+            if (
+                hyps is None
+                and self.mode != "estimated"
+                and self.estimates is None
+                and self.scene.has_entry(k)
+            ):
+                hyps = list(sf.hypotheses)
+            for i, h in enumerate(hyps or []):
+                if h.class_name not in self.library:
+                    raise InputError(f"hypothesis {i}: {unknown_class(h.class_name, self.library)}")
         if self.masks == "gt" and sf.instance is not None and sf.instance_is_gt:
             warnings.append("segments from the ground-truth masks (--masks gt)")
         mask = None
@@ -206,8 +209,9 @@ class BopSource:
             mask[mask < -1] = -1
         T_wc = sf.T_world_cam
         if T_wc is None:
-            cloud = cloud_from_depth(sf.depth, sf.camera)
-            T_wc, moved = self.tracker.update(cloud.points)
+            with timer("world frame"):
+                cloud = cloud_from_depth(sf.depth, sf.camera)
+                T_wc, moved = self.tracker.update(cloud.points)
             if moved:
                 warnings.append(
                     "the table plane moved: the world frame was fitted again (a moving "
@@ -215,18 +219,24 @@ class BopSource:
                 )
         label_classes = None
         if self.detections is not None:
-            dets, notes = self.detections.frame(sf.im_id)
-            for note in notes:
-                log.warning("%s", note)
-            warnings.extend(notes)
-            mask, label_classes, hyps = self._instance_masks(dets, sf, hyps, hyp_frame, T_wc)
+            with timer("masks"):
+                dets, notes = self.detections.frame(sf.im_id)
+                for note in notes:
+                    log.warning("%s", note)
+                warnings.extend(notes)
+                mask, label_classes, hyps = self._instance_masks(dets, sf, hyps, hyp_frame, T_wc)
         elif mask is None and self.masks != "none":
             if hyps and self.masks == "silhouettes":
-                T_cf = None if hyp_frame == "camera" else invert(T_wc)
-                ids = {c: oid for oid, c in self.scene.classes.items()}
-                dets = silhouette_detections(hyps, self.library, ids, sf.camera, sf.depth, T_cf,
-                                             im_id=sf.im_id, max_gap=self.max_gap)  # fmt: skip
-                mask, label_classes, hyps = self._instance_masks(dets, sf, hyps, hyp_frame, T_wc)
+                with timer("masks"):
+                    T_cf = None if hyp_frame == "camera" else invert(T_wc)
+                    ids = {c: oid for oid, c in self.scene.classes.items()}
+                    dets = silhouette_detections(
+                        hyps, self.library, ids, sf.camera, sf.depth, T_cf, im_id=sf.im_id,
+                        max_gap=self.max_gap,
+                    )  # fmt: skip
+                    mask, label_classes, hyps = self._instance_masks(
+                        dets, sf, hyps, hyp_frame, T_wc
+                    )
             warnings.append(
                 "no masks: segments from the hypotheses' rendered silhouettes (--masks FILE: a "
                 "detector's instance masks)"
@@ -234,7 +244,8 @@ class BopSource:
                 else f"no masks ({self.mask_description}): the cloud above the table is "
                 "clustered, clutter may become objects (--masks FILE: a detector's instance masks)"
             )
-        cloud = cloud_from_depth(sf.depth, sf.camera, mask=mask)
+        with timer("cloud"):
+            cloud = cloud_from_depth(sf.depth, sf.camera, mask=mask)
         result = self.perception.from_points(
             cloud.points,
             frame="camera",
@@ -244,6 +255,7 @@ class BopSource:
             label_classes=label_classes,
             hypotheses=hyps,
             hypotheses_frame=hyp_frame,
+            timer=timer,
         )
         result.camera, result.depth = sf.camera, sf.depth  # for the recording
         return result, warnings

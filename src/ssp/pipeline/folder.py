@@ -13,6 +13,7 @@ from ssp.io.folder import SCENE_JSON, FrameFile, open_folder
 from ssp.io.results import ObjectIds
 from ssp.perception.pipeline import Perception, PerceptionResult
 from ssp.pipeline.sources import InputFrame, unknown_class
+from ssp.timing import StageTimer
 
 __all__ = ["FolderSource", "open_folder_source"]
 
@@ -58,7 +59,9 @@ class FolderSource:
         return ObjectIds.for_input(self.path, list(self.library))
 
     def _perceive(self, ff: FrameFile) -> tuple[PerceptionResult, list[str]]:
-        raw = self.folder.load(ff)
+        timer = StageTimer()  # the frame's: reading here
+        with timer("read"):
+            raw = self.folder.load(ff)
         hyps = None if self.mode == "estimated" else raw.hypotheses
         if self.mode == "given" and hyps is None:
             raise InputError(
@@ -84,6 +87,7 @@ class FolderSource:
             label_classes=raw.label_classes,
             hypotheses=hyps,
             hypotheses_frame=raw.hypotheses_frame or "world",
+            timer=timer,
         )
         return result, list(raw.warnings)
 

@@ -170,6 +170,7 @@ def run(
         OutputError: a symbolic link in ``out_dir`` where the run writes, or an output that
             cannot be written (a full disk); the message names the file.
     """
+    started = time.perf_counter()
     cfg = config if config is not None else SSPConfig()
     if record is not None:
         from ssp.viz.record import check_recording
@@ -189,6 +190,8 @@ def run(
     with lock_out_dir(out):  # one writer at a time (OutputLockedError for a second one)
         summary, state, parser = _start(out, csv_path, src, manifest, source, ids, library, cfg,
                                         resume=resume, overwrite=overwrite)  # fmt: skip
+        summary.started = started
+        summary.time("start", time.perf_counter() - started)
         summary.masks = getattr(source, "mask_description", None)
         if record is not None and resume:
             record = _resumed_recording(Path(record))
@@ -198,7 +201,9 @@ def run(
                     method=method, scene_id=scene_id, resume=resume, progress=progress,
                     record=record, rejected_rows=rejected_rows)  # fmt: skip
         summary.status = "finished"
+        t_end = time.perf_counter()
         write_tum(out)
+        summary.time("end", time.perf_counter() - t_end)
         write_json(out / SUMMARY_JSON, summary.to_dict())
     return summary
 
@@ -357,14 +362,19 @@ def _run_frames(
                 if failed and parser.state() != committed_parser:
                     # it failed after the parser took it: go on from the last good frame
                     parser = SceneParser.from_state(library, committed_parser, cfg)
+                t_write = time.perf_counter()
                 write_json(out / FRAMES_DIR / f"{frame.name}.json", frame_json)
                 csv.write_rows(lines)
                 parser_state = parser.state()
                 commit(n + 1, parser_state)
                 committed_parser = parser_state
-                done = summary.add(frame_json)
+                done = summary.add(frame_json, write_s=time.perf_counter() - t_write)
+                summary.time_frame(frame_json)
+                summary.time("writing", time.perf_counter() - t_write)
+                t_write = time.perf_counter()
                 atomic_write_text(out / SUMMARY_JSON, summary.to_json())
                 rec.add(n, frame.name, frame_json, **kept)
+                summary.time("writing", time.perf_counter() - t_write)
                 if progress is not None:
                     msg = done.get("error") or f"{done['objects']} objects"
                     progress(n + 1, source.total, f"{frame.name}: {msg}")
@@ -398,7 +408,8 @@ def _run_frame(
     try:
         perceived, warnings = source.perceive()
         estimate = parser.update(perceived.frame)
-        seconds = time.perf_counter() - t0
+        seconds = time.perf_counter() - t0  # the CSV's time: from reading to the estimate
+        t_results = time.perf_counter()
         if kept is not None:
             kept.update(perceived=perceived, estimate=estimate)
         frame = perceived.frame
@@ -434,7 +445,6 @@ def _run_frame(
                 "timings": perceived.timings,
             },
             "T_world_cam": None if frame.T_world_cam is None else frame.T_world_cam.tolist(),
-            "seconds": seconds,
         }
         frame_json = frame_record(estimate, name=source.name, index=source.index, extra=extra)
         # one list of doubts: the input's and the front end's, then the parser's
@@ -444,9 +454,28 @@ def _run_frame(
             key = str(label)
             if frame_json["segments"].get(key, "").startswith("no object"):
                 frame_json["segments"][key] = f"no object: {verdict}"
-        return to_jsonable(frame_json), lines
+        frame_json = to_jsonable(frame_json)
+        frame_json.update(_frame_timings(t0, t_results, perceived.timings, estimate.timings))
+        return frame_json, lines
     except Exception as exc:
         return _failure(source, exc, warnings, time.perf_counter() - t0), []
+
+
+def _frame_timings(
+    t0: float, t_results: float, perception: Mapping[str, float], parser: Mapping[str, float]
+) -> dict[str, Any]:
+    """A frame's ``seconds`` (wall, from reading its files to its results record) and
+    ``frame_timings``: that time's parts, the front end's (reading included), the parser's,
+    the results record's, and ``other`` (between them); they add up to ``seconds``."""
+    now = time.perf_counter()
+    total = now - t0
+    parts = {
+        "perception": float(perception.get("total", 0.0)),
+        "parser": float(parser.get("total", 0.0)),
+        "results": now - t_results,
+    }
+    parts["other"] = total - sum(parts.values())
+    return {"seconds": total, "frame_timings": {**parts, "total": total}}
 
 
 def _failure(
