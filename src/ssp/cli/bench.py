@@ -446,3 +446,46 @@ def bench_rgb_calibration_cmd(
     console.print(files[1].read_text(), highlight=False)
     for f in files:
         console.print(f"wrote [bold]{f}[/]")
+
+
+@friendly
+def bench_frame_cmd(
+    out: Path = typer.Option(Path("bench-out/frame"), "--out", "-o", help="Output folder."),
+    sequences: int = typer.Option(
+        1, min=1, help="Simulated sequences per experiment (structure: 12 frames, isolated: 8)."
+    ),
+    seed: int = typer.Option(1000, min=0, help="Seed of the first sequence."),
+    real_dev: Path | None = typer.Option(
+        None,
+        "--real-dev",
+        help="The real captures' folder (../shared/data/real-dev): also time them.",
+        show_default=False,
+        metavar="DIR",
+    ),
+    repeats: int = typer.Option(5, min=2, help="Frames of each real capture's sequence."),
+    compare: str | None = typer.Option(
+        None,
+        "--compare",
+        help="A git revision (or another checkout's folder) timed beside this code on the same "
+        "inputs, alternately in fresh processes: both and the speed-up (results.md).",
+        show_default=False,
+        metavar="REV",
+    ),
+    rounds: int = typer.Option(1, min=1, help="Runs of each code over every input."),
+) -> None:
+    """Whole-frame latency of ssp run (reading to writing) on 640 x 480 frames: simulated
+    clutter with masks and without, hypotheses given and estimated, and the real captures;
+    median, p95, the stages' shares, and issue 34's targets. Writes results.json, results.md
+    and shares.png."""
+    from ssp.eval.bench_frame import bench_frame, write_report
+
+    if out.is_symlink():
+        raise typer.BadParameter(f"--out {out} is a symbolic link; give the folder itself")
+    with console.status("timing whole frames") as status:
+        result = bench_frame(out, sequences=sequences, seed=seed, real_dev=real_dev,
+                             repeats=repeats, compare=compare, rounds=rounds,
+                             progress=status.update)  # fmt: skip
+    files = write_report(result, out)
+    console.print(files[1].read_text())
+    for f in files:
+        console.print(f"wrote [bold]{f}[/]")
