@@ -147,3 +147,35 @@ def test_edge_cases():
         segment_cloud(np.zeros((5, 3)), np.full(5, 0.5))
     empty = segment_cloud(np.zeros((0, 3)))
     assert empty.labels.shape == (0,) and empty.classes == {}
+
+
+def test_pair_bound_is_an_upper_bound_of_the_pairs():
+    """The grid bound that lets the clustering skip its exact pair count is never below the
+    count (random clouds, dense and sparse, and a surface)."""
+    from scipy.spatial import cKDTree
+
+    from ssp.perception.segmentation import pair_bound
+
+    rng = np.random.default_rng(0)
+    clouds = [rng.normal(size=(int(rng.integers(2, 800)), 3)) * rng.uniform(0.001, 0.05)
+              for _ in range(60)]  # fmt: skip
+    u, v = np.meshgrid(np.linspace(0, 0.2, 120), np.linspace(0, 0.1, 60))
+    clouds.append(np.column_stack([u.ravel(), v.ravel(), 0.01 * np.sin(20 * u.ravel())]))
+    clouds.append(np.zeros((50, 3)))  # all one point
+    clouds.append(rng.normal(size=(6000, 3)) * 0.02)  # above the trivial bound
+    for p in clouds:
+        for tol in (0.001, 0.006, 0.02):
+            tree = cKDTree(p)
+            exact = (int(tree.count_neighbors(tree, tol)) - len(p)) // 2
+            assert pair_bound(p, tol) >= exact
+
+
+def test_clusters_unchanged_when_the_pair_count_is_skipped(monkeypatch):
+    """A cloud within the budget by the bound clusters as with the exact count."""
+    import ssp.perception.segmentation as seg
+
+    rng = np.random.default_rng(1)
+    p = np.concatenate([rng.normal(c, 0.01, size=(400, 3)) for c in ((0, 0, 0), (0.1, 0, 0))])
+    fast = euclidean_clusters(p, tolerance=0.006, min_points=5)
+    monkeypatch.setattr(seg, "pair_bound", lambda *a: seg.MAX_PAIRS + 1)  # always count
+    assert np.array_equal(fast, euclidean_clusters(p, tolerance=0.006, min_points=5))

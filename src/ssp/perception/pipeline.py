@@ -20,7 +20,9 @@ Segments and candidate classes:
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -45,6 +47,10 @@ __all__ = ["Perception", "PerceptionResult", "SegmentRequest", "check_camera_axe
 
 log = logging.getLogger(__name__)
 
+
+#: Threads cleaning a frame's instance segments at once (:meth:`Perception._clean`): one per
+#: core, at most 4.
+CLEANING_THREADS = max(1, min(4, os.cpu_count() or 1))
 
 #: A camera-frame cloud with fewer than this fraction of its points in front of the camera
 #: (z > 0, OpenCV axes) is in other axes.
@@ -340,16 +346,7 @@ class Perception:
         verdicts: dict[int, str] = {}
         if instance:  # instance masks of real sensors: drop flying pixels and stray pieces
             with timer("cleaning"):
-                for label in segmentation.segment_ids:
-                    idx = np.flatnonzero(segmentation.labels == label)
-                    cleaned = clean_segment(
-                        pts[idx],
-                        tolerance=self.cfg.cluster_tolerance,
-                        min_points=self.cfg.min_segment_points,
-                    )
-                    segmentation.labels[idx[~cleaned.keep]] = -1
-                    if cleaned.describe():
-                        verdicts[int(label)] = f"removed {cleaned.describe()}"
+                self._clean(pts, segmentation, verdicts)
         if hypotheses is None:
             hypotheses = self._estimate(pts, segmentation, T_world_cam, instance, segments,
                                         verdicts, timer)  # fmt: skip
@@ -371,6 +368,34 @@ class Perception:
             timings["total"],
         )
         return PerceptionResult(out_frame, segmentation, segments, verdicts, timings)
+
+    def _clean(self, pts: np.ndarray, segmentation: Segmentation, verdicts: dict[int, str]) -> None:
+        """Drop each instance segment's flying pixels and stray pieces (:func:`clean_segment`:
+        their labels become -1; ``verdicts`` says what went). The segments are cleaned in
+        :data:`CLEANING_THREADS` threads (the tree queries and sorts release the GIL), each
+        on its own: the same labels as one after another."""
+        labels = segmentation.labels
+        order = np.argsort(labels, kind="stable")
+        ids, starts = np.unique(labels[order], return_index=True)
+        ends = [*starts[1:], len(order)]
+        groups = {int(i): order[a:b] for i, a, b in zip(ids, starts, ends, strict=True)}
+        todo = [(int(label), groups[int(label)]) for label in segmentation.segment_ids]
+
+        def one(job: tuple[int, np.ndarray]):
+            _, idx = job
+            return clean_segment(pts[idx], tolerance=self.cfg.cluster_tolerance,
+                                 min_points=self.cfg.min_segment_points)  # fmt: skip
+
+        threads = min(CLEANING_THREADS, len(todo))
+        if threads > 1:
+            with ThreadPoolExecutor(threads, thread_name_prefix="ssp-clean") as pool:
+                cleaned = list(pool.map(one, todo))
+        else:
+            cleaned = [one(job) for job in todo]
+        for (label, idx), c in zip(todo, cleaned, strict=True):
+            labels[idx[~c.keep]] = -1
+            if c.describe():
+                verdicts[label] = f"removed {c.describe()}"
 
     def _estimate(
         self,

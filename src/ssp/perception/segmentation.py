@@ -95,6 +95,41 @@ def euclidean_clusters(
     return labels
 
 
+def pair_bound(points: np.ndarray, tolerance: float) -> int:
+    """An upper bound on the pairs of ``points`` ``(N, 3)`` within ``tolerance`` (m), without
+    a tree: ``N (N - 1) / 2``, or, binned on a grid of cell ``tolerance`` (two such points lie
+    in the same or adjacent cells), the pairs within each cell plus those between each cell
+    and its 13 neighbours of one half-space (each adjacent pair of cells once)."""
+    n = len(points)
+    if n * (n - 1) // 2 <= MAX_PAIRS:
+        return n * (n - 1) // 2
+    keys = np.floor(np.asarray(points, dtype=float) / tolerance).astype(np.int64)
+    keys -= keys.min(axis=0) - 1  # >= 1: the neighbours' keys stay >= 0
+    span = keys.max(axis=0) + 2
+    if float(np.prod(span.astype(float))) >= 2.0**62:  # too far apart to pack: no bound
+        return n * (n - 1) // 2
+    flat = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
+    cells, counts = np.unique(flat, return_counts=True)
+    bound = int(np.dot(counts, counts - 1)) // 2
+    for dx, dy, dz in _HALF_NEIGHBOURS:
+        other = cells + (dx * span[1] + dy) * span[2] + dz
+        at = np.searchsorted(cells, other)
+        hit = at < len(cells)
+        hit[hit] = cells[at[hit]] == other[hit]
+        bound += int(np.dot(counts[hit], counts[at[hit]]))
+    return bound
+
+
+#: The 13 neighbours of a grid cell on one side (the other 13 are their opposites).
+_HALF_NEIGHBOURS = [
+    (dx, dy, dz)
+    for dx in (-1, 0, 1)
+    for dy in (-1, 0, 1)
+    for dz in (-1, 0, 1)
+    if (dx, dy, dz) > (0, 0, 0)
+]
+
+
 def _radius_components(q: np.ndarray, tolerance: float) -> np.ndarray:
     """Connected components ``(M,)`` of the ``tolerance`` radius graph of distinct points
     ``q``, within the :data:`MAX_PAIRS` budget (voxel grid fallback: :func:`euclidean_clusters`)."""
@@ -107,6 +142,8 @@ def _radius_components(q: np.ndarray, tolerance: float) -> np.ndarray:
             nodes, of_point = q[first], np.asarray(inv).reshape(-1)
         # sliding-midpoint tree: ~2x faster to build than the balanced one, queries as fast
         tree = cKDTree(nodes, balanced_tree=False)
+        if cell is None and pair_bound(nodes, tolerance) <= MAX_PAIRS:
+            break  # within the budget for sure: the exact count (twice the query) not needed
         pairs_needed = (int(tree.count_neighbors(tree, tolerance)) - len(nodes)) // 2
         if pairs_needed <= MAX_PAIRS or cell == tolerance:
             break
