@@ -45,6 +45,7 @@ __all__ = [
     "TARGETS",
     "bench_frame",
     "prepare_inputs",
+    "same_results",
     "summarize",
     "time_scenarios",
     "write_report",
@@ -106,7 +107,8 @@ def prepare_inputs(
                 )  # fmt: skip
                 write_bop(seq, scene, scene_id=i)
             for name, (masks, hyps) in SCENARIOS.items():
-                runs.append({"scenario": f"sim: {name}", "input": str(scene), "models": None,
+                runs.append({"scenario": f"sim {experiment}: {name}", "input": str(scene),
+                             "models": None,
                              "masks": masks, "hypotheses": hyps, "kind": "sim"})  # fmt: skip
     if real_dev is not None:
         runs += _real_runs(Path(real_dev), work / "real", repeats)
@@ -280,8 +282,45 @@ def bench_frame(
     if compare is not None:
         result["rev"] = summarize(timed["rev"])
         result["rev_machine"] = timed["rev"][0]["machine"]
+        result["same_results"] = same_results(runs, out / "runs" / "rev", out / "runs" / "this")
     result["targets"] = check_targets(result["this"])
     return result
+
+
+def same_results(runs: list[dict[str, Any]], rev_dir: Path, this_dir: Path) -> dict[str, str]:
+    """Per scenario, whether the two codes' outputs of its runs (the last round's) are the
+    same: the frame JSONs without wall times (:func:`ssp.pipeline.summary.without_timings`)
+    and the CSV rows without their time column; ``"identical"``, else how many frames differ
+    and the first."""
+    from ssp.pipeline.summary import without_timings
+
+    out: dict[str, list[str]] = {}
+    for k, r in enumerate(runs):
+        a, b = Path(rev_dir) / f"{k:03d}", Path(this_dir) / f"{k:03d}"
+        differ = []
+        names = sorted({p.name for p in [*a.glob("frames/*.json"), *b.glob("frames/*.json")]})
+        for name in names:
+            docs = [
+                without_timings(json.loads(p.read_text())) if p.exists() else None
+                for p in (a / "frames" / name, b / "frames" / name)
+            ]
+            if docs[0] != docs[1]:
+                differ.append(Path(name).stem)
+        rows = [
+            sorted(
+                line.rsplit(",", 1)[0]
+                for p in d.glob("*.csv")
+                for line in p.read_text().splitlines()
+            )
+            for d in (a, b)
+        ]
+        if rows[0] != rows[1] and not differ:
+            differ.append("CSV rows")
+        out.setdefault(r["scenario"], []).extend(f"{Path(r['input']).name}/{n}" for n in differ)
+    return {
+        sc: "identical" if not d else f"{len(d)} frame(s) differ, first {d[0]}"
+        for sc, d in out.items()
+    }
 
 
 # ------------------------------------------------------------------------------ the numbers
@@ -352,12 +391,13 @@ def _add_stages(s: dict[str, Any], f: dict[str, Any]) -> None:
 
 
 def check_targets(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Issue 34's targets (:data:`TARGETS`) against the simulated scenarios' rows."""
+    """Issue 34's targets (:data:`TARGETS`) against each simulated scenario's row (each
+    experiment apart: a median over both would hide the slower one)."""
     out = []
     for row in rows:
-        name = row["scenario"].removeprefix("sim: ")
-        if not row["scenario"].startswith("sim: "):
+        if not row["scenario"].startswith("sim "):
             continue
+        name = row["scenario"].split(": ", 1)[1]
         for stat, limit in TARGETS.get(name, []):
             got = row[stat]
             out.append({"scenario": row["scenario"], "statistic": stat, "target_s": limit,
@@ -408,16 +448,18 @@ def _markdown(result: dict[str, Any]) -> str:
             )
     else:
         rev = {r["scenario"]: r for r in result["rev"]}
+        same = result.get("same_results", {})
         lines += [f"| scenario | frames | median {cmp} | median this | speed-up | p95 {cmp} | "
-                  "p95 this | speed-up | top stages (this) |",
-                  "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+                  "p95 this | speed-up | results | top stages (this) |",
+                  "|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
         for r in result["this"]:
             o = rev.get(r["scenario"], {})
             lines.append(
                 f"| {r['scenario']} | {r['frames']} | {_ms(o.get('median', math.nan))} | "
                 f"{_ms(r['median'])} | {_ratio(o.get('median'), r['median'])} | "
                 f"{_ms(o.get('p95', math.nan))} | {_ms(r['p95'])} | "
-                f"{_ratio(o.get('p95'), r['p95'])} | {_top(r['shares'])} |"
+                f"{_ratio(o.get('p95'), r['p95'])} | {same.get(r['scenario'], '-')} | "
+                f"{_top(r['shares'])} |"
             )
     if result.get("targets"):
         lines += ["", "Issue 34's targets (this code):", "",
