@@ -138,15 +138,40 @@ def object_segments(
     """
     points = frame.points
 
-    @cache
-    def vote_tree() -> KDTree:  # built only when an object has no known label
-        return KDTree(np.ascontiguousarray(points), leafsize=_VOTE_TREE_LEAF)
-
-    @cache
-    def tree() -> cKDTree:  # for crops (ball queries); sliding-midpoint splits build faster
-        return cKDTree(points, balanced_tree=False, compact_nodes=False)
-
     by_label = _indices_by_label(frame.labels) if frame.labels is not None else {}
+    voters = [
+        (model, poses[0])
+        for oid, (model, poses) in objects.items()
+        if (frame.segments is None or oid not in frame.segments)
+        and len(points)
+        and len(poses)
+        and frame.labels is not None
+        and (labels or {}).get(oid) not in by_label
+    ]
+
+    @cache
+    def vote_tree() -> tuple[KDTree, np.ndarray]:
+        """The tree of the points a vote may reach (within ``radius`` of a voter's samples,
+        so inside the box around every voter's bounding sphere grown by ``radius``: the
+        nearest point within ``radius`` is the same as among all points) and their indices;
+        built only when an object has no known label."""
+        lo = np.full(3, np.inf)
+        hi = np.full(3, -np.inf)
+        for model, T in voters:
+            c_local, r = _bounding_sphere(model)
+            c = T[:3, :3] @ c_local + T[:3, 3]
+            lo, hi = np.minimum(lo, c - r - radius), np.maximum(hi, c + r + radius)
+        near = np.flatnonzero(np.all((points >= lo) & (points <= hi), axis=1))
+        return KDTree(np.ascontiguousarray(points[near]), leafsize=_VOTE_TREE_LEAF), near
+
+    @cache
+    def crop_points() -> tuple[np.ndarray, cKDTree]:
+        """The points a crop may take (above ``table_clearance`` with a table: the table and
+        what lies below it never are) and their tree, for ball queries (sliding-midpoint
+        splits build faster); a frame's table and background are most of its points."""
+        pts = points[points[:, 2] >= table_clearance] if table else points
+        return pts, cKDTree(pts, balanced_tree=False, compact_nodes=False)
+
     out: dict[str, np.ndarray] = {}
     owner: dict[str, int] = {}
     chosen: dict[str, int | None] = {}  # id -> label (known or voted), None: crop
@@ -164,7 +189,7 @@ def object_segments(
                 log.warning("object %s: its segment label %d is not in the cloud", oid, label)
                 label = None
             if label is None:
-                votes[oid] = _label_votes(frame, vote_tree(), model, poses[0], radius)
+                votes[oid] = _label_votes(frame, *vote_tree(), model, poses[0], radius)
                 label = _top_label(votes[oid])
             chosen[oid] = label
     known_votes = {oid: v for oid, v in votes.items() if oid in known}
@@ -180,7 +205,7 @@ def object_segments(
         elif label is None and oid in votes and votes[oid]:
             out[oid] = np.zeros((0, 3))  # every label it touches is another object's
         else:
-            out[oid] = _crop(points, tree(), model, poses, radius, table, table_clearance)
+            out[oid] = _crop(*crop_points(), model, poses, radius, table, table_clearance)
     return {oid: out[oid] for oid in objects}, owner
 
 
@@ -232,11 +257,17 @@ def _indices_by_label(labels: np.ndarray) -> dict[int, np.ndarray]:
 
 
 def _label_votes(
-    frame: Frame, tree: KDTree, model: ObjectModel, T: np.ndarray, radius: float
+    frame: Frame,
+    tree: KDTree,
+    of_tree: np.ndarray,
+    model: ObjectModel,
+    T: np.ndarray,
+    radius: float,
 ) -> dict[int, float]:
     """``label -> fraction`` of the model's vote samples at ``T`` whose nearest scene point
     (within ``radius``, m) carries that label (negative labels: table, background,
-    unlabelled, never vote); empty when no sample has a labelled point near."""
+    unlabelled, never vote); empty when no sample has a labelled point near. ``tree``: of the
+    frame's points ``of_tree`` (indices), all those within ``radius`` of a sample."""
     samples = np.asarray(model.surface_points, dtype=float)
     if len(samples) > _VOTE_SAMPLES:
         samples = samples[:: int(np.ceil(len(samples) / _VOTE_SAMPLES))]
@@ -246,7 +277,7 @@ def _label_votes(
     hit = np.isfinite(dist)
     if not hit.any():
         return {}
-    votes = np.asarray(frame.labels)[idx[hit]]
+    votes = np.asarray(frame.labels)[of_tree[idx[hit]]]
     votes = votes[votes >= 0]
     values, counts = np.unique(votes, return_counts=True)
     return {int(v): int(c) / len(samples) for v, c in zip(values, counts, strict=True)}
