@@ -452,7 +452,10 @@ def bench_rgb_calibration_cmd(
 def bench_frame_cmd(
     out: Path = typer.Option(Path("bench-out/frame"), "--out", "-o", help="Output folder."),
     sequences: int = typer.Option(
-        1, min=1, help="Simulated sequences per experiment (structure: 12 frames, isolated: 8)."
+        1,
+        min=1,
+        help="Simulated sequences per experiment (20-24 frames each: 2-3 stages of 4 frames, "
+        "then the realistic stream's moves and pushes).",
     ),
     seed: int = typer.Option(1000, min=0, help="Seed of the first sequence."),
     real_dev: Path | None = typer.Option(
@@ -472,6 +475,9 @@ def bench_frame_cmd(
         metavar="REV",
     ),
     rounds: int = typer.Option(1, min=1, help="Runs of each code over every input."),
+    processes: int = typer.Option(
+        1, min=1, max=64, help="As ssp run --processes: estimator and search processes."
+    ),
 ) -> None:
     """Whole-frame latency of ssp run (reading to writing) on 640 x 480 frames: simulated
     clutter with masks and without, hypotheses given and estimated, and the real captures;
@@ -484,7 +490,7 @@ def bench_frame_cmd(
     with console.status("timing whole frames") as status:
         result = bench_frame(out, sequences=sequences, seed=seed, real_dev=real_dev,
                              repeats=repeats, compare=compare, rounds=rounds,
-                             progress=status.update)  # fmt: skip
+                             processes=processes, progress=status.update)  # fmt: skip
     files = write_report(result, out)
     console.print(files[1].read_text())
     for f in files:

@@ -44,6 +44,8 @@ __all__ = [
     "SCENARIOS",
     "TARGETS",
     "bench_frame",
+    "check_targets",
+    "markdown_report",
     "prepare_inputs",
     "same_results",
     "summarize",
@@ -151,6 +153,9 @@ def time_scenarios(args: dict[str, Any]) -> dict[str, Any]:
     from ssp.pipeline.run import run
 
     cfg = SSPConfig()
+    processes = int(args.get("processes", 1))
+    if processes > 1:  # as ssp run --processes: the estimator's segments and the search's tests
+        cfg.perception.processes = cfg.search.processes = processes
     libraries: dict[str | None, Any] = {}
     out_root = Path(args["out"])
     results = []
@@ -240,11 +245,13 @@ def bench_frame(
     repeats: int = 5,
     compare: str | None = None,
     rounds: int = 1,
+    processes: int = 1,
     progress: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
     """Write the inputs in ``out/inputs``, time them (``out/runs``) with this code, and with
     ``compare`` (a git revision or checkout folder) alternately, ``rounds`` times each, every
-    time in a fresh process; returns the result :func:`write_report` writes."""
+    time in a fresh process; returns the result :func:`write_report` writes. ``processes``:
+    as ``ssp run --processes`` (both codes)."""
     import tempfile
 
     from ssp.eval.bench_parser import source_tree_of
@@ -267,7 +274,7 @@ def bench_frame(
                     name = compare if tag == "rev" else "this code"
                     if progress is not None:
                         progress(f"round {r + 1}/{rounds}: {name}, {len(runs)} runs")
-                    args = {"runs": runs, "out": str(out / "runs" / tag)}
+                    args = {"runs": runs, "out": str(out / "runs" / tag), "processes": processes}
                     timed[tag].append(_in_process(str(tree), args, str(name)))
         finally:
             remove()
@@ -275,7 +282,7 @@ def bench_frame(
         "protocol": "frame-latency",
         "sequences": sequences, "seed": seed, "frames_per_stage": frames_per_stage,
         "real_dev": None if real_dev is None else str(real_dev), "repeats": repeats,
-        "rounds": rounds, "compare": compare,
+        "rounds": rounds, "compare": compare, "processes": processes,
         "machine": timed["this"][0]["machine"],
         "this": summarize(timed["this"]),
     }  # fmt: skip
@@ -284,6 +291,10 @@ def bench_frame(
         result["rev_machine"] = timed["rev"][0]["machine"]
         result["same_results"] = same_results(runs, out / "runs" / "rev", out / "runs" / "this")
     result["targets"] = check_targets(result["this"])
+    result["command"] = {"sequences": str(sequences), "seed": str(seed),
+                         "real-dev": None if real_dev is None else str(real_dev),
+                         "repeats": str(repeats), "compare": compare, "rounds": str(rounds),
+                         "processes": str(processes)}  # fmt: skip
     return result
 
 
@@ -413,7 +424,7 @@ def write_report(result: dict[str, Any], out: Path) -> list[Path]:
     j = out / "results.json"
     j.write_text(json.dumps(result, indent=1, allow_nan=True), encoding="utf-8")
     m = out / "results.md"
-    m.write_text(_markdown(result), encoding="utf-8")
+    m.write_text(markdown_report(result), encoding="utf-8")
     files = [j, m]
     png = _plot(result["this"], out / "shares.png")
     if png is not None:
@@ -425,13 +436,16 @@ def _ms(x: float) -> str:
     return "-" if x is None or math.isnan(x) else f"{1000 * x:.0f}"
 
 
-def _markdown(result: dict[str, Any]) -> str:
+def markdown_report(result: dict[str, Any]) -> str:
+    """``results.md``: the latency table (side by side with ``compare``'s when given), then
+    issue 34's targets."""
     cmp = result.get("compare")
     machine = result["machine"]
     lines = [
         f"# Whole-frame latency (`ssp bench frame`): {machine['cpus']} CPUs, Python "
         f"{machine['python']}; {result['sequences']} sequence(s) per experiment from seed "
-        f"{result['seed']}, {result['rounds']} round(s)",
+        f"{result['seed']}, {result['rounds']} round(s), {result.get('processes', 1)} "
+        "process(es) per run",
         "",
         "Wall milliseconds per frame, reading to writing, without each run's first frame "
         "(first: its median).",

@@ -63,6 +63,9 @@ BASELINES = "estimator,icp,ray_slide,bestfit,temporal_filter,icp_filter"
 LINKS = "../shared/data/costar-links"
 LMO = "../shared/data/lmo-megapose"
 PARSER_REV = "3d6b73d"
+REAL_DEV = "../shared/data/real-dev"
+#: The revision before issue 34's speed-ups, timed beside this code by ``ssp bench frame``.
+FRAME_REV = "c436e9b"
 
 
 @dataclass(frozen=True)
@@ -110,6 +113,8 @@ def _sources() -> dict[str, Source]:
         Source("parser-compare",
                f"ssp bench parser --links {LINKS} --compare {PARSER_REV} --processes 2 "
                "--rev-processes 2", "compare.json"),
+        Source("frame-compare", f"ssp bench frame --real-dev {REAL_DEV} --compare {FRAME_REV}"),
+        Source("frame-processes", "ssp bench frame --processes 2"),
     ]  # fmt: skip
     return {s.name: s for s in out}
 
@@ -372,11 +377,16 @@ def _tower_report_table(sources: tuple[str, ...]) -> Callable[[Results], list[st
     return render
 
 
-def _first_table(markdown: str) -> list[str]:
+def _first_table(markdown: str, skip: int = 0) -> list[str]:
+    """The first Markdown table of ``markdown`` after ``skip`` others."""
     lines = markdown.splitlines()
-    start = next(i for i, s in enumerate(lines) if s.startswith("|"))
-    end = next((i for i in range(start, len(lines)) if not lines[i].startswith("|")), len(lines))
-    return lines[start:end]
+    start = 0
+    for _ in range(skip + 1):
+        start = next(i for i in range(start, len(lines)) if lines[i].startswith("|"))
+        end = next((i for i in range(start, len(lines)) if not lines[i].startswith("|")),
+                   len(lines))  # fmt: skip
+        table, start = lines[start:end], end
+    return table
 
 
 def _tower_cell(r: dict, trials: int, ghosts: bool) -> str:
@@ -427,6 +437,22 @@ def _tower_structure(results: Results) -> list[str]:
     )
 
 
+# ------------------------------------------------------------------------------ frame
+def _frame_table(source: str, skip: int) -> Callable[[Results], list[str]]:
+    """The ``skip``-th table of ``ssp bench frame``'s results.md (0: the latency, side by side
+    with the compared revision's when there is one; 1: issue 34's targets), from ``source``'s
+    results.json."""
+
+    def render(results: Results) -> list[str]:
+        from ssp.eval.bench_frame import markdown_report
+
+        if source not in results:
+            return []
+        return _first_table(markdown_report(results[source]), skip)
+
+    return render
+
+
 # ------------------------------------------------------------------------------ parser
 def _parser_compare(results: Results) -> list[str]:
     from ssp.eval.bench_parser import write_compare
@@ -451,6 +477,9 @@ def _figures() -> dict[str, Figure]:
         Figure("realistic-acceptance", _realistic("structure") + _realistic("isolated"),
                _acceptance),
         Figure("parser-compare", ("parser-compare",), _parser_compare),
+        Figure("frame-compare", ("frame-compare",), _frame_table("frame-compare", 0)),
+        Figure("frame-targets", ("frame-compare",), _frame_table("frame-compare", 1)),
+        Figure("frame-processes", ("frame-processes",), _frame_table("frame-processes", 0)),
         Figure("tower-rgb", ("tower-rgb",), _tower_report_table(("tower-rgb",))),
     ]  # fmt: skip
     for e in ("structure", "isolated"):
