@@ -115,3 +115,17 @@ def test_cluster_labels_are_shared(lib):
     seg, owner = object_segments(clusters, objects, radius=0.01, members=members)
     assert owner == {} and members == {"low": 0, "high": 0}
     assert len(seg["low"]) > 0 and len(seg["high"]) > 0
+
+
+def test_a_voter_far_from_every_point_votes_for_nothing(lib):
+    """A guess nowhere near the cloud (a false hypothesis across the room): no point within
+    its reach, no vote, an empty crop, and the other voter's votes as without it."""
+    cube, T_low, T_high, frame, _ = _two_cubes(lib)
+    far = make_pose(t=[2.0, 2.0, 0.5])
+    seg, owner = object_segments(frame, {"far": (cube, [far])}, radius=0.01)
+    assert owner == {} and len(seg["far"]) == 0
+    both, owner_both = object_segments(
+        frame, {"far": (cube, [far]), "high": (cube, [T_high])}, radius=0.01
+    )
+    alone, owner_alone = object_segments(frame, {"high": (cube, [T_high])}, radius=0.01)
+    assert owner_both == owner_alone and np.array_equal(both["high"], alone["high"])

@@ -148,29 +148,8 @@ def object_segments(
         and frame.labels is not None
         and (labels or {}).get(oid) not in by_label
     ]
-
-    @cache
-    def vote_tree() -> tuple[KDTree, np.ndarray]:
-        """The tree of the points a vote may reach (within ``radius`` of a voter's samples,
-        so inside the box around every voter's bounding sphere grown by ``radius``: the
-        nearest point within ``radius`` is the same as among all points) and their indices;
-        built only when an object has no known label."""
-        lo = np.full(3, np.inf)
-        hi = np.full(3, -np.inf)
-        for model, T in voters:
-            c_local, r = _bounding_sphere(model)
-            c = T[:3, :3] @ c_local + T[:3, 3]
-            lo, hi = np.minimum(lo, c - r - radius), np.maximum(hi, c + r + radius)
-        near = np.flatnonzero(np.all((points >= lo) & (points <= hi), axis=1))
-        return KDTree(np.ascontiguousarray(points[near]), leafsize=_VOTE_TREE_LEAF), near
-
-    @cache
-    def crop_points() -> tuple[np.ndarray, cKDTree]:
-        """The points a crop may take (above ``table_clearance`` with a table: the table and
-        what lies below it never are) and their tree, for ball queries (sliding-midpoint
-        splits build faster); a frame's table and background are most of its points."""
-        pts = points[points[:, 2] >= table_clearance] if table else points
-        return pts, cKDTree(pts, balanced_tree=False, compact_nodes=False)
+    vote_tree = cache(lambda: _vote_tree(points, voters, radius))
+    crop_points = cache(lambda: _crop_tree(points, table, table_clearance))
 
     out: dict[str, np.ndarray] = {}
     owner: dict[str, int] = {}
@@ -256,9 +235,36 @@ def _indices_by_label(labels: np.ndarray) -> dict[int, np.ndarray]:
     return {int(ordered[a]): order[a:b] for a, b in zip(starts, ends, strict=True)}
 
 
+def _vote_tree(
+    points: np.ndarray, voters: Sequence[tuple[ObjectModel, np.ndarray]], radius: float
+) -> tuple[KDTree | None, np.ndarray]:
+    """The tree of the points ``(N, 3)`` a vote may reach and their indices: those within
+    ``radius`` (m) of a voter's samples lie inside the box around every voter's bounding
+    sphere (at its pose) grown by ``radius``, so a sample's nearest point within ``radius`` is
+    the same among them as among all; None when the box holds no point."""
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    for model, T in voters:
+        c_local, r = _bounding_sphere(model)
+        c = T[:3, :3] @ c_local + T[:3, 3]
+        lo, hi = np.minimum(lo, c - r - radius), np.maximum(hi, c + r + radius)
+    near = np.flatnonzero(np.all((points >= lo) & (points <= hi), axis=1))
+    if not len(near):
+        return None, near
+    return KDTree(np.ascontiguousarray(points[near]), leafsize=_VOTE_TREE_LEAF), near
+
+
+def _crop_tree(points: np.ndarray, table: bool, clearance: float) -> tuple[np.ndarray, cKDTree]:
+    """The points ``(N, 3)`` a crop may take (with a table, those at least ``clearance`` m
+    above it: the table and what lies below never are; they are most of a frame's points) and
+    their tree, for ball queries (sliding-midpoint splits build faster)."""
+    pts = points[points[:, 2] >= clearance] if table else points
+    return pts, cKDTree(pts, balanced_tree=False, compact_nodes=False)
+
+
 def _label_votes(
     frame: Frame,
-    tree: KDTree,
+    tree: KDTree | None,
     of_tree: np.ndarray,
     model: ObjectModel,
     T: np.ndarray,
@@ -267,7 +273,10 @@ def _label_votes(
     """``label -> fraction`` of the model's vote samples at ``T`` whose nearest scene point
     (within ``radius``, m) carries that label (negative labels: table, background,
     unlabelled, never vote); empty when no sample has a labelled point near. ``tree``: of the
-    frame's points ``of_tree`` (indices), all those within ``radius`` of a sample."""
+    frame's points ``of_tree`` (indices), all those within ``radius`` of a sample (None: no
+    point is)."""
+    if tree is None:
+        return {}
     samples = np.asarray(model.surface_points, dtype=float)
     if len(samples) > _VOTE_SAMPLES:
         samples = samples[:: int(np.ceil(len(samples) / _VOTE_SAMPLES))]
