@@ -290,6 +290,7 @@ def bench_frame(
         result["rev"] = summarize(timed["rev"])
         result["rev_machine"] = timed["rev"][0]["machine"]
         result["same_results"] = same_results(runs, out / "runs" / "rev", out / "runs" / "this")
+    result["revision"] = _revision(Path(this_tree))
     result["targets"] = check_targets(result["this"])
     result["command"] = {"sequences": str(sequences), "seed": str(seed),
                          "real-dev": None if real_dev is None else str(real_dev),
@@ -332,6 +333,21 @@ def same_results(runs: list[dict[str, Any]], rev_dir: Path, this_dir: Path) -> d
         sc: "identical" if not d else f"{len(d)} frame(s) differ, first {d[0]}"
         for sc, d in out.items()
     }
+
+
+def _revision(tree: Path) -> str | None:
+    """The git revision of the checkout holding ``tree`` (``+`` when it has uncommitted
+    changes), or None outside a checkout."""
+    import subprocess
+
+    try:
+        head = subprocess.run(["git", "-C", str(tree), "rev-parse", "--short", "HEAD"],
+                              capture_output=True, text=True, check=True).stdout.strip()  # fmt: skip
+        dirty = subprocess.run(["git", "-C", str(tree), "status", "--porcelain", "--", "."],
+                               capture_output=True, text=True, check=True).stdout.strip()  # fmt: skip
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    return head + ("+" if dirty else "")
 
 
 # ------------------------------------------------------------------------------ the numbers
@@ -442,7 +458,8 @@ def markdown_report(result: dict[str, Any]) -> str:
     cmp = result.get("compare")
     machine = result["machine"]
     lines = [
-        f"# Whole-frame latency (`ssp bench frame`): {machine['cpus']} CPUs, Python "
+        f"# Whole-frame latency (`ssp bench frame`, code {result.get('revision') or '?'}): "
+        f"{machine['cpus']} CPUs, Python "
         f"{machine['python']}; {result['sequences']} sequence(s) per experiment from seed "
         f"{result['seed']}, {result['rounds']} round(s), {result.get('processes', 1)} "
         "process(es) per run",
