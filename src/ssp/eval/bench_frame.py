@@ -341,10 +341,10 @@ def _revision(tree: Path) -> str | None:
     import subprocess
 
     try:
-        head = subprocess.run(["git", "-C", str(tree), "rev-parse", "--short", "HEAD"],
-                              capture_output=True, text=True, check=True).stdout.strip()  # fmt: skip
-        dirty = subprocess.run(["git", "-C", str(tree), "status", "--porcelain", "--", "."],
-                               capture_output=True, text=True, check=True).stdout.strip()  # fmt: skip
+        git = ["git", "-C", str(tree)]
+        run = {"capture_output": True, "text": True, "check": True}
+        head = subprocess.run([*git, "rev-parse", "--short", "HEAD"], **run).stdout.strip()
+        dirty = subprocess.run([*git, "status", "--porcelain", "--", "."], **run).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         return None
     return head + ("+" if dirty else "")
