@@ -66,7 +66,7 @@ run rgb-calibration results.json $SSP bench rgb-calibration --data ../shared/dat
 run tower-estimated-ssp results.json $SSP bench tower --trials 10 --seed 1000 --hypotheses estimated --methods ssp
 run tower-estimated-estimator results.json $SSP bench tower --trials 10 --seed 1000 --hypotheses estimated --methods estimator
 run parser-compare compare.json $SSP bench parser --links ../shared/data/costar-links --compare 3d6b73d --processes 2 --rev-processes 2
-run frame-compare results.json $SSP bench frame --real-dev ../shared/data/real-dev --compare c436e9b
+run frame-compare results.json $SSP bench frame --real-dev ../shared/data/real-dev --compare c436e9b --rounds 2
 run frame-processes results.json $SSP bench frame --processes 2
 
 $SSP bench docs-figures --collect "$W" --write --check --strict

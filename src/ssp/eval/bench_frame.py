@@ -261,6 +261,7 @@ def bench_frame(
                           frames_per_stage=frames_per_stage, real_dev=real_dev,
                           repeats=repeats, progress=progress)  # fmt: skip
     this_tree = str(Path(__file__).resolve().parents[2])
+    revision = _revision(Path(this_tree))  # before the runs: the code they time
     timed: dict[str, list[dict[str, Any]]] = {"this": [], "rev": []}
     with tempfile.TemporaryDirectory(prefix="ssp-compare-") as tmp:
         rev_tree, remove = (None, lambda: None)
@@ -290,7 +291,7 @@ def bench_frame(
         result["rev"] = summarize(timed["rev"])
         result["rev_machine"] = timed["rev"][0]["machine"]
         result["same_results"] = same_results(runs, out / "runs" / "rev", out / "runs" / "this")
-    result["revision"] = _revision(Path(this_tree))
+    result["revision"] = revision
     result["targets"] = check_targets(result["this"])
     result["command"] = {"sequences": str(sequences), "seed": str(seed),
                          "real-dev": None if real_dev is None else str(real_dev),

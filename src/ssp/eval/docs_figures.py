@@ -113,7 +113,8 @@ def _sources() -> dict[str, Source]:
         Source("parser-compare",
                f"ssp bench parser --links {LINKS} --compare {PARSER_REV} --processes 2 "
                "--rev-processes 2", "compare.json"),
-        Source("frame-compare", f"ssp bench frame --real-dev {REAL_DEV} --compare {FRAME_REV}"),
+        Source("frame-compare",
+               f"ssp bench frame --real-dev {REAL_DEV} --compare {FRAME_REV} --rounds 2"),
         Source("frame-processes", "ssp bench frame --processes 2"),
     ]  # fmt: skip
     return {s.name: s for s in out}
