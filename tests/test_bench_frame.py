@@ -151,3 +151,11 @@ def test_another_code_is_timed_in_its_own_process(small_scene, tmp_path):
     (run,) = res["runs"]
     assert len(run["frames"]) == 4 and res["machine"]["cpus"] >= 1
     assert (tmp_path / "runs" / "000" / "summary.json").exists()
+
+
+def test_a_wrong_real_dev_folder_is_named(tmp_path):
+    from ssp.errors import ArgumentError
+    from ssp.eval.bench_frame import _real_runs
+
+    with pytest.raises(ArgumentError, match="real captures"):
+        _real_runs(tmp_path / "nowhere", tmp_path / "work", 3)

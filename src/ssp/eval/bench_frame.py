@@ -95,6 +95,8 @@ def prepare_inputs(
     from ssp.sim.generate import generate_sequence
     from ssp.sim.realistic import RealisticNoise, SceneRealism
 
+    if real_dev is not None:
+        _check_real_dev(Path(real_dev))  # before the simulation, not after
     library = ObjectLibrary.builtin(SSPConfig().library)
     runs: list[dict[str, Any]] = []
     for experiment, kwargs in SIM_SEQUENCES.items():
@@ -117,9 +119,27 @@ def prepare_inputs(
     return runs
 
 
+def _check_real_dev(data: Path) -> None:
+    """ArgumentError unless ``data`` holds the real captures' folders."""
+    from ssp.errors import ArgumentError
+    from ssp.eval.real_captures import MILK, MOSD
+
+    if not (data / MOSD).is_dir() or not (data / MILK).is_dir():
+        raise ArgumentError(
+            f"--real-dev {data}: expected the real captures' folder (../shared/data/real-dev) "
+            f"with {MOSD}/ and {MILK}/ in it"
+        )
+
+
 def _real_runs(data: Path, work: Path, repeats: int) -> list[dict[str, Any]]:
-    """The real captures as runs of ``repeats`` frames each (links to the capture)."""
+    """The real captures as runs of ``repeats`` frames each (links to the capture).
+
+    Raises:
+        ArgumentError: ``data`` is not the real captures' folder.
+    """
     from ssp.eval.real_captures import milk_captures, mosd_captures
+
+    _check_real_dev(data)
 
     runs = []
     for r in mosd_captures(data, work, None) + milk_captures(data, work, None):
