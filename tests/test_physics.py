@@ -626,3 +626,59 @@ def test_contact_overflow_raises_physics_error_and_logs_not_to_a_file(
             w.acceleration_from_rest()
     assert any("MuJoCo" in r.message for r in caplog.records)
     assert not (tmp_path / "MUJOCO_LOG.TXT").exists()
+
+
+def _model_arrays(m) -> dict[str, np.ndarray]:
+    out = {}
+    for name in dir(m):
+        if name.startswith("_"):
+            continue
+        try:
+            value = getattr(m, name)
+        except Exception:  # noqa: BLE001 (an attribute the bindings cannot read here)
+            continue
+        if isinstance(value, np.ndarray):
+            out[name] = value
+    return out
+
+
+def test_a_scene_compiled_before_is_copied_not_compiled_again(cube_model, make_box):
+    """The same models in the same order give the same MjModel whatever the ids: the copy of
+    the earlier compile equals a fresh compile array for array, and changing it leaves the
+    kept one alone."""
+    from ssp.physics import mjcf
+
+    block = make_box("block", (0.1, 0.05, 0.05), mass=0.2)
+    cfg = PhysicsConfig()
+    first = [ObjectInstance("a", cube_model), ObjectInstance("b", block)]
+    renamed = [ObjectInstance("x", cube_model), ObjectInstance("y", block)]
+    m1 = mjcf.compiled_mjmodel(first, table=True, config=cfg)
+    m2 = mjcf.compiled_mjmodel(renamed, table=True, config=cfg)
+    fresh = mjcf.build_mjmodel(renamed, table=True, config=cfg)
+    a2, af = _model_arrays(m2), _model_arrays(fresh)
+    assert a2.keys() == af.keys() and len(a2) > 50
+    for name, value in af.items():
+        assert np.array_equal(a2[name], value), name
+    m2.geom_contype[:] = 0  # what World does to disable an object: the kept compile unchanged
+    m3 = mjcf.compiled_mjmodel(first, table=True, config=cfg)
+    assert np.array_equal(m3.geom_contype, m1.geom_contype) and m3.geom_contype.any()
+    # another order, another table or other settings are other scenes
+    swapped = mjcf.compiled_mjmodel(first[::-1], table=True, config=cfg)
+    assert not np.array_equal(swapped.body_mass, m1.body_mass)
+    assert mjcf.compiled_mjmodel(first, table=False, config=cfg).ngeom < m1.ngeom
+    slow = mjcf.compiled_mjmodel(first, table=True, config=PhysicsConfig(timestep=0.004))
+    assert slow.opt.timestep == 0.004 != m1.opt.timestep
+
+
+def test_a_world_from_the_kept_compile_steps_as_a_fresh_one(cube_model):
+    """Two worlds of the same scene (the second from the kept compile) step bit for bit alike."""
+    poses = [make_pose(t=[0.0, 0.0, 0.03]), make_pose(t=[0.0, 0.0, 0.08])]
+    runs = []
+    for ids in (("a", "b"), ("c", "d")):
+        w = World([ObjectInstance(i, cube_model) for i in ids])
+        for i, T in zip(ids, poses, strict=True):
+            w.set_pose(i, T)
+        for _ in range(50):
+            w.step()
+        runs.append(w.pose_array())
+    assert np.array_equal(runs[0], runs[1])

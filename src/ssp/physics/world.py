@@ -52,7 +52,7 @@ from ssp.errors import (
 from ssp.geometry import validate_pose
 from ssp.library.model import ObjectInstance, ObjectModel
 from ssp.physics.contacts import Contacts
-from ssp.physics.mjcf import build_mjmodel
+from ssp.physics.mjcf import compiled_mjmodel
 
 _STATE_SPEC = mujoco.mjtState.mjSTATE_INTEGRATION
 _W = mujoco.mjtWarning
@@ -208,7 +208,7 @@ class World:
         self._has_table = bool(table)
         self._serial = next(_world_serial)
 
-        m = build_mjmodel(instances, table=self._has_table, config=self._config)
+        m = compiled_mjmodel(instances, table=self._has_table, config=self._config)
         d = mujoco.MjData(m)
         self._m, self._d = m, d
         n = len(ids)
