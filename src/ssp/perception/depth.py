@@ -17,7 +17,14 @@ from ssp.camera import Camera
 from ssp.errors import InvalidPoseError, PerceptionError
 from ssp.geometry import transform_points, validate_pose
 
-__all__ = ["MM_DEPTH_MEDIAN", "PLAUSIBLE_DEPTH", "DepthCloud", "cloud_from_depth", "depth_doubt"]
+__all__ = [
+    "MM_DEPTH_MEDIAN",
+    "PLAUSIBLE_DEPTH",
+    "DepthCloud",
+    "cloud_from_depth",
+    "depth_doubt",
+    "labels_at",
+]
 
 log = logging.getLogger(__name__)
 
@@ -83,12 +90,22 @@ def cloud_from_depth(
             pts = transform_points(validate_pose(T_world_cam, "T_world_cam"), pts)
         except InvalidPoseError as exc:
             raise PerceptionError(f"invalid camera pose: {exc}") from exc
-    labels = None
-    if mask is not None:
-        labels = _mask_labels(mask, camera)[rows, cols]
+    pixels = np.column_stack([rows, cols])
+    labels = None if mask is None else labels_at(mask, camera, pixels)
     if len(zs) == 0:
         log.warning("cloud_from_depth: the depth image has no valid pixel")
-    return DepthCloud(points=pts, labels=labels, pixels=np.column_stack([rows, cols]))
+    return DepthCloud(points=pts, labels=labels, pixels=pixels)
+
+
+def labels_at(mask: np.ndarray, camera: Camera, pixels: np.ndarray) -> np.ndarray:
+    """The labels ``(M,)`` int64 of a ``(H, W)`` label image ``mask`` (as for
+    :func:`cloud_from_depth`) at ``pixels`` ``(M, 2)`` ``(row, col)``: a cloud's labels when its
+    points were made before its mask (:attr:`DepthCloud.pixels`).
+
+    Raises:
+        PerceptionError: ``mask`` not of the camera's image shape or not integer labels.
+    """
+    return _mask_labels(mask, camera)[pixels[:, 0], pixels[:, 1]]
 
 
 def depth_doubt(

@@ -212,7 +212,7 @@ def compiled_mjmodel(
     one: the same models in the same order (by identity: which instances share a model is part
     of the scene), table and settings give the same ``MjModel``, whatever the instances' ids.
     A parser whose objects change only in their ids (a new candidate in place of the last
-    frame's) then skips MuJoCo's compile (about 12 ms for nine tools); the copy is the
+    frame's) then skips MuJoCo's compile, the slowest part of a new world; the copy is the
     caller's to change. The last :data:`COMPILED_KEPT` scenes are kept (with their models, so
     that an id is never reused for another model while its entry lives)."""
     models = tuple(inst.model for inst in instances)

@@ -24,7 +24,7 @@ from ssp.io.detections import (
     read_detections,
 )
 from ssp.io.results import ObjectIds
-from ssp.perception.depth import cloud_from_depth
+from ssp.perception.depth import cloud_from_depth, labels_at
 from ssp.perception.pipeline import Perception, PerceptionResult
 from ssp.perception.silhouettes import silhouette_detections
 from ssp.perception.table import TableTracker
@@ -207,10 +207,11 @@ class BopSource:
         if self.use_masks and sf.instance is not None:
             mask = np.asarray(sf.instance).astype(np.int64)
             mask[mask < -1] = -1
+        with timer("cloud"):  # the points once: the world frame's fit and the front end's
+            cloud = cloud_from_depth(sf.depth, sf.camera)
         T_wc = sf.T_world_cam
         if T_wc is None:
             with timer("world frame"):
-                cloud = cloud_from_depth(sf.depth, sf.camera)
                 T_wc, moved = self.tracker.update(cloud.points)
             if moved:
                 warnings.append(
@@ -245,13 +246,13 @@ class BopSource:
                 "clustered, clutter may become objects (--masks FILE: a detector's instance masks)"
             )
         with timer("cloud"):
-            cloud = cloud_from_depth(sf.depth, sf.camera, mask=mask)
+            labels = None if mask is None else labels_at(mask, sf.camera, cloud.pixels)
         result = self.perception.from_points(
             cloud.points,
             frame="camera",
             stamp=sf.stamp,
             T_world_cam=T_wc,
-            labels=cloud.labels,
+            labels=labels,
             label_classes=label_classes,
             hypotheses=hyps,
             hypotheses_frame=hyp_frame,
