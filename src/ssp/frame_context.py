@@ -103,6 +103,8 @@ class FrameContext:
     table: bool
     #: the scene remembered before this frame (after :attr:`Frame.moved`)
     known: Mapping[str, Known]
+    #: the objects the previous frame rejected (:func:`ssp.static.repeated_rejections`)
+    remembered: list[Rejected]
     #: the object-id counters before this frame (class -> next index)
     counters: Mapping[str, int]
     frame_index: int

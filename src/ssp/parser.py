@@ -111,6 +111,8 @@ class SceneParser:
         self.config = config if config is not None else SSPConfig()
         self.table = bool(table)
         self._known: dict[str, Known] = {}
+        #: the previous frame's rejected objects (ssp.static.repeated_rejections)
+        self._rejected: list[Rejected] = []
         self._counters: dict[str, int] = {}
         self._frame_index = 0
         self._last_stamp: float | None = None
@@ -131,6 +133,7 @@ class SceneParser:
     def reset(self) -> None:
         """Forget every object (the next frame starts a new scene)."""
         self._known.clear()
+        self._rejected = []
         self._counters.clear()
         self._frame_index = 0
         self._last_stamp = None
@@ -154,6 +157,10 @@ class SceneParser:
                     "held": k.held,
                 }
                 for oid, k in sorted(self._known.items())
+            ],
+            "rejected": [
+                {"class": r.class_name, "T_world_obj": r.T_world_obj.tolist(), "reason": r.reason}
+                for r in self._rejected
             ],
         }
 
@@ -201,6 +208,15 @@ class SceneParser:
                     float(o.get("fit", 0.0)),
                     bool(o.get("held", False)),
                 )
+            for k, r in enumerate(state.get("rejected", [])):  # none in older states
+                cls_name = str(r["class"])
+                if cls_name not in library:
+                    raise UnknownObjectError(
+                        f"scene state rejected object {k} has class {cls_name!r}, which is not "
+                        f"in the library ({', '.join(library.names) or 'empty'})"
+                    )
+                T = validate_pose(np.asarray(r["T_world_obj"], dtype=float), f"rejected {k}")
+                parser._rejected.append(Rejected(f"rejected_{k}", cls_name, T, str(r["reason"])))
         except (KeyError, TypeError, ValueError) as exc:
             if isinstance(exc, InvalidPoseError | UnknownObjectError):
                 raise
@@ -238,6 +254,7 @@ class SceneParser:
                 raise
         assert ctx.estimate is not None, "the outcome stage sets the estimate"
         self._known = ctx.next_known
+        self._rejected = list(ctx.estimate.rejected)
         self._counters = ctx.assoc.counters
         self._frame_index += 1
         self._last_stamp = frame.stamp
@@ -258,6 +275,7 @@ class SceneParser:
             config=self.config,
             table=self.table,
             known=dict(self._known),
+            remembered=list(self._rejected),
             counters=dict(self._counters),
             frame_index=self._frame_index,
             timer=timer if timer is not None else StageTimer(),

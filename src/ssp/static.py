@@ -16,36 +16,59 @@ changed in it, not with the size of the scene.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterable, Mapping, Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ssp.config import SSPConfig
+from ssp.estimate import Rejected
 from ssp.geometry import hull_box
 from ssp.library.model import ObjectModel
 from ssp.probability import pose_change
 from ssp.scene import Hypothesis
 from ssp.scoring import SceneScorer
-from ssp.search import CandidateSource
+from ssp.search import CandidateSource, prepare_world
+from ssp.verification import check_new, evidence
 
 if TYPE_CHECKING:
     from ssp.frame_context import FrameContext
 
+log = logging.getLogger(__name__)
+
 __all__ = [
+    "RANKED_FIT_SLACK",
+    "REPEATED",
     "SETTLE_MOVED_DEG",
     "SETTLE_MOVED_M",
     "find_static",
     "is_unchanged",
     "keep_unchanged",
+    "repeated_rejections",
     "settle_moved",
     "settled_objects",
 ]
+
+#: Added to the reason of an object rejected again (:func:`repeated_rejections`).
+REPEATED = "; rejected there in the previous frame too, and nothing else changed"
 
 #: A settled object that the first-guess settle moved more than this (m, deg at the centre of
 #: mass) is searched after all.
 SETTLE_MOVED_M = 0.001
 SETTLE_MOVED_DEG = 1.0
+
+
+#: An object whose hypotheses agree with its previous pose only through the best-scored one
+#: (:func:`is_unchanged`) is unchanged when its previous pose fits this frame's data within
+#: this much (fraction of the fit c) of that hypothesis.
+RANKED_FIT_SLACK = 0.05
+
+
+def _centres(poses: Sequence[np.ndarray], model: ObjectModel) -> np.ndarray:
+    """``(n, 3)`` centres of mass of ``model`` at ``poses`` (4x4, m)."""
+    c = np.asarray(model.center_of_mass, dtype=float)
+    return np.array([T[:3, :3] @ c + T[:3, 3] for T in poses]).reshape(-1, 3)
 
 
 def is_unchanged(
@@ -57,20 +80,29 @@ def is_unchanged(
     model: ObjectModel,
     config: SSPConfig,
 ) -> bool:
-    """Is object ``i`` of the scorer's world where it was (``T_prev``, 4x4, m)? Its
-    ``hypotheses`` agree (the per-axis median of their centres of mass lies within
-    ``temporal.static_translation`` of the previous one) and ``T_prev`` fits this frame's data
-    about as well as it fitted the frame that set it: ``c_now >= ratio c_then - tolerance``
-    (``search.unchanged_fit_ratio``, ``unchanged_fit_tolerance``; ``fit_prev`` = c_then)."""
-    s = config.search
-    c = np.asarray(model.center_of_mass, dtype=float)
-    at = [h.T_world_obj[:3, :3] @ c + h.T_world_obj[:3, 3] for h in hypotheses]
-    centre = np.median(at, axis=0)
-    was = T_prev[:3, :3] @ c + T_prev[:3, 3]
-    if np.linalg.norm(centre - was) >= config.temporal.static_translation:
-        return False
+    """Is object ``i`` of the scorer's world where it was (``T_prev``, 4x4, m)?
+
+    ``T_prev`` fits this frame's data about as well as it fitted the frame that set it
+    (``c_now >= ratio c_then - tolerance``: ``search.unchanged_fit_ratio``,
+    ``unchanged_fit_tolerance``; ``fit_prev`` = c_then), and its ``hypotheses`` (best first)
+    agree: the per-axis median of their centres of mass lies within
+    ``temporal.static_translation`` of ``T_prev``'s (noisy copies of one pose, some of them
+    outliers), or, when their scores rank them, the best one's does and ``T_prev`` fits the
+    data within :data:`RANKED_FIT_SLACK` of it (an estimator's best pose beside the other
+    orientations a partial view allows, whose median lies anywhere between them; had the
+    object moved, its best pose would fit better than where it was).
+    """
+    s, near = config.search, config.temporal.static_translation
+    at = _centres([h.T_world_obj for h in hypotheses], model)
+    was = _centres([T_prev], model)[0]
     c_now = scorer.fit_fraction(i, T_prev)
-    return c_now >= s.unchanged_fit_ratio * fit_prev - s.unchanged_fit_tolerance
+    if c_now < s.unchanged_fit_ratio * fit_prev - s.unchanged_fit_tolerance:
+        return False
+    if np.linalg.norm(np.median(at, axis=0) - was) < near:
+        return True
+    if len({h.score for h in hypotheses}) < 2 or np.linalg.norm(at[0] - was) >= near:
+        return False
+    return c_now >= scorer.fit_fraction(i, hypotheses[0].T_world_obj) - RANKED_FIT_SLACK
 
 
 def settled_objects(
@@ -114,12 +146,60 @@ def settle_moved(objects: Mapping[str, tuple[np.ndarray, np.ndarray, ObjectModel
 
 
 # ------------------------------------------------------------------ the parser's stages
+def repeated_rejections(ctx: FrameContext, new: Iterable[str]) -> dict[str, Rejected]:
+    """The ``new`` objects (ids) that the previous frame rejected already: one of its rejected
+    objects (:attr:`FrameContext.remembered`) of the same class lies where one of this
+    object's hypotheses puts it (centres of mass within ``temporal.association_distance``, as
+    the association matches an object across frames: an estimator's poses of a thing it does
+    not know wander), and the data supports the object at none of its hypotheses
+    (:func:`ssp.verification.check_new`, as after the search). Each is rejected for what the
+    data says at its best hypothesis, said to be repeated (:data:`REPEATED`): an unknown
+    thing on the table (a distractor) is then not a change of the scene, frame after frame."""
+    cfg, trees = ctx.config, ctx.segment_trees
+    out: dict[str, Rejected] = {}
+    for oid in new:
+        hyps, model = ctx.groups[oid], ctx.models[oid]
+        at = _centres([h.T_world_obj for h in hyps], model)
+        was = _centres([r.T_world_obj for r in ctx.remembered if r.class_name == model.name],
+                       model)  # fmt: skip
+        gap = np.linalg.norm(at[:, None, :] - was[None, :, :], axis=2)
+        if not (gap < cfg.temporal.association_distance).any():
+            continue
+        tree, spacing, label = trees.tree(oid), trees.spacing(oid), ctx.owner.get(oid)
+        verdicts = [
+            check_new(
+                evidence(
+                    model,
+                    h.T_world_obj,
+                    tree,
+                    ctx.view,
+                    cfg,
+                    own_label=label,
+                    segment_spacing=spacing,
+                ),
+                cfg,
+            )  # fmt: skip
+            for h in hyps
+        ]
+        if any(v.keep for v in verdicts):
+            continue
+        h = hyps[0]
+        out[oid] = Rejected(
+            oid, h.class_name, np.array(h.T_world_obj), verdicts[0].reason + REPEATED,
+            verdicts[0].judged.as_dict(), h.segment,
+        )  # fmt: skip
+    return out
+
+
 def find_static(ctx: FrameContext) -> None:
     """Stage *static objects*: the detected known objects that are unchanged
     (:func:`is_unchanged`), and whether the whole frame is (``search.unchanged_shortcut``:
-    every known object detected and unchanged, none new, none missing).
+    every known object detected and unchanged, none missing, and every new one rejected in the
+    previous frame already: :func:`repeated_rejections`, which then leave the frame as
+    rejected, and the world is prepared again without them).
 
-    Sets ``static`` and ``unchanged``.
+    Sets ``static`` and ``unchanged``; may update ``rejected``, ``groups``, ``first``,
+    ``classes`` and ``simulation``.
     """
     cfg, known, groups, sim = ctx.config, ctx.known, ctx.groups, ctx.sim
     detected = sorted(groups)
@@ -137,13 +217,24 @@ def find_static(ctx: FrameContext) -> None:
             cfg,
         )  # fmt: skip
     }
+    new = [oid for oid in detected if oid not in known]
     ctx.unchanged = (
         cfg.search.unchanged_shortcut
         and bool(known)
         and not ctx.missing
-        and set(detected) == set(known)
-        and ctx.static == set(detected)
+        and set(detected) - set(new) == set(known)
+        and ctx.static == set(known)
     )
+    if ctx.unchanged and new:
+        repeated = repeated_rejections(ctx, new)
+        ctx.unchanged = len(repeated) == len(new)
+        if ctx.unchanged:
+            for oid, r in repeated.items():
+                log.info("%s (%s) rejected again: %s", oid, r.class_name, r.reason)
+                del ctx.groups[oid], ctx.first[oid], ctx.classes[oid]
+            ctx.rejected.update(repeated)
+            with ctx.timer("world"):
+                prepare_world(ctx)  # the world without them
 
 
 def keep_unchanged(ctx: FrameContext) -> None:
