@@ -91,8 +91,11 @@ def test_a_settled_object_that_the_settle_moves_is_searched_after_all():
 BLOCK = LIB["block"]
 
 
-def _shifted(T: np.ndarray, dx: float, dy: float) -> np.ndarray:
+def _other(T: np.ndarray, dx: float, dy: float) -> np.ndarray:
+    """``T`` turned 90 deg about the vertical and moved by ``(dx, dy)`` (m): another
+    orientation of a block."""
     U = T.copy()
+    U[:3, :3] = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]) @ T[:3, :3]
     U[0, 3] += dx
     U[1, 3] += dy
     return U
@@ -100,15 +103,15 @@ def _shifted(T: np.ndarray, dx: float, dy: float) -> np.ndarray:
 
 def _estimator_frame(gt, rng, stamp, *, ranked=True, extra=()):
     """A rendered frame of ``gt`` whose hypotheses are an estimator's: per object (its instance
-    segment) the best pose first, 1 mm off, then three other poses 4 cm away (the other
-    orientations a partial view allows); ``ranked``: their scores say which is best (else all
+    segment) the best pose first, 1 mm off, then three other orientations 4 cm away (what a
+    partial view allows too); ``ranked``: their scores say which is best (else all
     1). ``extra``: further hypotheses."""
     f = synthetic_frame(LIB, gt, T_world_cam=CAM, rng=rng, k=1, stamp=stamp, sigma_t=0.001,
                         sigma_r_deg=0.5)  # fmt: skip
     hyps = []
     for label, (oid, (cls, _)) in enumerate(gt.items()):
         best = next(h for h in f.hypotheses if h.class_name == cls and _near(h, gt[oid][1]))
-        others = [_shifted(best.T_world_obj, *d) for d in ((0.04, 0), (0, 0.04), (0.04, 0.04))]
+        others = [_other(best.T_world_obj, *d) for d in ((0.04, 0), (0, 0.04), (0.04, 0.04))]
         scores = (1.0, 0.6, 0.5, 0.4) if ranked else (1.0,) * 4
         poses = [best.T_world_obj, *others]
         hyps += [Hypothesis(cls, T, s, segment=label) for T, s in zip(poses, scores, strict=True)]
@@ -125,7 +128,11 @@ def test_an_estimators_best_pose_where_the_object_was_is_no_change():
     the other orientations it also proposes (whose median is anywhere), is no change (the frame
     takes the unchanged shortcut); unranked, the same poses are not (noisy copies of one pose
     would agree in the median); an object moved 15 mm whose best pose says so is a change."""
-    gt = {"a": ("cube", on_table(-0.08)), "b": ("cube", on_table(0.08))}
+    lying = -float(BLOCK.mesh.bounds[0, 2])
+    gt = {
+        "a": ("block", make_pose(t=[-0.08, 0, lying])),
+        "b": ("block", make_pose(t=[0.08, 0, lying])),
+    }
     for ranked, unchanged in ((True, True), (False, False)):
         rng = np.random.default_rng(5)
         parser = SceneParser(LIB)
@@ -133,7 +140,7 @@ def test_an_estimators_best_pose_where_the_object_was_is_no_change():
         est = parser.update(_estimator_frame(gt, rng, 1.0, ranked=ranked))
         assert est.unchanged is unchanged
         assert all(o.mode == TransitionMode.STATIC for o in est.objects)
-    moved = {**gt, "a": ("cube", on_table(-0.065))}
+    moved = {**gt, "a": ("block", make_pose(t=[-0.065, 0, lying]))}
     est = parser.update(_estimator_frame(moved, rng, 2.0))
     assert not est.unchanged
     a = min(est.objects, key=lambda o: o.T_world_obj[0, 3])
@@ -152,13 +159,13 @@ def _block_on(T_cube: np.ndarray, rng) -> np.ndarray:
 
 
 def test_a_thing_rejected_frame_after_frame_is_no_change():
-    """A cube the library's estimator takes for a block (the block explains only part of the
+    """A cube that an estimator takes for a block (the block explains only part of the
     cube's segment: rejected) is rejected again in the next frames without a search: the
     frame is unchanged, the rejection says it is repeated, and a parser resumed from the
     state does the same. When a block really lies there, it is found."""
     from ssp.static import REPEATED
 
-    known = {"a": ("cube", on_table(-0.08))}
+    known = {"a": ("block", make_pose(t=[-0.08, 0, -float(BLOCK.mesh.bounds[0, 2])]))}
     thing = ("cube", on_table(0.08))
     gt = {**known, "d": thing}  # "d": rendered, never proposed as what it is
     rng = np.random.default_rng(7)
@@ -173,7 +180,7 @@ def test_a_thing_rejected_frame_after_frame_is_no_change():
 
     parser = SceneParser(LIB)
     est0 = parser.update(frame(0.0))
-    assert [o.class_name for o in est0.objects] == ["cube"] and not est0.unchanged
+    assert [o.class_name for o in est0.objects] == ["block"] and not est0.unchanged
     assert [r.class_name for r in est0.rejected] == ["block"]
     assert not est0.rejected[0].reason.endswith(REPEATED)
     state = parser.state()
@@ -182,7 +189,7 @@ def test_a_thing_rejected_frame_after_frame_is_no_change():
     for p in (parser, SceneParser.from_state(LIB, state)):
         est1 = p.update(f1)
         assert est1.unchanged, est1.rejected
-        assert [o.class_name for o in est1.objects] == ["cube"]
+        assert [o.class_name for o in est1.objects] == ["block"]
         assert [r.class_name for r in est1.rejected] == ["block"]
         assert est1.rejected[0].reason.endswith(REPEATED)
     # without the memory the same frame is searched
@@ -193,4 +200,4 @@ def test_a_thing_rejected_frame_after_frame_is_no_change():
     T_real[2, 3] = -float(BLOCK.mesh.bounds[0, 2])  # on the table
     est2 = parser.update(frame(2.0, {**known, "d": ("block", T_real)}, T_real))
     assert not est2.unchanged
-    assert sorted(o.class_name for o in est2.objects) == ["block", "cube"]
+    assert sorted(o.class_name for o in est2.objects) == ["block", "block"]

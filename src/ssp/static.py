@@ -39,6 +39,7 @@ log = logging.getLogger(__name__)
 
 __all__ = [
     "RANKED_FIT_SLACK",
+    "RANKED_TURN",
     "REPEATED",
     "SETTLE_MOVED_DEG",
     "SETTLE_MOVED_M",
@@ -61,8 +62,13 @@ SETTLE_MOVED_DEG = 1.0
 
 #: An object whose hypotheses agree with its previous pose only through the best-scored one
 #: (:func:`is_unchanged`) is unchanged when its previous pose fits this frame's data within
-#: this much (fraction of the fit c) of that hypothesis.
+#: this much (fraction of the fit c) of every hypothesis.
 RANKED_FIT_SLACK = 0.05
+
+#: ... and hypotheses turned less than this (rad) from the best one are copies of it (an
+#: estimator's distinct orientations differ by more: its refinement keeps candidates turned
+#: by over 15 deg).
+RANKED_TURN = np.radians(15.0)
 
 
 def _centres(poses: Sequence[np.ndarray], model: ObjectModel) -> np.ndarray:
@@ -87,10 +93,13 @@ def is_unchanged(
     ``unchanged_fit_tolerance``; ``fit_prev`` = c_then), and its ``hypotheses`` (best first)
     agree: the per-axis median of their centres of mass lies within
     ``temporal.static_translation`` of ``T_prev``'s (noisy copies of one pose, some of them
-    outliers), or, when their scores rank them, the best one's does and ``T_prev`` fits the
-    data within :data:`RANKED_FIT_SLACK` of it (an estimator's best pose beside the other
-    orientations a partial view allows, whose median lies anywhere between them; had the
-    object moved, its best pose would fit better than where it was).
+    outliers), or, when their scores rank them, the median of the best one and those turned
+    less than :data:`RANKED_TURN` from it (symmetry-aware) does, and ``T_prev`` fits the data
+    within :data:`RANKED_FIT_SLACK` of every hypothesis. An estimator proposes its best pose
+    and the other orientations a partial view allows, whose median lies anywhere between them;
+    noisy copies of one pose are alike, and the best of them alone does not decide (its score
+    may say nothing); had the object moved, one of its poses would fit better than where it
+    was.
     """
     s, near = config.search, config.temporal.static_translation
     at = _centres([h.T_world_obj for h in hypotheses], model)
@@ -100,9 +109,18 @@ def is_unchanged(
         return False
     if np.linalg.norm(np.median(at, axis=0) - was) < near:
         return True
-    if len({h.score for h in hypotheses}) < 2 or np.linalg.norm(at[0] - was) >= near:
+    if len({h.score for h in hypotheses}) < 2:
         return False
-    return c_now >= scorer.fit_fraction(i, hypotheses[0].T_world_obj) - RANKED_FIT_SLACK
+    best = hypotheses[0].T_world_obj
+    alike = [
+        k
+        for k, h in enumerate(hypotheses)
+        if pose_change(best, h.T_world_obj, model.symmetry, model.center_of_mass)[1] < RANKED_TURN
+    ]
+    if np.linalg.norm(np.median(at[alike], axis=0) - was) >= near:
+        return False
+    best_fit = max(scorer.fit_fraction(i, h.T_world_obj) for h in hypotheses)
+    return c_now >= best_fit - RANKED_FIT_SLACK
 
 
 def settled_objects(
