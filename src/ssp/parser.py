@@ -194,13 +194,7 @@ class SceneParser:
             parser._last_stamp = None if stamp is None else float(stamp)
             parser._counters = {str(k): int(v) for k, v in state.get("id_counters", {}).items()}
             for o in state["objects"]:
-                cls_name = str(o["class"])
-                if cls_name not in library:
-                    raise UnknownObjectError(
-                        f"scene state object {o['id']!r} has class {cls_name!r}, which is not in "
-                        f"the library ({', '.join(library.names) or 'empty'})"
-                    )
-                T = validate_pose(np.asarray(o["T_world_obj"], dtype=float), f"object {o['id']}")
+                cls_name, T = _state_entry(library, o, f"object {o['id']!r}")
                 parser._known[str(o["id"])] = Known(
                     cls_name,
                     T,
@@ -209,13 +203,7 @@ class SceneParser:
                     bool(o.get("held", False)),
                 )
             for k, r in enumerate(state.get("rejected", [])):  # none in older states
-                cls_name = str(r["class"])
-                if cls_name not in library:
-                    raise UnknownObjectError(
-                        f"scene state rejected object {k} has class {cls_name!r}, which is not "
-                        f"in the library ({', '.join(library.names) or 'empty'})"
-                    )
-                T = validate_pose(np.asarray(r["T_world_obj"], dtype=float), f"rejected {k}")
+                cls_name, T = _state_entry(library, r, f"rejected object {k}")
                 parser._rejected.append(Rejected(f"rejected_{k}", cls_name, T, str(r["reason"])))
         except (KeyError, TypeError, ValueError) as exc:
             if isinstance(exc, InvalidPoseError | UnknownObjectError):
@@ -308,6 +296,24 @@ class SceneParser:
             else:
                 self._known[oid] = Known(self._known[oid].class_name, np.array(T, dtype=float))
         return gone
+
+
+def _state_entry(
+    library: ObjectLibrary, entry: Mapping[str, Any], what: str
+) -> tuple[str, np.ndarray]:
+    """``(class, T_world_obj)`` of a scene state's ``entry`` (``what`` names it).
+
+    Raises:
+        UnknownObjectError: its class is not in ``library``.
+        InvalidPoseError: its pose is not rigid.
+    """
+    cls_name = str(entry["class"])
+    if cls_name not in library:
+        raise UnknownObjectError(
+            f"scene state {what} has class {cls_name!r}, which is not in the library "
+            f"({', '.join(library.names) or 'empty'})"
+        )
+    return cls_name, validate_pose(np.asarray(entry["T_world_obj"], dtype=float), what)
 
 
 def _searching(ctx: FrameContext) -> bool:
