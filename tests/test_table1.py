@@ -185,3 +185,34 @@ def test_run_table1_reports_the_tails_on_the_realistic_stream(tmp_path):
     write_table1(result, tmp_path)
     md = (tmp_path / "results.md").read_text()
     assert "Tails" in md and "nominal" in md  # the per-condition table
+
+
+def test_run_table1_without_masks_gives_bare_clouds():
+    """``masks=False`` (``ssp bench table1 --masks none``): ssp gets the cloud without labels
+    and hypotheses without segments; --masks none with estimated hypotheses is refused."""
+    import typer
+
+    from ssp.cli.experiments import _check_table1_options
+    from ssp.library import ObjectLibrary
+    from ssp.sim.generate import generate_sequence
+    from ssp.sim.realistic import RealisticNoise, SceneRealism
+
+    lib = ObjectLibrary.builtin()
+    seq = generate_sequence(
+        "isolated", 5, lib, stages=1, frames_per_stage=2, stride=4,
+        hypotheses=RealisticNoise(), realism=SceneRealism(),
+    )  # fmt: skip
+    with_masks = seq.frame(0)
+    assert with_masks.labels is not None
+    assert any(h.segment is not None for h in with_masks.hypotheses)
+    seen = []
+    result = run_table1([seq], lib, SSPConfig(), methods=("ssp",), masks=False,
+                        on_estimate=lambda s, i, frame, est: seen.append(frame))  # fmt: skip
+    assert len(seen) == len(seq)
+    assert all(f.labels is None for f in seen)
+    assert all(h.segment is None for f in seen for h in f.hypotheses)
+    assert result["methods"]["ssp"]["matched"] > 0
+    _check_table1_options("noisy", "realistic", "none")
+    for bad in (("estimated", "realistic", "none"), ("noisy", "paper", "labels")):
+        with pytest.raises(typer.BadParameter):
+            _check_table1_options(*bad)

@@ -139,6 +139,15 @@ def bench_table1(
             "ssp bench rgb-calibration)."
         ),
     ),
+    masks: str = typer.Option(
+        "instance",
+        "--masks",
+        help=(
+            "instance: every method gets the instance masks (each point's object, each "
+            "hypothesis's segment); none: a bare cloud (ssp clusters it: touching objects and "
+            "distractors are not told apart by labels). none needs --hypotheses noisy."
+        ),
+    ),
     methods: str | None = typer.Option(
         None, help="Comma-separated methods to compare (default: ssp and all six baselines)."
     ),
@@ -152,7 +161,7 @@ def bench_table1(
     results.md and plots."""
     from ssp.eval.table1 import DEFAULT_METHODS, table1_report, write_table1
 
-    _check_table1_options(hypotheses, noise)
+    _check_table1_options(hypotheses, noise, masks)
     names = _methods(methods) if methods else list(DEFAULT_METHODS)
     experiment = check_experiment(experiment)
     parallel = get_parallel(executor, workers, ray_address)
@@ -161,7 +170,7 @@ def bench_table1(
     command = {"experiment": experiment, "sequences": sequences, "seed": seed,
                "models": None if models is None else str(models), "stages": stages,
                "frames_per_stage": frames_per_stage, "stride": stride, "hypotheses": hypotheses,
-               "noise": noise, "methods": names, "vsd": vsd}  # fmt: skip
+               "noise": noise, "masks": masks, "methods": names, "vsd": vsd}  # fmt: skip
     parts = _table1_parts(command, lib, cfg, parallel)
     result = table1_report(parts, names, hypotheses=hypotheses, noise=noise, command=command)
     files = write_table1(result, out)
@@ -171,12 +180,19 @@ def bench_table1(
         console.print(f"wrote [bold]{f}[/]")
 
 
-def _check_table1_options(hypotheses: str, noise: str) -> None:
-    """The --hypotheses and --noise of ``ssp bench table1``."""
+def _check_table1_options(hypotheses: str, noise: str, masks: str = "instance") -> None:
+    """The --hypotheses, --noise and --masks of ``ssp bench table1``."""
     if hypotheses not in ("noisy", "estimated"):
         raise typer.BadParameter("--hypotheses must be 'noisy' or 'estimated'")
     if noise not in ("paper", "realistic", "rgb"):
         raise typer.BadParameter("--noise must be 'paper', 'realistic' or 'rgb'")
+    if masks not in ("instance", "none"):
+        raise typer.BadParameter("--masks must be 'instance' or 'none'")
+    if masks == "none" and hypotheses == "estimated":
+        raise typer.BadParameter(
+            "--masks none needs --hypotheses noisy (the front end on bare clouds is timed by "
+            "ssp bench frame --real-dev and its no-masks scenarios)"
+        )
 
 
 def _table1_parts(command: dict, lib, cfg, parallel) -> list:
@@ -209,6 +225,7 @@ def _table1_parts(command: dict, lib, cfg, parallel) -> list:
             vsd=command["vsd"],
             parallel=parallel,
             on_sequence=lambda done, total: progress.update(task, completed=done),
+            masks=command.get("masks", "instance") == "instance",
         )
 
 

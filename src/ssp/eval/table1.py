@@ -32,7 +32,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
 
@@ -345,6 +345,7 @@ def run_table1(
     vsd: bool = True,
     on_estimate: Callable[..., None] | None = None,
     parallel: Parallel | None = None,
+    masks: bool = True,
 ) -> dict:
     """Run every method on every frame of ``sequences``; a JSON-ready dict (module docstring).
 
@@ -369,6 +370,9 @@ def run_table1(
         parallel: how the sequences are run (:mod:`ssp.pipeline.executor`; default serial).
             The result is the serial one but for the wall times (``sec`` and
             ``sec_per_frame``).
+        masks: the methods get the instance masks (each point's object, each hypothesis's
+            segment); False: a bare cloud (the parser clusters it; touching objects and the
+            distractors' points are then not told apart).
     """
     methods = _check_methods(methods)
     parts = run_table1_parts(
@@ -382,6 +386,7 @@ def run_table1(
         vsd=vsd,
         parallel=parallel,
         on_estimate=on_estimate,
+        masks=masks,
     )
     return merge_table1(parts, methods, gate)
 
@@ -399,6 +404,7 @@ def run_table1_parts(
     parallel: Parallel | None = None,
     on_sequence: Callable[[int, int], None] | None = None,
     on_estimate: Callable[..., None] | None = None,
+    masks: bool = True,
 ) -> list[SequencePart]:
     """One :class:`SequencePart` per sequence, in order (arguments as :func:`run_table1`;
     ``on_sequence(done, total)`` after each sequence).
@@ -423,6 +429,7 @@ def run_table1_parts(
         progress=progress if serial else None,
         on_output=on_output,
         on_estimate=on_estimate,
+        masks=masks,
     )
     names = [
         f"sequence {s + 1}/{n} (seed {seq.seed}, {seq.experiment})"
@@ -459,8 +466,10 @@ def _sequence_part(
     progress: Callable[[str], None] | None = None,
     on_output: Callable[[int, int, str, list[Detection]], None] | None = None,
     on_estimate: Callable[..., None] | None = None,
+    masks: bool = True,
 ) -> SequencePart:
-    """Every method on every frame of one sequence (``item``: its index and the sequence)."""
+    """Every method on every frame of one sequence (``item``: its index and the sequence;
+    ``masks`` as for :func:`run_table1`)."""
     s, seq = item
     estimator_records: list[dict] = []
     if isinstance(seq, SequenceSpec):
@@ -491,7 +500,9 @@ def _sequence_part(
     for i, sf in enumerate(seq.frames):
         if progress is not None:
             progress(f"sequence {s + 1}/{n}, frame {i + 1}/{len(seq)}")
-        frame = seq.frame(i)
+        frame = seq.frame(i, labels=masks)
+        if not masks:  # no segments: a hypothesis says nothing of where its points are
+            frame.hypotheses = [replace(h, segment=None) for h in frame.hypotheses]
         errs, outliers = hypothesis_errors(
             sf.gt, sf.hypotheses, library, gate, None if sources is None else sources[i]
         )
@@ -687,6 +698,7 @@ def table1_report(
     records = [{"sequence": p.index, **r} for p in parts for r in p.estimator_records]
     result["hypotheses"] = hypotheses
     result["noise"] = noise
+    result["masks"] = (command or {}).get("masks", "instance")
     if noise in ("realistic", "rgb"):
         result["protocol_settings"] = {
             "estimator": (RealisticNoise.rgb() if noise == "rgb" else RealisticNoise()).to_dict(),
@@ -709,6 +721,11 @@ def _markdown(result: dict) -> str:
     lines = [
         f"# Table I: {exp} ({result['sequences']} sequences, {result['frames']} frames)",
         "",
+        *(
+            ["Without masks: the methods got bare clouds (`--masks none`).", ""]
+            if result.get("masks") == "none"
+            else []
+        ),
         "Translation and rotation errors are mean ± std (symmetry-aware). Accuracy: error to "
         "the ground truth of every matched object in every frame (occluded included); "
         "precision: spread about the object's mean estimate over each static scene; accuracy, "
