@@ -188,12 +188,14 @@ def test_run_table1_reports_the_tails_on_the_realistic_stream(tmp_path):
 
 
 def test_run_table1_without_masks_gives_bare_clouds():
-    """``masks=False`` (``ssp bench table1 --masks none``): ssp gets the cloud without labels
-    and hypotheses without segments; --masks none with estimated hypotheses is refused."""
+    """``masks=False`` (``ssp bench table1 --masks none``): ssp gets the cloud's clusters, as
+    ``ssp run --masks none`` does, and hypotheses without segments; --masks none with
+    estimated hypotheses is refused."""
     import typer
 
     from ssp.cli.experiments import _check_table1_options
     from ssp.library import ObjectLibrary
+    from ssp.perception.segmentation import segment_cloud
     from ssp.sim.generate import generate_sequence
     from ssp.sim.realistic import RealisticNoise, SceneRealism
 
@@ -209,7 +211,16 @@ def test_run_table1_without_masks_gives_bare_clouds():
     result = run_table1([seq], lib, SSPConfig(), methods=("ssp",), masks=False,
                         on_estimate=lambda s, i, frame, est: seen.append(frame))  # fmt: skip
     assert len(seen) == len(seq)
-    assert all(f.labels is None for f in seen)
+    assert all(f.label_kind == "cluster" and f.labels is not None for f in seen)
+    pc = SSPConfig().perception
+    clusters = segment_cloud(
+        seen[0].points,
+        None,
+        table_height=pc.table_height,
+        tolerance=pc.cluster_tolerance,
+        min_points=pc.min_segment_points,
+    )
+    np.testing.assert_array_equal(seen[0].labels, clusters.labels)
     assert all(h.segment is None for f in seen for h in f.hypotheses)
     assert result["methods"]["ssp"]["matched"] > 0
     _check_table1_options("noisy", "realistic", "none")

@@ -61,6 +61,7 @@ from ssp.eval.tracking import IdSwitches
 from ssp.library.model import ObjectInstance
 from ssp.physics import World
 from ssp.pipeline.executor import Parallel, done_messages, map_items
+from ssp.scene import Frame
 from ssp.sim.sequence import SimSequence
 from ssp.support import build_support_graph
 
@@ -325,6 +326,29 @@ class SequencePart:
     estimator_records: list[dict] = field(default_factory=list)
 
 
+def _bare(frame: Frame, config: SSPConfig) -> Frame:
+    """``frame`` (no labels) as ``ssp run --masks none`` gives it to the parser: its cloud
+    clustered above the table as the front end does it
+    (:func:`ssp.perception.segmentation.segment_cloud`, labels of kind ``cluster``), and its
+    hypotheses without segments (they come from no mask)."""
+    from ssp.perception.segmentation import segment_cloud
+
+    pc = config.perception
+    seg = segment_cloud(
+        frame.points,
+        None,
+        table_height=pc.table_height,
+        tolerance=pc.cluster_tolerance,
+        min_points=pc.min_segment_points,
+    )
+    return replace(
+        frame,
+        labels=seg.labels,
+        label_kind="cluster",
+        hypotheses=[replace(h, segment=None) for h in frame.hypotheses],
+    )
+
+
 def _check_methods(methods: Sequence[str]) -> tuple[str, ...]:
     methods = tuple(methods)
     unknown = [m for m in methods if m not in METHODS]
@@ -371,8 +395,9 @@ def run_table1(
             The result is the serial one but for the wall times (``sec`` and
             ``sec_per_frame``).
         masks: the methods get the instance masks (each point's object, each hypothesis's
-            segment); False: a bare cloud (the parser clusters it; touching objects and the
-            distractors' points are then not told apart).
+            segment); False: the cloud's Euclidean clusters as ``ssp run --masks none`` makes
+            them (:func:`_bare`: touching objects, and an object touching a distractor, are
+            one segment).
     """
     methods = _check_methods(methods)
     parts = run_table1_parts(
@@ -500,9 +525,7 @@ def _sequence_part(
     for i, sf in enumerate(seq.frames):
         if progress is not None:
             progress(f"sequence {s + 1}/{n}, frame {i + 1}/{len(seq)}")
-        frame = seq.frame(i, labels=masks)
-        if not masks:  # no segments: a hypothesis says nothing of where its points are
-            frame.hypotheses = [replace(h, segment=None) for h in frame.hypotheses]
+        frame = seq.frame(i) if masks else _bare(seq.frame(i, labels=False), config)
         errs, outliers = hypothesis_errors(
             sf.gt, sf.hypotheses, library, gate, None if sources is None else sources[i]
         )
