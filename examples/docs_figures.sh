@@ -38,6 +38,7 @@ run t1-isolated-realistic-baselines results.json $SSP bench table1 --experiment 
 run t1-isolated-realistic-single results.json $SSP bench table1 --experiment isolated --sequences 10 --seed 1000 --noise realistic --methods ssp_single
 run t1-isolated-estimated results.json $SSP bench table1 --experiment isolated --sequences 10 --seed 1000 --hypotheses estimated --methods ssp,estimator,icp,icp_filter
 run t1-isolated-rgb results.json $SSP bench table1 --experiment isolated --sequences 10 --seed 1000 --noise rgb
+run t1-isolated-nomask results.json $SSP bench table1 --experiment isolated --sequences 10 --seed 1000 --noise realistic --masks none --methods ssp,ssp_single,estimator,icp_filter
 run t1-structure-paper-ssp results.json $SSP bench table1 --experiment structure --sequences 10 --seed 1000 --methods ssp,ssp_single
 run t1-structure-paper-baselines results.json $SSP bench table1 --experiment structure --sequences 10 --seed 1000 --methods estimator,icp,ray_slide,bestfit,temporal_filter,icp_filter
 run t1-structure-realistic-ssp results.json $SSP bench table1 --experiment structure --sequences 10 --seed 1000 --noise realistic --methods ssp
@@ -45,6 +46,7 @@ run t1-structure-realistic-baselines results.json $SSP bench table1 --experiment
 run t1-structure-realistic-single results.json $SSP bench table1 --experiment structure --sequences 10 --seed 1000 --noise realistic --methods ssp_single
 run t1-structure-estimated results.json $SSP bench table1 --experiment structure --sequences 10 --seed 1000 --hypotheses estimated --methods ssp,estimator,icp,icp_filter
 run t1-structure-rgb results.json $SSP bench table1 --experiment structure --sequences 10 --seed 1000 --noise rgb
+run t1-structure-nomask results.json $SSP bench table1 --experiment structure --sequences 10 --seed 1000 --noise realistic --masks none --methods ssp,ssp_single,estimator,icp_filter
 run tower-realistic-ssp-1000 results.json $SSP bench tower --trials 10 --seed 1000 --noise realistic --methods ssp
 run tower-realistic-single-1000 results.json $SSP bench tower --trials 10 --seed 1000 --noise realistic --methods ssp_single
 run tower-realistic-base-1000 results.json $SSP bench tower --trials 10 --seed 1000 --noise realistic --methods estimator,icp,ray_slide,bestfit,temporal_filter,icp_filter

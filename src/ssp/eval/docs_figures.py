@@ -92,6 +92,8 @@ def _sources() -> dict[str, Source]:
             Source(f"t1-{e}-estimated",
                    f"{base} --hypotheses estimated --methods ssp,estimator,icp,icp_filter"),
             Source(f"t1-{e}-rgb", f"{base} --noise rgb"),
+            Source(f"t1-{e}-nomask", f"{base} --noise realistic --masks none --methods "
+                                     "ssp,ssp_single,estimator,icp_filter"),
         ]  # fmt: skip
     tower = "ssp bench tower --trials 10"
     for s in SEEDS:
@@ -489,6 +491,7 @@ def _figures() -> dict[str, Figure]:
             Figure(f"realistic-conditions-{e}", _realistic(e), _conditions_table(e)),
             Figure(f"table1-paper-{e}", _paper(e), _paper_table(e)),
             Figure(f"rgb-{e}", (f"t1-{e}-rgb",), _realistic_table(e, (f"t1-{e}-rgb",))),
+            Figure(f"nomask-{e}", (f"t1-{e}-nomask",), _realistic_table(e, (f"t1-{e}-nomask",))),
         ]
     return {f.name: f for f in out}
 
