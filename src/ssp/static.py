@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -30,7 +31,7 @@ from ssp.probability import pose_change
 from ssp.scene import Hypothesis
 from ssp.scoring import SceneScorer
 from ssp.search import CandidateSource, prepare_world
-from ssp.verification import check_new, evidence
+from ssp.verification import verify_new
 
 if TYPE_CHECKING:
     from ssp.frame_context import FrameContext
@@ -104,21 +105,24 @@ def is_unchanged(
     s, near = config.search, config.temporal.static_translation
     at = _centres([h.T_world_obj for h in hypotheses], model)
     was = _centres([T_prev], model)[0]
+    agree = bool(np.linalg.norm(np.median(at, axis=0) - was) < near)
+    if not agree:
+        if len({h.score for h in hypotheses}) < 2:
+            return False
+        best = hypotheses[0].T_world_obj
+        alike = [
+            k
+            for k, h in enumerate(hypotheses)
+            if pose_change(best, h.T_world_obj, model.symmetry, model.center_of_mass)[1]
+            < RANKED_TURN
+        ]
+        if np.linalg.norm(np.median(at[alike], axis=0) - was) >= near:
+            return False
     c_now = scorer.fit_fraction(i, T_prev)
     if c_now < s.unchanged_fit_ratio * fit_prev - s.unchanged_fit_tolerance:
         return False
-    if np.linalg.norm(np.median(at, axis=0) - was) < near:
+    if agree:
         return True
-    if len({h.score for h in hypotheses}) < 2:
-        return False
-    best = hypotheses[0].T_world_obj
-    alike = [
-        k
-        for k, h in enumerate(hypotheses)
-        if pose_change(best, h.T_world_obj, model.symmetry, model.center_of_mass)[1] < RANKED_TURN
-    ]
-    if np.linalg.norm(np.median(at[alike], axis=0) - was) >= near:
-        return False
     best_fit = max(scorer.fit_fraction(i, h.T_world_obj) for h in hypotheses)
     return c_now >= best_fit - RANKED_FIT_SLACK
 
@@ -170,43 +174,23 @@ def repeated_rejections(ctx: FrameContext, new: Iterable[str]) -> dict[str, Reje
     object's hypotheses puts it (centres of mass within ``temporal.association_distance``, as
     the association matches an object across frames: an estimator's poses of a thing it does
     not know wander), and the data supports the object at none of its hypotheses
-    (:func:`ssp.verification.check_new`, as after the search). Each is rejected for what the
-    data says at its best hypothesis, said to be repeated (:data:`REPEATED`): an unknown
-    thing on the table (a distractor) is then not a change of the scene, frame after frame."""
-    cfg, trees = ctx.config, ctx.segment_trees
-    out: dict[str, Rejected] = {}
+    (:func:`ssp.verification.verify_new` with the check after the search). Each is rejected
+    for what the data says at its best hypothesis, said to be repeated (:data:`REPEATED`): an
+    unknown thing on the table (a distractor) is then not a change of the scene, frame after
+    frame."""
+    cfg = ctx.config
+    seen_before = []
     for oid in new:
-        hyps, model = ctx.groups[oid], ctx.models[oid]
-        at = _centres([h.T_world_obj for h in hyps], model)
+        model = ctx.models[oid]
+        at = _centres([h.T_world_obj for h in ctx.groups[oid]], model)
         was = _centres([r.T_world_obj for r in ctx.remembered if r.class_name == model.name],
                        model)  # fmt: skip
         gap = np.linalg.norm(at[:, None, :] - was[None, :, :], axis=2)
-        if not (gap < cfg.temporal.association_distance).any():
-            continue
-        tree, spacing, label = trees.tree(oid), trees.spacing(oid), ctx.owner.get(oid)
-        verdicts = [
-            check_new(
-                evidence(
-                    model,
-                    h.T_world_obj,
-                    tree,
-                    ctx.view,
-                    cfg,
-                    own_label=label,
-                    segment_spacing=spacing,
-                ),
-                cfg,
-            )  # fmt: skip
-            for h in hyps
-        ]
-        if any(v.keep for v in verdicts):
-            continue
-        h = hyps[0]
-        out[oid] = Rejected(
-            oid, h.class_name, np.array(h.T_world_obj), verdicts[0].reason + REPEATED,
-            verdicts[0].judged.as_dict(), h.segment,
-        )  # fmt: skip
-    return out
+        if (gap < cfg.temporal.association_distance).any():
+            seen_before.append(oid)
+    rejected = verify_new(seen_before, ctx.groups, ctx.models, ctx.segment_trees, ctx.owner,
+                          ctx.view, cfg, loose=False)  # fmt: skip
+    return {oid: replace(r, reason=r.reason + REPEATED) for oid, r in rejected.items()}
 
 
 def find_static(ctx: FrameContext) -> None:
@@ -240,7 +224,6 @@ def find_static(ctx: FrameContext) -> None:
         cfg.search.unchanged_shortcut
         and bool(known)
         and not ctx.missing
-        and set(detected) - set(new) == set(known)
         and ctx.static == set(known)
     )
     if ctx.unchanged and new:

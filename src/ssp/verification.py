@@ -257,11 +257,14 @@ def verify_new(
     owner: Mapping[str, int],
     view: CameraView | None,
     config: SSPConfig,
+    *,
+    loose: bool = True,
 ) -> dict[str, Rejected]:
     """Parser stage 4: the ``new`` objects (ids) that the data supports at none of their
     hypotheses (``groups``; :func:`check_new` with ``loose``: the raw hypotheses may be a few
     millimetres off), by id, each with the evidence of its best hypothesis. ``segments``: the
-    frame's segment trees; ``owner``: the instance label of each object's segment."""
+    frame's segment trees; ``owner``: the instance label of each object's segment. ``loose``
+    False: the check after the search (:func:`ssp.static.repeated_rejections`)."""
     out: dict[str, Rejected] = {}
     for oid in new:
         best: tuple[tuple, Evidence, Hypothesis] | None = None
@@ -271,14 +274,14 @@ def verify_new(
                 models[oid], h.T_world_obj, tree, view, config,
                 own_label=owner.get(oid), segment_spacing=spacing,
             )  # fmt: skip
-            key = (check_new(ev, config, loose=True).keep, ev.fit, -ev.seen_through)
+            key = (check_new(ev, config, loose=loose).keep, ev.fit, -ev.seen_through)
             if best is None or key > best[0]:
                 best = (key, ev, h)
             if key[0]:  # one hypothesis the data supports keeps the object
                 break
         assert best is not None, "every group has a hypothesis"
         _, ev, h = best
-        verdict = check_new(ev, config, loose=True)
+        verdict = check_new(ev, config, loose=loose)
         if not verdict.keep:
             out[oid] = Rejected(
                 oid, h.class_name, np.array(h.T_world_obj), verdict.reason, ev.as_dict(),
