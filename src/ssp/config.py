@@ -386,6 +386,16 @@ class TemporalConfig(_Section):
             "volume are one object (two objects cannot share a volume); 1 disables merging."
         ),
     )
+    claim_overlap: float = Field(
+        0.1,
+        ge=0,
+        le=1,
+        description=(
+            "A new object's hypothesis without an instance segment that shares this fraction "
+            "of its own or a known object's volume is about that object's data: a pose of it "
+            "(same class), or a competitor for its volume (ssp.shared_volume); 1 disables."
+        ),
+    )
     depth_tolerance: float = Field(
         0.005, gt=0, description="Depth agreement for the visibility tests, m."
     )

@@ -50,6 +50,9 @@ class Known:
     fit: float = 0.0
     #: its data holds it where nothing in the scene does (a data fallback)
     held: bool = False
+    #: why the data did not support it in the frame that set it (a frame without instance
+    #: masks, :func:`ssp.verification.doubt_known`); None: it did, or it was not checked
+    doubt: str | None = None
 
 
 @dataclass(frozen=True)
@@ -195,6 +198,12 @@ class FrameContext:
     reasons: dict[str, str] = _dict()
     #: objects not in the output (removed, rejected, superseded)
     gone: set[str] = field(default_factory=set)
+
+    # ---- re-verification (ssp.verification.doubt_known)
+    #: known object -> why its data does not support it in this frame (remembered)
+    doubts: dict[str, str] = _dict()
+    #: known objects removed for it two frames running -> why
+    doubted: dict[str, str] = _dict()
 
     # ---- re-identification (ssp.temporal.reidentify_moved)
     #: new id -> the known id it is (moved)

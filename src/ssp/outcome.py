@@ -84,8 +84,9 @@ def transition_modes(ctx: FrameContext) -> None:
             )
         )
         ctx.next_known[out_id] = Known(
-            model.name, T, ephemeral, float(score.fit[i]), held=oid in ctx.fallbacks
-        )
+            model.name, T, ephemeral, float(score.fit[i]), held=oid in ctx.fallbacks,
+            doubt=ctx.doubts.get(oid),
+        )  # fmt: skip
 
 
 def _with_correction(ctx: FrameContext, oid: str, reason: str) -> str:
@@ -134,7 +135,7 @@ def scene_estimate(ctx: FrameContext) -> None:
             ctx.prev_pose[oid],
             TransitionMode.REMOVED,
             source="removed",
-            reason=ctx.verdicts[oid].reason if oid in ctx.verdicts else "",
+            reason=ctx.verdicts[oid].reason if oid in ctx.verdicts else ctx.doubted.get(oid, ""),
         )  # fmt: skip
         for oid in sorted(ctx.removed)
         if oid not in ctx.moved_away

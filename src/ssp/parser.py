@@ -35,11 +35,13 @@ the module of its concept (docs/algorithm.md maps them to the paper):
     poses, or put where their data puts them;
 15. **final verdicts** (:func:`ssp.verification.judge_final`): an unverified object stays only
     when it holds others up;
-16. **re-identification** (:func:`ssp.temporal.reidentify_moved`): a new object where a known
+16. **re-verification** (:func:`ssp.verification.doubt_known`): without instance masks, a
+    known object its data contradicts two frames running leaves;
+17. **re-identification** (:func:`ssp.temporal.reidentify_moved`): a new object where a known
     one of its class vanished is that object, moved;
-17. **transition modes** (:func:`ssp.outcome.transition_modes`): output poses (symmetric
+18. **transition modes** (:func:`ssp.outcome.transition_modes`): output poses (symmetric
     snapping), modes, reasons, warnings;
-18. **outcome** (:func:`ssp.outcome.scene_estimate`): the :class:`SceneEstimate`.
+19. **outcome** (:func:`ssp.outcome.scene_estimate`): the :class:`SceneEstimate`.
 
 The parser then commits what the next frame remembers. A frame that raises leaves the state as
 it was.
@@ -75,7 +77,13 @@ from ssp.segments import segment_frame
 from ssp.static import find_static, keep_unchanged
 from ssp.temporal import associate_frame, reidentify_moved
 from ssp.timing import StageTimer
-from ssp.verification import fall_back_to_data, judge_final, place_new, verify_new_objects
+from ssp.verification import (
+    doubt_known,
+    fall_back_to_data,
+    judge_final,
+    place_new,
+    verify_new_objects,
+)
 
 __all__ = [
     "STAGES",
@@ -155,6 +163,7 @@ class SceneParser:
                     "ephemeral": k.ephemeral,
                     "fit": k.fit,
                     "held": k.held,
+                    "doubt": k.doubt,
                 }
                 for oid, k in sorted(self._known.items())
             ],
@@ -201,6 +210,7 @@ class SceneParser:
                     bool(o.get("ephemeral")),
                     float(o.get("fit", 0.0)),
                     bool(o.get("held", False)),
+                    None if o.get("doubt") is None else str(o["doubt"]),
                 )
             for k, r in enumerate(state.get("rejected", [])):  # none in older states
                 cls_name, T = _state_entry(library, r, f"rejected object {k}")
@@ -341,6 +351,7 @@ STAGES: tuple[Stage, ...] = (
     Stage("fallbacks", fall_back_to_data),
     Stage("placement", place_new, timer="verification"),
     Stage("final verdicts", judge_final),
+    Stage("re-verification", doubt_known, timer="verification"),
     Stage("re-identification", reidentify_moved),
     Stage("transition modes", transition_modes),
     Stage("outcome", scene_estimate),

@@ -6,7 +6,9 @@ decides, for each undetected known object at its previous pose, in this order:
 ``visible``
     still visible (:func:`ssp.verification.still_visible`: its visible surface explained,
     its volume not seen empty): kept where it was (a missed detection), whatever other
-    objects' hypotheses say (the data outranks them; the paper tests replacement first);
+    objects' hypotheses say (the data outranks them; the paper tests replacement first),
+    unless a newcomer of another class explains the data in its volume better (*contested*,
+    :mod:`ssp.shared_volume`, without instance masks): then replacement is tested first;
 ``replaced``
     another object's first guess fills ``temporal.replaced_overlap`` of its volume: removed;
 ``seen_empty``
@@ -99,6 +101,7 @@ def triage(
     owner: Mapping[str, int],
     view: CameraView | None,
     config: SSPConfig,
+    contested: Mapping[str, str] | None = None,
 ) -> dict[str, Triage]:
     """State of each undetected object in ``missing`` (module docstring).
 
@@ -108,14 +111,20 @@ def triage(
         segments: each object's segment (world points), ``owner`` the instance label it came
             from when it is an instance segment.
         view: the frame's camera view (None without a camera pose).
+        contested: id -> why a newcomer of another class explains the data in its volume
+            better (:mod:`ssp.shared_volume`): replacement is tested before visibility (its
+            data are the newcomer's, when the newcomer is there).
     """
     t = config.temporal
+    contested = contested or {}
     out: dict[str, Triage] = {}
     det_ids = sorted(first)
     for oid in missing:
         model, T = models[oid], prev_pose[oid]
         ev = evidence(model, T, segments.get(oid), view, config, own_label=owner.get(oid))
-        if still_visible(ev, config):  # the data says it is there: no hypothesis overrules it
+        # the data says it is there: no hypothesis overrules it, but one that explains the
+        # data in its volume better (contested)
+        if oid not in contested and still_visible(ev, config):
             reason = f"undetected but still visible: explains {100 * ev.fit:.0f} % of its surface"
             out[oid] = Triage(TriageState.VISIBLE, reason, ev)
             continue
@@ -128,10 +137,18 @@ def triage(
                 pairs=[(0, j) for j in range(1, len(members))],
             )[0]
             if frac >= t.replaced_overlap:
-                out[oid] = Triage(
-                    TriageState.REPLACED, f"another object fills {100 * frac:.0f} % of it"
-                )
+                why = f"another object fills {100 * frac:.0f} % of it"
+                if oid in contested:
+                    why += f": {contested[oid]}"
+                out[oid] = Triage(TriageState.REPLACED, why)
                 continue
+        if oid in contested and still_visible(ev, config):
+            reason = (
+                f"undetected but still visible: explains {100 * ev.fit:.0f} % of its surface "
+                f"(contested: {contested[oid]}, which is elsewhere)"
+            )
+            out[oid] = Triage(TriageState.VISIBLE, reason, ev)
+            continue
         if view is not None and ev.seen_empty(config):
             reason = f"its volume is seen empty ({100 * ev.seen_through:.0f} % seen through)"
             out[oid] = Triage(TriageState.SEEN_EMPTY, reason, ev)
@@ -210,6 +227,7 @@ def triage_undetected(ctx: FrameContext) -> None:
     verdicts = triage(
         [oid for oid in ctx.missing if oid not in claimed],
         ctx.models, ctx.prev_pose, ctx.first, ctx.segments, ctx.owner, ctx.view, ctx.config,
+        ctx.assoc.contested,
     )  # fmt: skip
     reason = "undetected; its segment's points lie on it"
     verdicts.update({oid: Triage(TriageState.VISIBLE, reason) for oid in claimed})

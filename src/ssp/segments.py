@@ -53,6 +53,9 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
+#: Crops leave out points less than this high (m) above the table: they are the table's.
+TABLE_CLEARANCE = 0.002
+
 #: Model samples used to vote for an object's label.
 _VOTE_SAMPLES = 200
 #: Leaf size of the frame's point tree for the votes (pykdtree, exact nearest neighbours: built
@@ -114,7 +117,7 @@ def object_segments(
     *,
     radius: float,
     table: bool = True,
-    table_clearance: float = 0.002,
+    table_clearance: float = TABLE_CLEARANCE,
     labels: Mapping[str, int] | None = None,
     members: dict[str, int] | None = None,
     known: Collection[str] = (),

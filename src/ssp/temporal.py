@@ -17,7 +17,7 @@ import itertools
 import logging
 import math
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -26,13 +26,15 @@ from scipy.spatial.transform import Rotation
 
 from ssp.config import TemporalConfig
 from ssp.errors import DuplicateObjectError, SSPError
+from ssp.estimate import Rejected
 from ssp.first_guess import first_guess
 from ssp.library.symmetry import Symmetry
 from ssp.overlap import same_volume
 from ssp.probability import pose_change
 from ssp.retention import TriageState
 from ssp.scene import FrameError, Hypothesis, TransitionMode
-from ssp.segments import explained_fraction
+from ssp.segments import TABLE_CLEARANCE, explained_fraction
+from ssp.shared_volume import resolve_shared_volumes
 
 if TYPE_CHECKING:
     from ssp.frame_context import FrameContext
@@ -604,6 +606,12 @@ class Association:
     confused: dict[str, str]
     #: dropped new group -> the undetected object it duplicates
     duplicates: dict[str, str]
+    #: new groups without segments dropped for lying in a known object's volume
+    #: (:mod:`ssp.shared_volume`), with the reason
+    shared: dict[str, Rejected] = field(default_factory=dict)
+    #: known object -> why a newcomer of another class holds its volume (triage tests
+    #: replacement first)
+    contested: dict[str, str] = field(default_factory=dict)
 
 
 def counted_id_factory(counters: dict[str, int], taken: set[str]) -> Callable[[str], str]:
@@ -696,6 +704,14 @@ def _associate(ctx: FrameContext) -> Association:
         return (best + (CLASS_MARGIN if oid in known else 0.0), float(hyps[0].score))
 
     groups, confused = one_object_per_segment(groups, rank)
+    # without instance masks, the volume says which object a hypothesis is about
+    instance = labels is not None and frame.label_kind == "instance"
+    shared = resolve_shared_volumes(
+        groups, {} if instance else previous, library, frame.points,
+        view=ctx.view, config=cfg, class_margin=CLASS_MARGIN,
+        floor=TABLE_CLEARANCE if ctx.table else None,
+    )  # fmt: skip
+    groups = shared.groups
     groups = {oid: hyps[:k_max] for oid, hyps in groups.items()}
     claimed: dict[str, int] = {}
     duplicates: dict[str, str] = {}
@@ -716,7 +732,9 @@ def _associate(ctx: FrameContext) -> Association:
             log.info("new %s: its segment lies on %s where it was; a duplicate", oid, u)
     for oid, winner in confused.items():
         log.info("%s dropped: its segment is %s's (one object per segment)", oid, winner)
-    return Association(groups, counters, claimed, confused, duplicates)
+    return Association(
+        groups, counters, claimed, confused, duplicates, shared.rejected, shared.contested
+    )
 
 
 def reidentify_moved(ctx: FrameContext) -> None:
