@@ -56,7 +56,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ssp.geometry import invert, validate_pose
+from ssp.geometry import invert, transform_points, validate_pose
 from ssp.kdtree import KDTree
 
 #: Smallest camera-frame depth (m) taken as "in front of the camera"; avoids dividing by ~0.
@@ -237,7 +237,7 @@ class CameraView:
         self._T_cam_world = invert(self._T_world_cam)
         self._depth_tolerance = _positive(depth_tolerance, "depth_tolerance", allow_zero=True)
 
-        p_cam = pts @ self._T_cam_world[:3, :3].T + self._T_cam_world[:3, 3]
+        p_cam = transform_points(self._T_cam_world, pts)
         front = p_cam[:, 2] > MIN_DEPTH
         if not front.all():  # (a copy of the whole cloud otherwise)
             p_cam = p_cam[front]
@@ -335,7 +335,7 @@ class CameraView:
             )
         cam_centre = self._T_world_cam[:3, 3]
         facing = np.einsum("ij,ij->i", nrm, cam_centre - pts) > 0.0
-        p_cam = pts @ self._T_cam_world[:3, :3].T + self._T_cam_world[:3, 3]
+        p_cam = transform_points(self._T_cam_world, pts)
         facing &= p_cam[:, 2] > MIN_DEPTH
         self_hidden = np.zeros(len(pts), dtype=bool)
         if self_spacing is not None and facing.any():
@@ -418,7 +418,7 @@ class CameraView:
         out = np.zeros(len(pts), dtype=bool)
         if self._tree is None or not len(pts):
             return out
-        p_cam = pts @ self._T_cam_world[:3, :3].T + self._T_cam_world[:3, 3]
+        p_cam = transform_points(self._T_cam_world, pts)
         ok = p_cam[:, 2] > MIN_DEPTH
         depth = p_cam[ok, 2]
         found, idx = self._nearest_rays(p_cam[ok])
