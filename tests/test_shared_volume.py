@@ -19,6 +19,7 @@ from ssp.parser import SceneParser
 from ssp.probability import pose_change
 from ssp.scene import Hypothesis
 from ssp.shared_volume import data_rank, local_points, near_surface, resolve_shared_volumes
+from ssp.verification import evidence
 from test_parser import BLOCK, CUBE, LIB, cloud, frame, on_table
 
 RADIUS = 0.004
@@ -99,9 +100,10 @@ def test_data_rank_prefers_the_model_that_is_there():
     tree = cKDTree(local)
     shared = near_surface(local, CUBE, P, RADIUS) | near_surface(local, BLOCK, P, RADIUS)
     cfg = _config()
-    cube = data_rank([(CUBE, P)], local, tree, shared, None, cfg)
-    assert cube > 0.6 and data_rank([(BLOCK, P)], local, tree, shared, None, cfg) < cube
-    assert data_rank([(CUBE, P)], local[:0], None, shared[:0], None, cfg) == 0.0
+    fits = [evidence(m, P, tree, None, cfg).fit for m in (CUBE, BLOCK)]
+    cube = data_rank([(CUBE, P)], fits[:1], local, shared, RADIUS)
+    assert cube > 0.6 and data_rank([(BLOCK, P)], fits[1:], local, shared, RADIUS) < cube
+    assert data_rank([(CUBE, P)], fits[:1], local[:0], shared[:0], RADIUS) == 0.0
 
 
 def test_a_newcomer_over_two_known_objects_is_compared_with_both():

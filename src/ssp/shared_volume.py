@@ -52,7 +52,14 @@ from ssp.scene import Hypothesis
 from ssp.verification import evidence
 from ssp.visibility import CameraView
 
-__all__ = ["SharedVolumes", "data_rank", "local_points", "near_surface", "resolve_shared_volumes"]
+__all__ = [
+    "SharedVolumes",
+    "data_rank",
+    "local_points",
+    "near_surface",
+    "resolve_shared_volumes",
+    "thin",
+]
 
 log = logging.getLogger(__name__)
 
@@ -96,37 +103,56 @@ def local_points(
     return points[keep]
 
 
+def thin(points: np.ndarray, voxel: float) -> np.ndarray:
+    """Indices (ascending) of one point of ``points`` ``(K, 3)`` per occupied voxel of side
+    ``voxel`` (m): the first in order."""
+    if not len(points):
+        return np.zeros(0, dtype=np.int64)
+    ijk = np.floor(np.asarray(points) / voxel).astype(np.int64)
+    ijk -= ijk.min(axis=0)
+    span = ijk.max(axis=0) + 1
+    keys = (ijk[:, 0] * span[1] + ijk[:, 1]) * span[2] + ijk[:, 2]
+    _, first = np.unique(keys, return_index=True)
+    return np.sort(first)
+
+
 def near_surface(
     points: np.ndarray, model: ObjectModel, T: np.ndarray, radius: float
 ) -> np.ndarray:
     """Mask of ``points`` ``(K, 3)`` (world, m) within ``radius`` (m) of ``model``'s surface
-    samples at ``T``."""
+    samples at ``T`` (only the points in its bounding sphere grown by ``radius`` are looked
+    up)."""
+    points = np.asarray(points, dtype=float)
+    out = np.zeros(len(points), dtype=bool)
     if not len(points):
-        return np.zeros(0, dtype=bool)
-    local = (np.asarray(points, dtype=float) - T[:3, 3]) @ T[:3, :3]  # R^T (p - t)
+        return out
+    c = T[:3, :3] @ np.asarray(model.center_of_mass, dtype=float) + T[:3, 3]
+    near = np.flatnonzero(np.sum((points - c) ** 2, axis=1) <= (model.d_max + radius) ** 2)
+    if not len(near):
+        return out
+    local = (points[near] - T[:3, 3]) @ T[:3, :3]  # R^T (p - t)
     dist, _ = model.surface_tree.query(local, k=1, distance_upper_bound=radius)
-    return np.isfinite(dist)
+    out[near] = np.isfinite(dist)
+    return out
 
 
 def data_rank(
     objects: Sequence[tuple[ObjectModel, np.ndarray]],
+    fits: Sequence[float],
     points: np.ndarray,
-    tree: cKDTree | None,
     shared: np.ndarray,
-    view: CameraView | None,
-    config: SSPConfig,
+    radius: float,
 ) -> float:
     """How well ``objects`` (``(model, T_world_obj)`` pairs: one newcomer, or the known
     objects whose volume it claims) explain the data where they and a competitor are: the F1
-    of their visible surface explained (the mean of :func:`ssp.verification.evidence`'s
-    ``fit``: the samples the camera could see with a point of ``points`` near; a face the
-    camera sees through counts against it) and the fraction of the ``shared`` points (mask of
-    ``points``: those near any competitor's surface) near any of their surfaces. ``tree``:
-    KD-tree of ``points`` (``(K, 3)``, world, m; None when empty). 0 without points."""
-    if tree is None or not shared.any() or not objects:
+    of their visible surface explained (the mean of their ``fits``,
+    :func:`ssp.verification.evidence`'s ``fit``: the samples the camera could see with a
+    point near; a face the camera sees through counts against it) and the fraction of the
+    ``shared`` points (mask of ``points`` ``(K, 3)``, world, m: those near any competitor's
+    surface) within ``radius`` (m) of any of their surfaces. 0 without shared points."""
+    if not shared.any() or not objects:
         return 0.0
-    fit = float(np.mean([evidence(m, T, tree, view, config).fit for m, T in objects]))
-    radius = config.data.inlier_radius + config.library.surface_spacing
+    fit = float(np.mean(fits))
     near = np.zeros(int(shared.sum()), dtype=bool)
     for m, T in objects:
         near |= near_surface(points[shared], m, T, radius)
@@ -197,6 +223,8 @@ class _Rules:
     config: SSPConfig
     class_margin: float
     floor: float | None
+    _cloud: tuple[np.ndarray, cKDTree] | None = None
+    _fits: dict[tuple[str, bytes], float] = field(default_factory=dict)
 
     def settle(self, oid: str, out: SharedVolumes) -> None:
         """New group ``oid``'s hypotheses that claim a known object join it (same class) or
@@ -241,6 +269,34 @@ class _Rules:
         out.rejected[oid] = Rejected(oid, h.class_name, T, reason, ev)
         log.info("%s (%s) dropped: %s", oid, h.class_name, reason)
 
+    def cloud(self) -> tuple[np.ndarray, cKDTree]:
+        """The frame's points above the floor, one per voxel of the inlier radius (the ranks
+        are fractions of surface, not of point density; a real capture's crop around a tool
+        holds tens of thousands of points), and their KD-tree; made once, when a competition
+        needs them."""
+        if self._cloud is None:
+            pts = self.points
+            if self.floor is not None:
+                pts = pts[pts[:, 2] >= self.floor]
+            pts = pts[thin(pts, self.radius)]
+            self._cloud = (pts, cKDTree(pts if len(pts) else np.zeros((1, 3)) + np.inf))
+        return self._cloud
+
+    def fit(self, model: ObjectModel, T: np.ndarray) -> float:
+        """:func:`ssp.verification.evidence`'s ``fit`` of ``model`` at ``T`` on the thinned
+        cloud (cached for the frame)."""
+        key = (model.name, np.asarray(T, dtype=float).tobytes())
+        if key not in self._fits:
+            pts, tree = self.cloud()
+            ev = evidence(model, T, tree if len(pts) else None, self.view, self.config)
+            self._fits[key] = ev.fit
+        return self._fits[key]
+
+    @property
+    def radius(self) -> float:
+        """The inlier radius of the ranks, m: the data term's plus the surface spacing."""
+        return self.config.data.inlier_radius + self.config.library.surface_spacing
+
     def claims(self, h: Hypothesis) -> list[tuple[float, str]]:
         """``[(overlap, known id)]`` of the known objects whose volume ``h`` shares (at least
         ``fraction`` of either's, at any of the object's poses)."""
@@ -269,27 +325,26 @@ class _Rules:
         ``ks`` whose volume it claims better than they do together (each at its better pose),
         by more than ``class_margin``? ``(wins, why, h's rank, theirs)`` (:func:`data_rank`:
         a block proposed over two cubes is compared with both, not with each)."""
-        cfg = self.config
+        cfg, radius = self.config, self.radius
         model = self.library[h.class_name]
         T = np.asarray(h.T_world_obj, dtype=float)
         others = [(self.library[self.known[k][0]], U) for k in ks for U in self.where[k]]
         local = local_points(
-            self.points, [model, *(m for m, _ in others)], [T, *(U for _, U in others)],
-            cfg.forces.max_distance, self.floor,
+            self.cloud()[0], [model, *(m for m, _ in others)], [T, *(U for _, U in others)],
+            cfg.forces.max_distance, None,
         )  # fmt: skip
-        tree = cKDTree(local) if len(local) else None
-        radius = cfg.data.inlier_radius + cfg.library.surface_spacing
         shared = near_surface(local, model, T, radius)
         for m, U in others:
             shared |= near_surface(local, m, U, radius)
-        mine = data_rank([(model, T)], local, tree, shared, self.view, cfg)
+        mine = data_rank([(model, T)], [self.fit(model, T)], local, shared, radius)
         best = []  # each known object at its better pose
         for k in ks:
             m = self.library[self.known[k][0]]
-            ranked = [(data_rank([(m, U)], local, tree, shared, self.view, cfg), U)
+            ranked = [(data_rank([(m, U)], [self.fit(m, U)], local, shared, radius), U)
                       for U in self.where[k]]  # fmt: skip
             best.append((m, max(ranked, key=lambda r: r[0])[1]))
-        theirs = data_rank(best, local, tree, shared, self.view, cfg)
+        fits = [self.fit(m, U) for m, U in best]
+        theirs = data_rank(best, fits, local, shared, radius)
         names = ", ".join(ks)
         if mine > theirs + self.class_margin:
             why = (
