@@ -56,11 +56,15 @@ def test_a_pose_of_a_known_object_joins_it():
     P = on_table(BLOCK)
     far = _shifted(P, dx=0.025)  # beyond the block's 20 mm gate, half inside it
     known = {"block_0": ("block", P)}
-    groups = {"block_0": [Hypothesis("block", P, 0.5)], "block_1": [Hypothesis("block", far, 0.9)]}
+    groups = {
+        "block_0": [Hypothesis("block", P, 0.5, instance_id="block_0")],
+        "block_1": [Hypothesis("block", far, 0.9, instance_id="block_1")],
+    }
     points, _ = cloud({"a": ("block", P)})
     out = _resolve(groups, known, points)
     assert list(out.groups) == ["block_0"]
     assert [h.score for h in out.groups["block_0"]] == [0.9, 0.5]  # best first
+    assert {h.instance_id for h in out.groups["block_0"]} == {"block_0"}
     assert out.joined == {"block_0": ["block_1"]} and not out.contested
     assert "volume of block_0" in out.rejected["block_1"].reason
     # hypotheses from instance segments are the segments' business; the rule off: untouched

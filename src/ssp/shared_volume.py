@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -237,7 +237,7 @@ class _Rules:
             same = [c for c in claims if self.known[c[1]][0] == h.class_name]
             if same:  # a pose of that object: it joins its group
                 k = max(same)[1]
-                out.groups.setdefault(k, []).append(h)
+                out.groups.setdefault(k, []).append(replace(h, instance_id=k))
                 if oid not in out.joined.setdefault(k, []):
                     out.joined[k].append(oid)
                 continue
