@@ -100,7 +100,7 @@ def test_a_newcomer_that_explains_a_known_objects_volume_better_contests_it():
 def test_data_rank_prefers_the_model_that_is_there():
     P = on_table(CUBE)
     points, _ = cloud({"a": ("cube", P)})
-    local = local_points(points, [CUBE], [P], 0.01, 0.002)
+    local = local_points(points[points[:, 2] >= 0.002], [CUBE], [P], 0.01)  # off the table
     tree = cKDTree(local)
     shared = near_surface(local, CUBE, P, RADIUS) | near_surface(local, BLOCK, P, RADIUS)
     cfg = _config()

@@ -293,7 +293,7 @@ def _doubt(
     (``correction.max_seen_through``), or with instance labels its silhouette covers too
     little of its segment (``correction.min_coverage``)."""
     cfg, tol = config.correction, view.depth_tolerance
-    instance = frame.labels is not None and frame.label_kind == "instance"
+    instance = frame.instance_masks
     fit = _fit(look, _silhouette(look, label, instance), tol)
     if fit < cfg.min_fit:
         return f"{fit:.2f} of its unhidden samples fit", fit
@@ -322,7 +322,7 @@ def correct_hypothesis(
     (:func:`claimed_labels`); ``look``: its :func:`_look` at ``h``'s pose when already made."""
     cfg = config.correction
     tol = view.depth_tolerance
-    instance = frame.labels is not None and frame.label_kind == "instance"
+    instance = frame.instance_masks
     T = np.asarray(h.T_world_obj, dtype=float)
     look = _look(view, model, T) if look is None else look
     label = _silhouette_label(look, h.segment, cfg.min_silhouette) if instance else None
@@ -387,7 +387,7 @@ def median_slide(
     ``h``'s pose slid along its viewing ray by the median of ``(o_i - z_i) / u_z`` over its
     silhouette samples (step 1 of the module docstring, no window, no checks), or None when
     its silhouette meets no observed object surface. (4, 4), m."""
-    instance = frame.labels is not None and frame.label_kind == "instance"
+    instance = frame.instance_masks
     T = np.asarray(h.T_world_obj, dtype=float)
     look = _look(view, model, T)
     label = _silhouette_label(look, h.segment, 0.5) if instance else None
@@ -422,7 +422,7 @@ def claimed_labels(
     duplicate beside the object). Empty without instance labels. ``looks``: each hypothesis'
     :func:`_look` when already made."""
     claims: set[int] = set()
-    if frame.labels is None or frame.label_kind != "instance":
+    if not frame.instance_masks:
         return claims
     cfg = config.correction
     for i, h in enumerate(hypotheses):

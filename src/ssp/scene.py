@@ -102,6 +102,11 @@ class Frame:
     moved: dict[str, np.ndarray | None] | None = None
     label_kind: str = "instance"
 
+    @property
+    def instance_masks(self) -> bool:
+        """Whether the frame has instance masks: labels, each one object's segment."""
+        return self.labels is not None and self.label_kind == "instance"
+
     def validate(self, library: Mapping[str, Any]) -> Frame:
         """Return a cleaned copy of this frame, or raise :class:`FrameError`.
 

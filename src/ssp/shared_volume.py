@@ -87,20 +87,16 @@ def local_points(
     models: list[ObjectModel],
     poses: list[np.ndarray],
     margin: float,
-    floor: float | None,
 ) -> np.ndarray:
     """The points ``(N, 3)`` (world, m) inside the box around the bounding spheres of
-    ``models`` at ``poses`` grown by ``margin`` (m), above ``floor`` (m; None: all)."""
+    ``models`` at ``poses`` grown by ``margin`` (m)."""
     lo = np.full(3, np.inf)
     hi = np.full(3, -np.inf)
     for model, T in zip(models, poses, strict=True):
         c = T[:3, :3] @ np.asarray(model.center_of_mass, dtype=float) + T[:3, 3]
         r = model.d_max + margin
         lo, hi = np.minimum(lo, c - r), np.maximum(hi, c + r)
-    keep = np.all((points >= lo) & (points <= hi), axis=1)
-    if floor is not None:
-        keep &= points[:, 2] >= floor
-    return points[keep]
+    return points[np.all((points >= lo) & (points <= hi), axis=1)]
 
 
 def thin(points: np.ndarray, voxel: float) -> np.ndarray:
@@ -331,7 +327,7 @@ class _Rules:
         others = [(self.library[self.known[k][0]], U) for k in ks for U in self.where[k]]
         local = local_points(
             self.cloud()[0], [model, *(m for m, _ in others)], [T, *(U for _, U in others)],
-            cfg.forces.max_distance, None,
+            cfg.forces.max_distance,
         )  # fmt: skip
         shared = near_surface(local, model, T, radius)
         for m, U in others:

@@ -705,9 +705,8 @@ def _associate(ctx: FrameContext) -> Association:
 
     groups, confused = one_object_per_segment(groups, rank)
     # without instance masks, the volume says which object a hypothesis is about
-    instance = labels is not None and frame.label_kind == "instance"
     shared = resolve_shared_volumes(
-        groups, {} if instance else previous, library, frame.points,
+        groups, {} if frame.instance_masks else previous, library, frame.points,
         view=ctx.view, config=cfg, class_margin=CLASS_MARGIN,
         floor=TABLE_CLEARANCE if ctx.table else None,
     )  # fmt: skip

@@ -344,9 +344,8 @@ def verify_final(
             T.copy(),
             verdict,
         )
-    v = config.verification
     strength = ev.fit if ev.explained is None else ev.explained
-    if stability < v.fall_stability and strength < v.stand_explained:
+    if falls_unheld(stability, strength, config):
         what = "of its visible surface" if ev.explained is None else "of its segment"
         return Verdict(
             False,
@@ -645,27 +644,33 @@ def judge_final(ctx: FrameContext) -> None:
 
 def doubt(ev: Evidence, stability: float, config: SSPConfig) -> tuple[str, bool] | None:
     """Why the data contradicts a known object at its final pose, or None: enough of it is
-    visible (``verification.min_visible_samples``: a hidden object is not doubted) and its
-    volume is seen empty, or its visible surface is not explained (``fit <
-    verification.min_fit``), or it would fall where it is and its data is weak (the rule of
+    visible (``verification.min_visible_samples``: a hidden object is not doubted) and it fails
+    :func:`check_new` (its volume seen empty, its visible surface not explained), or it would
+    fall where it is and its data is weak (:func:`falls_unheld`, the rule of
     :func:`verify_final`). A known object is never judged by the share of a segment it
     accounts for: without its own instance segment that share says nothing. Returns ``(why,
     falls)``: ``falls`` for the last rule (a better-fitting hypothesis would not stand
     either)."""
-    v = config.verification
-    if ev.visible < v.min_visible_samples:
+    if ev.visible < config.verification.min_visible_samples:
         return None
-    if ev.seen_empty(config):
-        return f"its volume is seen empty ({100 * ev.seen_through:.0f} % seen through)", False
-    if ev.fit < v.min_fit:
-        pct, lim = 100 * ev.fit, 100 * v.min_fit
-        return f"explains {pct:.0f} % of its visible surface (< {lim:.0f})", False
-    if stability < v.fall_stability and ev.fit < v.stand_explained:
+    verdict = check_new(replace(ev, explained=None), config)
+    if not verdict.keep:
+        return verdict.reason, False
+    if falls_unheld(stability, ev.fit, config):
         return (
             f"would fall where it is (stability term {stability:.0f}) and explains only "
             f"{100 * ev.fit:.0f} % of its visible surface"
         ), True
     return None
+
+
+def falls_unheld(stability: float, strength: float, config: SSPConfig) -> bool:
+    """An object whose stability term says it would fall (below
+    ``verification.fall_stability``) stands only with strong data (``strength``, a fit or
+    an explained fraction, at least ``verification.stand_explained``: held by something
+    undetected); a cube proposed on a ball explains half of the ball and cannot rest on it."""
+    v = config.verification
+    return stability < v.fall_stability and strength < v.stand_explained
 
 
 #: A doubted known object whose hypothesis the data supports (:func:`check_new`) and fits by
@@ -708,7 +713,7 @@ def doubt_known(ctx: FrameContext) -> None:
     cfg, score, world = ctx.config, ctx.scene_score, ctx.sim.world
     ids = score.ids
     ctx.doubts, ctx.doubted = {}, {}
-    if ctx.frame.labels is not None and ctx.frame.label_kind == "instance":
+    if ctx.frame.instance_masks:
         return  # instance masks: every object's segment is its own, or it has none
     for oid in ids:
         if oid not in ctx.known or oid in ctx.gone:
