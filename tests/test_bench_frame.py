@@ -72,8 +72,15 @@ def test_targets_per_experiment():
         {"scenario": "sim structure: masks, hypotheses given", "median": 0.25, "p95": 0.6},
         {"scenario": "sim isolated: masks, hypotheses given", "median": 0.35, "p95": 0.45},
         {"scenario": "sim isolated: no masks, built-in estimator", "median": 0.9, "p95": 2.0},
+        {
+            "scenario": "sim structure: no masks, built-in estimator",
+            "median": 0.5,
+            "p95": 0.6,
+            "failed": 1,
+        },  # fast, but a frame raised
         {"scenario": "real: test16 labels", "median": 9.0, "p95": 9.0},
     ]
+    rows = [{"failed": 0, **r} for r in rows]
     got = {(t["scenario"], t["statistic"]): t["met"] for t in check_targets(rows)}
     assert got == {
         ("sim structure: masks, hypotheses given", "median"): True,
@@ -81,6 +88,7 @@ def test_targets_per_experiment():
         ("sim isolated: masks, hypotheses given", "median"): False,
         ("sim isolated: masks, hypotheses given", "p95"): True,
         ("sim isolated: no masks, built-in estimator", "median"): True,
+        ("sim structure: no masks, built-in estimator", "median"): False,
     }
 
 
@@ -116,8 +124,8 @@ def test_markdown_side_by_side():
               "same_results": {row["scenario"]: "identical"},
               "targets": check_targets([row])}  # fmt: skip
     text = markdown_report(result)
-    assert "| 400 | 200 | 2.00x | 600 | 400 | 1.50x | identical |" in text
-    assert "| sim structure: masks, hypotheses given | median | 300 | 200 | yes |" in text
+    assert "| 0 / 0 | 400 | 200 | 2.00x | 600 | 400 | 1.50x | identical |" in text
+    assert "| sim structure: masks, hypotheses given | median | 300 | 200 | 0 | yes |" in text
 
 
 @pytest.fixture(scope="module")

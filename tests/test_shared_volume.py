@@ -97,6 +97,25 @@ def test_a_newcomer_that_explains_a_known_objects_volume_better_contests_it():
     assert "block_0" in out.contested and "better" in out.contested["block_0"]
 
 
+def test_a_pose_of_a_contested_object_goes_with_it_in_either_order():
+    """A new group joins a known block (same class) and another, a cube, contests the block:
+    whichever is settled first, the block's group is gone and its joined pose with it (the
+    first order raised a KeyError; the second brought the contested block back)."""
+    P = on_table(CUBE)
+    known = {"block_0": ("block", P)}  # the data are a cube's
+    points, _ = cloud({"a": ("cube", P)})
+    for pose_id in ("a_block", "z_block"):  # settled before the cube's group, then after
+        groups = {
+            "block_0": [Hypothesis("block", P, 0.9)],
+            "cube_0": [Hypothesis("cube", P, 0.5)],
+            pose_id: [Hypothesis("block", _shifted(P, dx=0.025), 0.8)],
+        }
+        out = _resolve(groups, known, points)
+        assert list(out.groups) == ["cube_0"] and "block_0" in out.contested
+        assert out.joined == {"block_0": [pose_id]}
+        assert "contested: cube_0" in out.rejected[pose_id].reason
+
+
 def test_data_rank_prefers_the_model_that_is_there():
     P = on_table(CUBE)
     points, _ = cloud({"a": ("cube", P)})

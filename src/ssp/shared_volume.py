@@ -201,7 +201,14 @@ def resolve_shared_volumes(
     rules = _Rules(known, where, library, points, view, config, class_margin, floor)
     for oid in sorted(new):
         rules.settle(oid, out)
-    for k in out.joined:
+    for k, oids in out.joined.items():
+        if k in out.contested:  # its volume went to a newcomer: the poses of it with it
+            for oid in oids:
+                if oid in out.rejected:
+                    rej = out.rejected[oid]
+                    why = f"{rej.reason} (contested: {out.contested[k]})"
+                    out.rejected[oid] = replace(rej, reason=why)
+            continue
         out.groups[k].sort(key=lambda h: -float(h.score))  # stable: earlier first on ties
     return out
 
@@ -233,7 +240,8 @@ class _Rules:
             same = [c for c in claims if self.known[c[1]][0] == h.class_name]
             if same:  # a pose of that object: it joins its group
                 k = max(same)[1]
-                out.groups.setdefault(k, []).append(replace(h, instance_id=k))
+                if k not in out.contested:  # else its volume is a newcomer's: dropped with it
+                    out.groups.setdefault(k, []).append(replace(h, instance_id=k))
                 if oid not in out.joined.setdefault(k, []):
                     out.joined[k].append(oid)
                 continue

@@ -440,7 +440,8 @@ def _add_stages(s: dict[str, Any], f: dict[str, Any]) -> None:
 
 def check_targets(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Issue 34's targets (:data:`TARGETS`) against each simulated scenario's row (each
-    experiment apart: a median over both would hide the slower one)."""
+    experiment apart: a median over both would hide the slower one). A scenario with a
+    failed frame meets none: a frame that raised is not a fast frame."""
     out = []
     for row in rows:
         if not row["scenario"].startswith("sim "):
@@ -449,7 +450,8 @@ def check_targets(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
         for stat, limit in TARGETS.get(name, []):
             got = row[stat]
             out.append({"scenario": row["scenario"], "statistic": stat, "target_s": limit,
-                        "seconds": got, "met": bool(got <= limit)})  # fmt: skip
+                        "seconds": got, "failed": row["failed"],
+                        "met": bool(got <= limit and not row["failed"])})  # fmt: skip
     return out
 
 
@@ -490,24 +492,26 @@ def markdown_report(result: dict[str, Any]) -> str:
         "",
     ]
     if cmp is None:
-        lines += ["| scenario | frames | objects | median | p95 | worst | first | top stages |",
-                  "|---|---|---|---|---|---|---|---|"]  # fmt: skip
+        lines += ["| scenario | frames | failed | objects | median | p95 | worst | first | "
+                  "top stages |", "|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
         for r in result["this"]:
             lines.append(
-                f"| {r['scenario']} | {r['frames']} | {r['objects'][0]}-{r['objects'][1]} | "
+                f"| {r['scenario']} | {r['frames']} | {r['failed']} | "
+                f"{r['objects'][0]}-{r['objects'][1]} | "
                 f"{_ms(r['median'])} | {_ms(r['p95'])} | {_ms(r['max'])} | "
                 f"{_ms(r['first_median'])} | {_top(r['shares'])} |"
             )
     else:
         rev = {r["scenario"]: r for r in result["rev"]}
         same = result.get("same_results", {})
-        lines += [f"| scenario | frames | median {cmp} | median this | speed-up | p95 {cmp} | "
-                  "p95 this | speed-up | results | top stages (this) |",
-                  "|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+        lines += [f"| scenario | frames | failed {cmp} / this | median {cmp} | median this | "
+                  f"speed-up | p95 {cmp} | p95 this | speed-up | results | top stages (this) |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
         for r in result["this"]:
             o = rev.get(r["scenario"], {})
             lines.append(
-                f"| {r['scenario']} | {r['frames']} | {_ms(o.get('median', math.nan))} | "
+                f"| {r['scenario']} | {r['frames']} | {o.get('failed', '-')} / {r['failed']} | "
+                f"{_ms(o.get('median', math.nan))} | "
                 f"{_ms(r['median'])} | {_ratio(o.get('median'), r['median'])} | "
                 f"{_ms(o.get('p95', math.nan))} | {_ms(r['p95'])} | "
                 f"{_ratio(o.get('p95'), r['p95'])} | {same.get(r['scenario'], '-')} | "
@@ -515,12 +519,12 @@ def markdown_report(result: dict[str, Any]) -> str:
             )
     if result.get("targets"):
         lines += ["", "Issue 34's targets (this code):", "",
-                  "| scenario | statistic | target ms | ms | met |",
-                  "|---|---|---|---|---|"]  # fmt: skip
+                  "| scenario | statistic | target ms | ms | failed frames | met |",
+                  "|---|---|---|---|---|---|"]  # fmt: skip
         for t in result["targets"]:
             lines.append(
                 f"| {t['scenario']} | {t['statistic']} | {_ms(t['target_s'])} | "
-                f"{_ms(t['seconds'])} | {'yes' if t['met'] else 'no'} |"
+                f"{_ms(t['seconds'])} | {t.get('failed', 0)} | {'yes' if t['met'] else 'no'} |"
             )
     return "\n".join(lines) + "\n"
 
