@@ -189,8 +189,7 @@ def test_run_table1_reports_the_tails_on_the_realistic_stream(tmp_path):
 
 def test_run_table1_without_masks_gives_bare_clouds():
     """``masks=False`` (``ssp bench table1 --masks none``): ssp gets the cloud's clusters, as
-    ``ssp run --masks none`` does, and hypotheses without segments; --masks none with
-    estimated hypotheses is refused."""
+    ``ssp run --masks none`` does, and hypotheses without segments."""
     import typer
 
     from ssp.cli.experiments import _check_table1_options
@@ -224,6 +223,32 @@ def test_run_table1_without_masks_gives_bare_clouds():
     assert all(h.segment is None for f in seen for h in f.hypotheses)
     assert result["methods"]["ssp"]["matched"] > 0
     _check_table1_options("noisy", "realistic", "none")
-    for bad in (("estimated", "realistic", "none"), ("noisy", "paper", "labels")):
+    _check_table1_options("estimated", "realistic", "none")
+    for bad in (("guessed", "realistic", "none"), ("noisy", "paper", "labels")):
         with pytest.raises(typer.BadParameter):
             _check_table1_options(*bad)
+
+
+def test_estimated_hypotheses_without_masks_come_from_the_clusters():
+    """``ssp bench table1 --hypotheses estimated --masks none``: the front end estimates on
+    the cloud's clusters; the object records have no segment (their recall is over all the
+    frame's hypotheses), each cluster has a record with its time and what it gave."""
+    from ssp.eval.estimated import estimate_sequence, summarize_estimator
+    from ssp.library import ObjectLibrary
+    from ssp.sim.generate import generate_sequence
+
+    lib = ObjectLibrary.builtin()
+    seq = generate_sequence("structure", 3, lib, stages=1, frames_per_stage=1, stride=2)
+    est, records = estimate_sequence(seq, lib, SSPConfig(), masks=False)
+    objects = [r for r in records if r["object"] is not None]
+    clusters = [r for r in records if r["object"] is None]
+    assert len(objects) == len(seq.frames[0].gt) and clusters
+    assert all(r["seconds"] is None and r["top1"] is None for r in objects)
+    assert all(r["seconds"] > 0 and r["segment_points"] >= 30 for r in clusters)
+    assert all(h.segment is None for h in est.frames[0].hypotheses)
+    found = sum(r["objects_found"] for r in clusters)
+    assert found >= len(seq.frames[0].gt) // 2
+    summary = summarize_estimator(records)
+    assert summary["segments"] == len(clusters) and summary["objects"] == len(objects)
+    assert summary["top1_recall_visible"] is None and summary["recall"] > 0.5
+    assert summary["objects_per_frame_mean"] == found

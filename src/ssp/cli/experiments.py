@@ -145,7 +145,8 @@ def bench_table1(
         help=(
             "instance: every method gets the instance masks (each point's object, each "
             "hypothesis's segment); none: a bare cloud (ssp clusters it: touching objects and "
-            "distractors are not told apart by labels). none needs --hypotheses noisy."
+            "distractors are not told apart by labels; with --hypotheses estimated the front end "
+            "estimates on the clusters)."
         ),
     ),
     methods: str | None = typer.Option(
@@ -188,11 +189,6 @@ def _check_table1_options(hypotheses: str, noise: str, masks: str = "instance") 
         raise typer.BadParameter("--noise must be 'paper', 'realistic' or 'rgb'")
     if masks not in ("instance", "none"):
         raise typer.BadParameter("--masks must be 'instance' or 'none'")
-    if masks == "none" and hypotheses == "estimated":
-        raise typer.BadParameter(
-            "--masks none needs --hypotheses noisy (the front end on bare clouds is timed by "
-            "ssp bench frame --real-dev and its no-masks scenarios)"
-        )
 
 
 def _table1_parts(command: dict, lib, cfg, parallel) -> list:
@@ -211,6 +207,7 @@ def _table1_parts(command: dict, lib, cfg, parallel) -> list:
             realistic=command["noise"] in ("realistic", "rgb"),
             estimated=command["hypotheses"] == "estimated",
             rgb=command["noise"] == "rgb",
+            masks=command.get("masks", "instance") == "instance",
         )
         for i in range(sequences)
     ]
@@ -237,9 +234,12 @@ def _print_estimator(result: dict) -> None:
             f"pose estimator: {e['sec_per_segment_mean']:.3f} s per segment (median "
             f"{e['sec_per_segment_median']:.3f}, {e['segments']} segments); recall within "
             f"{e['recall_mm']:.0f} mm / {e['recall_deg']:.0f} deg: {e['recall']:.2f} of all "
-            f"objects, {e['recall_visible']:.2f} of those >= 10 % visible (top-1 "
-            f"{e['top1_recall_visible']:.2f})"
-        )
+            f"objects, {e['recall_visible']:.2f} of those >= 10 % visible"
+            + ("" if e["top1_recall_visible"] is None else
+               f" (top-1 {e['top1_recall_visible']:.2f})")
+            + ("" if "clusters" not in e else
+               f"; {e['objects_per_cluster_mean']:.2f} objects found per cluster")
+        )  # fmt: skip
 
 
 def _print_tower(result: dict) -> None:

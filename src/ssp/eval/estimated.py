@@ -39,12 +39,19 @@ def estimate_sequence(
     library: Mapping,
     config: SSPConfig | None = None,
     progress: Callable[[str], None] | None = None,
+    *,
+    masks: bool = True,
 ) -> tuple[SimSequence, list[dict]]:
     """The sequence with estimated hypotheses, and one record per ground-truth object and frame.
 
     Each record: ``frame``, ``object``, ``class``, ``visib_fract``, ``segment_points``,
     ``seconds`` (its segment's estimator time, None when it had no segment), ``recalled``
     (any hypothesis within the thresholds), ``top1`` (the segment's best hypothesis is).
+
+    ``masks`` False: the front end clusters the cloud above the table (``ssp run --masks
+    none``); a cluster is no object's, so the object records have no ``seconds``,
+    ``segment_points`` or ``top1`` (None), and each cluster has a record of its own
+    (``object`` None, ``cluster``, ``segment_points``, ``seconds``, ``objects_found``).
     """
     cfg = config if config is not None else SSPConfig()
     perception = Perception(library, cfg, classes=seq.models or None)
@@ -52,14 +59,14 @@ def estimate_sequence(
     for i, sf in enumerate(seq.frames):
         if progress is not None:
             progress(f"estimating hypotheses, frame {i + 1}/{len(seq)}")
-        res = perceive_frame(perception, seq, sf)
+        res = perceive_frame(perception, seq, sf, masks=masks)
         hyps = res.frame.hypotheses
         frames.append(replace(sf, hypotheses=list(hyps)))
         labels = np.asarray(sf.instance).astype(np.int64)
         counts = np.bincount(labels[labels >= 0].ravel(), minlength=len(sf.gt))
         for k, (gid, (cls, T_gt)) in enumerate(sf.gt.items()):
             sym = library[cls].symmetry
-            seg = res.segments.get(k)
+            seg = res.segments.get(k) if masks else None
             top = seg.hypotheses[0] if seg is not None and seg.hypotheses else None
             records.append(
                 {
@@ -67,24 +74,41 @@ def estimate_sequence(
                     "object": gid,
                     "class": cls,
                     "visib_fract": float(sf.visib_fract.get(gid, 0.0)),
-                    "segment_points": int(counts[k]),
+                    "segment_points": int(counts[k]) if masks else None,
                     "seconds": None if seg is None else float(seg.seconds),
                     "recalled": any(_close(h, cls, T_gt, sym) for h in hyps),
-                    "top1": top is not None and _close(top, cls, T_gt, sym),
+                    "top1": (top is not None and _close(top, cls, T_gt, sym)) if masks else None,
                 }
             )
+        if not masks:
+            cluster_sizes = np.bincount(res.frame.labels[res.frame.labels >= 0])
+            for label, seg in sorted(res.segments.items()):
+                records.append(
+                    {
+                        "frame": sf.index,
+                        "object": None,
+                        "cluster": int(label),
+                        "segment_points": int(cluster_sizes[label]),
+                        "seconds": float(seg.seconds),
+                        "objects_found": len(seg.objects),
+                    }
+                )
     info = dict(seq.info or {})
     info.pop("hypothesis_sources", None)  # the sources of the noisy hypotheses no longer apply
     info["hypotheses"] = "estimated"
     return replace(seq, frames=frames, info=info), records
 
 
-def perceive_frame(perception: Perception, seq: SimSequence, sf, hypotheses=None):
+def perceive_frame(
+    perception: Perception, seq: SimSequence, sf, hypotheses=None, *, masks: bool = True
+):
     """:meth:`Perception.from_depth` of the rendered frame ``sf`` of ``seq``, segmented by its
-    instance mask, with the sequence's camera pose (``hypotheses``: given instead of
-    estimated, ``[]`` to segment only)."""
-    mask = np.asarray(sf.instance).astype(np.int64)
-    mask[mask < -1] = -1
+    instance mask (``masks`` False: clustered), with the sequence's camera pose
+    (``hypotheses``: given instead of estimated, ``[]`` to segment only)."""
+    mask = None
+    if masks:
+        mask = np.asarray(sf.instance).astype(np.int64)
+        mask[mask < -1] = -1
     return perception.from_depth(
         sf.depth, seq.camera, stamp=sf.stamp, T_world_cam=seq.T_world_cam, mask=mask,
         hypotheses=hypotheses,
@@ -102,11 +126,20 @@ def _close(h, cls: str, T_gt: np.ndarray, symmetry) -> bool:
 def summarize_estimator(records: list[dict]) -> dict:
     """Time per segment and recall over :func:`estimate_sequence` records (JSON-ready)."""
     secs = [r["seconds"] for r in records if r["seconds"] is not None]
+    frames = {(r.get("sequence"), r["frame"]) for r in records}
+    clusters = [r for r in records if r["object"] is None]
+    records = [r for r in records if r["object"] is not None]
     vis = [r for r in records if r["visib_fract"] >= VISIBLE]
 
     def frac(rows: list[dict], key: str) -> float | None:
+        rows = [r for r in rows if r[key] is not None]
         return float(np.mean([r[key] for r in rows])) if rows else None
 
+    more = {}
+    if clusters:  # without masks: what each cluster gave
+        found = [r["objects_found"] for r in clusters]
+        more = {"clusters": len(clusters), "objects_per_cluster_mean": float(np.mean(found)),
+                "objects_per_frame_mean": float(sum(found) / len(frames))}  # fmt: skip
     return {
         "segments": len(secs),
         "sec_per_segment_mean": float(np.mean(secs)) if secs else None,
@@ -120,4 +153,5 @@ def summarize_estimator(records: list[dict]) -> dict:
         "recall_mm": RECALL_MM,
         "recall_deg": RECALL_DEG,
         "visible_fraction": VISIBLE,
+        **more,
     }

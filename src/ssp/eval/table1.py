@@ -261,7 +261,8 @@ class SequenceSpec:
     the realistic estimator stream and scene; with ``rgb`` also, the RGB-estimator stream,
     :meth:`RealisticNoise.rgb <ssp.sim.realistic.RealisticNoise.rgb>`), then, with
     ``estimated``, its hypotheses replaced by the perception front end's
-    (:func:`ssp.eval.estimated.estimate_sequence`)."""
+    (:func:`ssp.eval.estimated.estimate_sequence`; ``masks`` False: on the cloud's clusters, as
+    ``ssp run --masks none`` does it)."""
 
     experiment: str
     seed: int
@@ -271,6 +272,7 @@ class SequenceSpec:
     realistic: bool = False
     estimated: bool = False
     rgb: bool = False
+    masks: bool = True
 
     def build(self, library, config: SSPConfig) -> tuple[SimSequence, list[dict]]:
         """The sequence and the estimator's records (empty unless ``estimated``)."""
@@ -293,7 +295,7 @@ class SequenceSpec:
             return seq, []
         from ssp.eval.estimated import estimate_sequence
 
-        return estimate_sequence(seq, library, config)
+        return estimate_sequence(seq, library, config, masks=self.masks)
 
 
 @dataclass
@@ -766,8 +768,9 @@ def _markdown(result: dict) -> str:
     if result.get("hypotheses") == "estimated":
         lines[2:2] = [
             "Hypotheses: estimated by the perception front end (`ssp.perception`) on the "
-            "rendered depth, segmented by the instance mask; the Induced Noise row is the error "
-            "of those hypotheses to the nearest object of their class.",
+            "rendered depth, segmented by the instance mask (without masks: on the cloud's "
+            "clusters); the Induced Noise row is the error of those hypotheses to the nearest "
+            "object of their class.",
             "",
         ]
     lines.append(
@@ -805,9 +808,13 @@ def _markdown(result: dict) -> str:
             f"{e['segments']} segments). Recall (a hypothesis of the object's class within "
             f"{e['recall_mm']:.0f} mm and {e['recall_deg']:.0f} deg): {e['recall']:.2f} of "
             f"all {e['objects']} object-frames, {e['recall_visible']:.2f} of the "
-            f"{e['visible_objects']} at least {100 * e['visible_fraction']:.0f} % visible "
-            f"(best-scored hypothesis: {e['top1_recall_visible']:.2f}).",
-        ]
+            f"{e['visible_objects']} at least {100 * e['visible_fraction']:.0f} % visible"
+            + ("" if e["top1_recall_visible"] is None else
+               f" (best-scored hypothesis: {e['top1_recall_visible']:.2f})")
+            + ("." if "clusters" not in e else
+               f"; without masks, {e['objects_per_cluster_mean']:.2f} objects found per cluster, "
+               f"{e['objects_per_frame_mean']:.1f} per frame."),
+        ]  # fmt: skip
     lines += [
         "",
         "The paper's Table I, for reference (ssp on Gazebo data):",
