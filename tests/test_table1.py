@@ -182,9 +182,16 @@ def test_run_table1_reports_the_tails_on_the_realistic_stream(tmp_path):
         assert sum(d["false_object_causes"].values()) == d["false_positives"]
     assert result["methods"]["estimator"]["id_switches"] is None
     assert isinstance(result["methods"]["icp_filter"]["id_switches"], int)
+    for name in methods:  # per class: every object-frame counted once, AR where targets
+        pc = result["methods"][name]["per_class"]
+        assert set(pc) == {c for f in seq.frames for c, _ in f.gt.values()}
+        assert sum(v["object_frames"] for v in pc.values()) == sum(len(f.gt) for f in seq.frames)
+        assert sum(v["gross"] for v in pc.values()) == result["methods"][name]["gross"]
+        assert all(v["AR"] is None or 0.0 <= v["AR"] <= 1.0 for v in pc.values())
     write_table1(result, tmp_path)
     md = (tmp_path / "results.md").read_text()
     assert "Tails" in md and "nominal" in md  # the per-condition table
+    assert "| cube |" in md and "Per class" in md
 
 
 def test_run_table1_without_masks_gives_bare_clouds():

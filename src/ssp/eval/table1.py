@@ -682,6 +682,7 @@ def merge_table1(
             [o["trans_mm"][i] for i in common], [o["rot_deg"][i] for i in common]
         )
         out_methods[m]["common_objects"] = len(common)
+        out_methods[m]["per_class"] = per_class(o, out_methods[m]["bop"].get("per_class", {}))
 
     noise = summarize(hyp_t, hyp_r)
     return {
@@ -879,6 +880,68 @@ def _tails_markdown(result: dict) -> list[str]:
         str,
         missing="0",
     )
+    lines += _per_class_markdown(methods)
+    return lines
+
+
+def per_class(objects: dict, bop_per_class: dict) -> dict[str, dict]:
+    """Per class of the object records ``objects`` (the columns of ``result["records"][m]
+    ["objects"]``): ``object_frames``, ``matched``, ``gross`` (more than :data:`GROSS_MM` or
+    :data:`GROSS_DEG` off, or missing), the mean and median translation (mm) and rotation
+    (deg) error of the matched ones (None without), and the class's BOP ``AR`` from
+    ``bop_per_class`` (None when it had no target). A class whose orientation the view cannot
+    always decide (a mug's hidden handle) shows here, not in the means over all classes."""
+    out: dict[str, dict] = {}
+    for cls in sorted(set(objects["class"])):
+        rows = [i for i, c in enumerate(objects["class"]) if c == cls]
+        t = [objects["trans_mm"][i] for i in rows if objects["trans_mm"][i] is not None]
+        r = [objects["rot_deg"][i] for i in rows if objects["rot_deg"][i] is not None]
+        gross = sum(
+            1 for i in rows
+            if objects["trans_mm"][i] is None
+            or objects["trans_mm"][i] > GROSS_MM or objects["rot_deg"][i] > GROSS_DEG
+        )  # fmt: skip
+        ar = bop_per_class.get(cls, {}).get("AR")
+        out[cls] = {
+            "object_frames": len(rows),
+            "matched": len(t),
+            "gross": gross,
+            "trans_mm_mean": float(np.mean(t)) if t else None,
+            "trans_mm_median": float(np.median(t)) if t else None,
+            "rot_deg_mean": float(np.mean(r)) if r else None,
+            "rot_deg_median": float(np.median(r)) if r else None,
+            "AR": None if ar is None else float(ar),
+        }
+    return out
+
+
+def _per_class_markdown(methods: dict) -> list[str]:
+    """A row per class, a column per method: BOP AR, mean rotation error (deg) and gross
+    object-frames."""
+    classes = sorted({c for d in methods.values() for c in d.get("per_class", {})})
+    if len(classes) < 2:
+        return []
+    names = list(methods)
+
+    def cell(v: dict | None) -> str:
+        if v is None:
+            return ""
+        ar = "-" if v["AR"] is None else f"{v['AR']:.3f}"
+        rot = "-" if v["rot_deg_mean"] is None else f"{v['rot_deg_mean']:.1f}"
+        return f"{ar} / {rot} / {v['gross']}"
+
+    lines = [
+        "",
+        "Per class: AR / mean rotation error of the matched object-frames (deg) / gross "
+        "object-frames.",
+        "",
+        "| Class | object-frames | " + " | ".join(names) + " |",
+        "|---|---|" + "---|" * len(names),
+    ]
+    for cls in classes:
+        rows = [methods[m].get("per_class", {}).get(cls) for m in names]
+        n = next((r["object_frames"] for r in rows if r is not None), 0)
+        lines.append(f"| {cls} | {n} | " + " | ".join(cell(r) for r in rows) + " |")
     return lines
 
 
