@@ -382,3 +382,34 @@ def test_export_subset(tmp_path):
     assert list(info["objects"]) == ["wrench"]
     with pytest.raises(UnknownObjectError):
         export_builtin(tmp_path, names=["nope"])
+
+
+def test_view_ambiguous_mug():
+    """The mug (not in the default library): a watertight solid, its convex parts its exact
+    decomposition, no symmetry (the handle), standing on its base; from the side opposite the
+    handle it is the body's cylinder (what makes its yaw undecidable there)."""
+    from ssp.library.builtin import VIEW_AMBIGUOUS_NAMES, view_ambiguous_specs
+
+    (mug,) = view_ambiguous_specs()
+    assert mug.name == "mug" and VIEW_AMBIGUOUS_NAMES == ("mug",) and "mug" not in NAMES
+    m = mug.mesh
+    assert m.is_watertight and m.body_count == 1 and len(mug.symmetry.discrete) == 1
+    assert all(p.is_convex for p in mug.parts)
+    pts = np.random.default_rng(0).uniform(m.bounds[0], m.bounds[1], (4000, 3))
+    np.testing.assert_array_equal(_inside_any_part(mug.parts, pts), m.contains(pts))
+    assert 0.25 < mug.mass < 0.45  # kg, a ceramic mug's
+    base = m.vertices[:, 2].min()
+    assert np.ptp(m.vertices[np.isclose(m.vertices[:, 2], base), 0]) == pytest.approx(0.08, 0.01)
+    assert builtin_spec("mug").name == "mug"
+
+
+def test_export_chosen_and_view_ambiguous_models(tmp_path):
+    paths = export_builtin(tmp_path / "a", ["mug", "drill"])
+    info = yaml.safe_load((tmp_path / "a" / "models.yaml").read_text())
+    assert list(info["objects"]) == ["mug", "drill"] and len(paths) == 5
+    export_builtin(tmp_path / "b", view_ambiguous=True)
+    info = yaml.safe_load((tmp_path / "b" / "models.yaml").read_text())
+    assert list(info["objects"]) == [*NAMES, "mug"]
+    with pytest.raises(UnknownObjectError):
+        export_builtin(tmp_path / "c", ["mug", "teacup"])
+    assert not (tmp_path / "c").exists()  # nothing written for a bad name

@@ -155,9 +155,19 @@ def _print_prepared(folder: Path, rows: list[dict]) -> None:
 @friendly
 def models_export_builtin(
     folder: Path = typer.Argument(..., help="Folder to write the built-in models to."),
+    view_ambiguous: bool = typer.Option(
+        False,
+        "--view-ambiguous",
+        help="Also write the models whose orientation a view often cannot decide (a mug): "
+        "with --models, the isolated experiment's tools then include them.",
+    ),
+    names: str | None = typer.Option(
+        None, "--names", help="Comma-separated models to write (default: all; e.g. mug,drill)."
+    ),
 ) -> None:
     """Write the built-in models as meshes + convex parts + models.yaml (a template folder)."""
     from ssp.library.builtin import export_builtin
 
-    paths = export_builtin(folder)
+    chosen = None if names is None else [n.strip() for n in names.split(",") if n.strip()]
+    paths = export_builtin(folder, chosen, view_ambiguous=view_ambiguous)
     console.print(f"wrote {len(paths)} files to {folder}")

@@ -61,6 +61,11 @@ TOOL_NAMES: tuple[str, ...] = (
 )
 """The tool-like, non-convex models."""
 
+VIEW_AMBIGUOUS_NAMES: tuple[str, ...] = ("mug",)
+"""Models whose orientation a view often cannot decide (a mug's handle hidden behind its
+body): not in the default library, written by ``export_builtin(..., view_ambiguous=True)``
+for the protocols that measure it (docs/benchmarks.md, "View-ambiguous objects")."""
+
 MAX_FACES = 5000
 """Upper bound on the face count of a built-in mesh (kept modest for collision and rendering)."""
 
@@ -615,6 +620,32 @@ def _clamp() -> BuiltinSpec:
     )
 
 
+def _mug() -> BuiltinSpec:
+    """Mug standing on its base (z up): a 32-gon body, 80 mm across and 95 mm tall, and a
+    square-section handle at +x (a C of three bars, 12 mm wide). Seen from the side opposite
+    its handle it is a cylinder: any yaw explains that view."""
+    n = 32
+    r, h = 0.040, 0.095
+    w = 0.012  # the handle's section
+    reach = 0.030  # how far the handle stands off the body
+    parts = [
+        _frustum("z", 0.0, h, r, sections=n, phase=np.pi / n),
+        _box((reach + 0.006, w, w), center=(r + reach / 2 - 0.003, 0.0, 0.078)),  # top bar
+        _box((reach + 0.006, w, w), center=(r + reach / 2 - 0.003, 0.0, 0.022)),  # bottom bar
+        _box((w, w, 0.056 + w), center=(r + reach - w / 2, 0.0, 0.050)),  # grip
+    ]
+    return _finish(
+        "mug",
+        parts,
+        density=700.0,  # a ceramic shell, hollow inside: the solid's effective density
+        friction=0.8,
+        description="mug, 80 mm body 95 mm tall with a side handle (solid: no cavity)",
+    )
+
+
+_VIEW_AMBIGUOUS_BUILDERS: tuple[Callable[[], BuiltinSpec], ...] = (_mug,)
+
+
 _BUILDERS: tuple[Callable[[], BuiltinSpec], ...] = (
     _cube,
     _block,
@@ -659,13 +690,25 @@ def builtin_spec(name: str) -> BuiltinSpec:
     return _lookup(name).copy()
 
 
+@functools.lru_cache(maxsize=1)
+def _cached_view_ambiguous() -> tuple[BuiltinSpec, ...]:
+    return tuple(build() for build in _VIEW_AMBIGUOUS_BUILDERS)
+
+
+def view_ambiguous_specs() -> list[BuiltinSpec]:
+    """The view-ambiguous models (:data:`VIEW_AMBIGUOUS_NAMES`), fresh copies."""
+    return [s.copy() for s in _cached_view_ambiguous()]
+
+
 def _lookup(name: str) -> BuiltinSpec:
-    """The cached (shared, not to be modified) spec ``name``."""
-    for s in _cached():
+    """The cached (shared, not to be modified) spec ``name`` (a default model, or a
+    view-ambiguous one)."""
+    for s in _cached() + (_cached_view_ambiguous() if name in VIEW_AMBIGUOUS_NAMES else ()):
         if s.name == name:
             return s
     raise UnknownObjectError(
-        f"unknown built-in model {name!r}; available: {', '.join(builtin_names())}"
+        f"unknown built-in model {name!r}; available: "
+        f"{', '.join([*builtin_names(), *VIEW_AMBIGUOUS_NAMES])}"
     )
 
 
@@ -698,8 +741,11 @@ def _clean(x: float) -> float:
     return 0.0 if y == 0 else y
 
 
-def export_builtin(folder: Path | str, names: Iterable[str] | None = None) -> list[Path]:
-    """Write the built-in models to ``folder`` (created if needed).
+def export_builtin(
+    folder: Path | str, names: Iterable[str] | None = None, *, view_ambiguous: bool = False
+) -> list[Path]:
+    """Write the built-in models to ``folder`` (created if needed); with ``view_ambiguous``
+    (and no ``names``), the view-ambiguous ones (:data:`VIEW_AMBIGUOUS_NAMES`) too.
 
     For every model: ``NAME.obj`` (the mesh) and ``NAME.parts.obj`` (one ``o part_i`` object
     per convex part), plus one ``models.yaml`` describing them all (units m, density,
@@ -711,9 +757,12 @@ def export_builtin(folder: Path | str, names: Iterable[str] | None = None) -> li
     """
     import yaml
 
+    if names is None:
+        specs = _cached() + (_cached_view_ambiguous() if view_ambiguous else ())
+    else:
+        specs = tuple(_lookup(n) for n in names)  # an unknown name raises before any write
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    specs = _cached() if names is None else tuple(_lookup(n) for n in names)
     written: list[Path] = []
     objects: dict = {}
     for s in specs:
