@@ -10,12 +10,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ssp.probability import ObjectTerms
 from ssp.scene import TransitionMode
+
+if TYPE_CHECKING:
+    from ssp.orientation import Orientation
 
 __all__ = ["ObjectEstimate", "Rejected", "SceneEstimate", "SupportEdge"]
 
@@ -38,6 +41,9 @@ class ObjectEstimate:
         evidence: for an object new in this frame, the figures verification judged it by at
             its output pose (``Evidence.as_dict``: ``fit`` of its visible surface,
             ``explained``, ...); None otherwise.
+        orientation: with instance masks, whether its orientation is decided and the
+            orientations its data allow as well (:class:`ssp.orientation.Orientation`); None
+            without masks, and for removed objects.
     """
 
     id: str
@@ -50,6 +56,7 @@ class ObjectEstimate:
     fit: float = 0.0
     reason: str = ""
     evidence: dict | None = None
+    orientation: Orientation | None = None
 
     @property
     def log_prob(self) -> float:
@@ -70,6 +77,7 @@ class ObjectEstimate:
             "fit": self.fit,
             "reason": self.reason,
             "evidence": None if self.evidence is None else dict(self.evidence),
+            "orientation": None if self.orientation is None else self.orientation.as_dict(),
         }
 
 

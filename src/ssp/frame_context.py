@@ -25,6 +25,7 @@ if TYPE_CHECKING:  # annotations only: the stage modules import this module, not
     from ssp.estimate import ObjectEstimate, Rejected, SceneEstimate
     from ssp.library.library import ObjectLibrary
     from ssp.library.model import ObjectModel
+    from ssp.orientation import Orientation
     from ssp.physics import World
     from ssp.retention import Triage
     from ssp.scene import Frame, Hypothesis
@@ -53,6 +54,9 @@ class Known:
     #: why the data did not support it in the frame that set it (a frame without instance
     #: masks, :func:`ssp.verification.doubt_known`); None: it did, or it was not checked
     doubt: str | None = None
+    #: the orientations its data allowed as well as ``T_world_obj`` (poses, 4x4, m;
+    #: :mod:`ssp.orientation`): the candidates a later view may decide between
+    alternatives: tuple[np.ndarray, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -192,6 +196,9 @@ class FrameContext:
     #: every object's evidence at its final pose
     evidence: dict[str, Evidence] = _dict()
 
+    # ---- orientations (ssp.orientation.decide_orientations)
+    #: object with an instance segment -> whether its orientation is decided, and the tied ones
+    orientations: dict[str, Orientation] = _dict()
     # ---- final verdicts (ssp.verification.judge_final)
     warnings: list[str] = field(default_factory=list)
     #: kept object -> why (verified, or unverified but holding others up)

@@ -21,6 +21,7 @@ import numpy as np
 from ssp.correction import correction_note, correction_of
 from ssp.estimate import ObjectEstimate, SceneEstimate, SupportEdge
 from ssp.frame_context import Known
+from ssp.orientation import Orientation
 from ssp.retention import TriageState
 from ssp.scene import TransitionMode
 from ssp.search import CandidateSource
@@ -69,6 +70,7 @@ def transition_modes(ctx: FrameContext) -> None:
         if terms.stability < cfg.verification.fall_stability:
             ctx.warnings.append(f"{out_id}: would fall (stability term {terms.stability:.1f})")
         verdict = ctx.final_verdicts.get(oid)
+        orientation = ctx.orientations.get(oid)
         ctx.objects.append(
             ObjectEstimate(
                 out_id,
@@ -81,12 +83,25 @@ def transition_modes(ctx: FrameContext) -> None:
                 fit=float(score.fit[i]),
                 reason=_with_correction(ctx, oid, _reason(ctx, oid, T, prev)),
                 evidence=verdict.judged.as_dict() if verdict is not None else None,
+                orientation=orientation,
             )
         )
         ctx.next_known[out_id] = Known(
             model.name, T, ephemeral, float(score.fit[i]), held=oid in ctx.fallbacks,
             doubt=ctx.doubts.get(oid),
+            alternatives=_alternatives(ctx, out_id, orientation),
         )  # fmt: skip
+
+
+def _alternatives(
+    ctx: FrameContext, out_id: str, orientation: Orientation | None
+) -> tuple[np.ndarray, ...]:
+    """The orientations the next frame remembers for ``out_id``: this frame's tied ones, or,
+    when this frame did not look (no instance segment of it), those it remembered."""
+    if orientation is not None:
+        return tuple(a.T_world_obj for a in orientation.alternatives)
+    known = ctx.known.get(out_id)
+    return () if known is None else known.alternatives
 
 
 def _with_correction(ctx: FrameContext, oid: str, reason: str) -> str:

@@ -33,15 +33,16 @@ the module of its concept (docs/algorithm.md maps them to the paper):
     objects the search moved off their data;
 14. **placement** (:func:`ssp.verification.place_new`): new objects verified at their final
     poses, or put where their data puts them;
-15. **final verdicts** (:func:`ssp.verification.judge_final`): an unverified object stays only
+15. **orientations** (:func:`ssp.orientation.decide_orientations`): view ambiguity;
+16. **final verdicts** (:func:`ssp.verification.judge_final`): an unverified object stays only
     when it holds others up;
-16. **re-verification** (:func:`ssp.verification.doubt_known`): without instance masks, a
+17. **re-verification** (:func:`ssp.verification.doubt_known`): without instance masks, a
     known object its data contradicts two frames running leaves;
-17. **re-identification** (:func:`ssp.temporal.reidentify_moved`): a new object where a known
+18. **re-identification** (:func:`ssp.temporal.reidentify_moved`): a new object where a known
     one of its class vanished is that object, moved;
-18. **transition modes** (:func:`ssp.outcome.transition_modes`): output poses (symmetric
+19. **transition modes** (:func:`ssp.outcome.transition_modes`): output poses (symmetric
     snapping), modes, reasons, warnings;
-19. **outcome** (:func:`ssp.outcome.scene_estimate`): the :class:`SceneEstimate`.
+20. **outcome** (:func:`ssp.outcome.scene_estimate`): the :class:`SceneEstimate`.
 
 The parser then commits what the next frame remembers. A frame that raises leaves the state as
 it was.
@@ -66,6 +67,7 @@ from ssp.frame_context import FrameContext, Known, Stage
 from ssp.geometry import validate_pose
 from ssp.library.library import ObjectLibrary
 from ssp.library.model import ObjectInstance
+from ssp.orientation import alternatives_from_state, alternatives_state, decide_orientations
 from ssp.outcome import report_moved, scene_estimate, transition_modes
 from ssp.physics import World
 from ssp.polish import polish_scene
@@ -164,6 +166,7 @@ class SceneParser:
                     "fit": k.fit,
                     "held": k.held,
                     "doubt": k.doubt,
+                    **alternatives_state(k.alternatives),
                 }
                 for oid, k in sorted(self._known.items())
             ],
@@ -211,6 +214,7 @@ class SceneParser:
                     float(o.get("fit", 0.0)),
                     bool(o.get("held", False)),
                     None if o.get("doubt") is None else str(o["doubt"]),
+                    alternatives_from_state(o),
                 )
             for k, r in enumerate(state.get("rejected", [])):  # none in older states
                 cls_name, T = _state_entry(library, r, f"rejected object {k}")
@@ -350,6 +354,7 @@ STAGES: tuple[Stage, ...] = (
     Stage("polish", polish_scene),
     Stage("fallbacks", fall_back_to_data),
     Stage("placement", place_new, timer="verification"),
+    Stage("orientations", decide_orientations, timer="verification"),
     Stage("final verdicts", judge_final),
     Stage("re-verification", doubt_known, timer="verification"),
     Stage("re-identification", reidentify_moved),
