@@ -182,6 +182,9 @@ def test_run_table1_reports_the_tails_on_the_realistic_stream(tmp_path):
         assert sum(d["false_object_causes"].values()) == d["false_positives"]
     assert result["methods"]["estimator"]["id_switches"] is None
     assert isinstance(result["methods"]["icp_filter"]["id_switches"], int)
+    for name in methods:  # orientation flips of unmoved objects: counted, at most all
+        d = result["methods"][name]
+        assert 0 <= d["flips_from_right"] <= d["flips"] <= sum(len(f.gt) for f in seq.frames)
     for name in methods:  # per class: every object-frame counted once, AR where targets
         pc = result["methods"][name]["per_class"]
         assert set(pc) == {c for f in seq.frames for c, _ in f.gt.values()}

@@ -65,3 +65,23 @@ def test_never_detected_objects_are_told_from_dropouts():
     moved = {"a": ("cube", _T(0.05)), "b": gt["b"]}
     assert h.update(moved, set()) == set()  # a moved while undetected: never seen there
     assert h.update(moved, {"b"}) == {"b"}
+
+
+def test_flips_count_turns_of_objects_that_did_not_move():
+    from ssp.eval.tracking import Flips
+    from ssp.library import ObjectLibrary
+
+    lib = ObjectLibrary.builtin()
+    T = np.eye(4)
+    turned = np.eye(4)
+    turned[:3, :3] = [[-1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]]  # half a turn
+    gt = {"a": ("mallet", T), "c": ("cube", T)}
+    f = Flips()
+    f.update(gt, {"a": T, "c": T}, lib)
+    f.update(gt, {"a": turned, "c": turned}, lib)  # the cube's half turn is a symmetry
+    assert (f.flips, f.from_right) == (1, 1)
+    f.update(gt, {"a": T}, lib)  # back: a flip from a wrong orientation
+    assert (f.flips, f.from_right) == (2, 1)
+    moved = {"a": ("mallet", turned)}
+    f.update(moved, {"a": turned}, lib)  # the object turned: not a flip
+    assert f.flips == 2

@@ -57,7 +57,7 @@ from ssp.eval.metrics import (
     precision_deviations,
     summarize,
 )
-from ssp.eval.tracking import IdSwitches
+from ssp.eval.tracking import Flips, IdSwitches
 from ssp.library.model import ObjectInstance
 from ssp.physics import World
 from ssp.pipeline.executor import Parallel, done_messages, map_items
@@ -174,6 +174,8 @@ class _Tails:
         self.static_switches = 0
         self.tracked = False
         self.switch_events: list[dict] = []
+        self.flips = 0
+        self.flips_from_right = 0
 
     def add(self, sf, fm: FrameMatch, dets, conditions, kinds, gate: float) -> None:
         by_gt = fm.by_gt()
@@ -196,7 +198,9 @@ class _Tails:
             )
             self.fp_causes[cause] = self.fp_causes.get(cause, 0) + 1
 
-    def add_ids(self, ids: IdSwitches, tracked: bool, sequence: int) -> None:
+    def add_ids(self, ids: IdSwitches, tracked: bool, sequence: int, flips: Flips) -> None:
+        self.flips += flips.flips
+        self.flips_from_right += flips.from_right
         self.tracked |= tracked
         self.switches += ids.switches
         self.static_switches += ids.static_switches
@@ -216,6 +220,8 @@ class _Tails:
             self.fp_causes[k] = self.fp_causes.get(k, 0) + v
         self.switches += other.switches
         self.static_switches += other.static_switches
+        self.flips += other.flips
+        self.flips_from_right += other.flips_from_right
         self.tracked |= other.tracked
         self.switch_events += other.switch_events
 
@@ -227,6 +233,8 @@ class _Tails:
             "gross": self.gross,
             "id_switches": self.switches if self.tracked else None,
             "id_switches_static": self.static_switches if self.tracked else None,
+            "flips": self.flips,
+            "flips_from_right": self.flips_from_right,
             "false_object_causes": dict(sorted(self.fp_causes.items())),
         }
         if self.by_condition:
@@ -521,6 +529,7 @@ def _sequence_part(
 
     runners = {m: make_method(m, library, config) for m in methods}
     ids = {m: IdSwitches() for m in methods}
+    flips = {m: Flips() for m in methods}
     sources = _sources(seq)
     kinds = (seq.info or {}).get("hypothesis_kinds") if sources is not None else None
     history = DetectionHistory()
@@ -558,6 +567,9 @@ def _sequence_part(
                 sf.depth,
             )
             ids[m].update(sf.index, sf.gt, {mt.gt_id: dets[mt.est_index].id for mt in fm.matches})
+            flips[m].update(
+                sf.gt, {mt.gt_id: dets[mt.est_index].T_world_obj for mt in fm.matches}, library
+            )
             tails[m].add(sf, fm, dets, conditions, kinds[i] if kinds else None, gate)
             depth, n_unsup = physics(dets)
             c = counts[m]
@@ -596,7 +608,7 @@ def _sequence_part(
             ):
                 fr[name].append(value)
     for m in methods:
-        tails[m].add_ids(ids[m], getattr(runners[m], "tracks_ids", False), s)
+        tails[m].add_ids(ids[m], getattr(runners[m], "tracks_ids", False), s, flips[m])
     precision = {}
     for m in methods:
         pt, pr = [], []
@@ -880,6 +892,12 @@ def _tails_markdown(result: dict) -> list[str]:
         str,
         missing="0",
     )
+    flips = [f"{name} {d['flips']} ({d['flips_from_right']})" for name, d in methods.items()
+             if d.get("flips") is not None]  # fmt: skip
+    if flips:
+        lines += ["", "Orientation flips of objects that did not move (an estimate turned by "
+                  "over 15 deg since the object's last match; in brackets, from an orientation "
+                  "within 10 deg of the truth): " + ", ".join(flips) + "."]  # fmt: skip
     lines += _per_class_markdown(methods)
     return lines
 

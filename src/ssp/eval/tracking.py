@@ -18,11 +18,15 @@ import numpy as np
 
 from ssp.probability import pose_change
 
-__all__ = ["STATIC_SHIFT", "STATIC_TILT_DEG", "IdSwitches"]
+__all__ = ["FLIP_DEG", "STATIC_SHIFT", "STATIC_TILT_DEG", "Flips", "IdSwitches"]
 
 #: A ground-truth object moved less than this since its last match is static (m, deg).
 STATIC_SHIFT = 0.0005
 STATIC_TILT_DEG = 0.5
+
+#: An estimate of an object that did not move, turned by more than this (deg, symmetry-aware)
+#: since its last match, flipped (an estimator's distinct orientations differ by more).
+FLIP_DEG = 15.0
 
 
 class IdSwitches:
@@ -57,3 +61,39 @@ class IdSwitches:
                      "static": bool(static)}
                 )  # fmt: skip
             self._last[gid] = (eid, T.copy())
+
+
+class Flips:
+    """Orientation flips over one sequence: an object that did not move since its last match
+    (as for a static id switch) whose matched estimate turned by more than :data:`FLIP_DEG`
+    (symmetry-aware, about its centre of mass). ``from_right``: those that left an
+    orientation within ``right_deg`` of the truth (a decided object should never)."""
+
+    def __init__(self, right_deg: float = 10.0) -> None:
+        self._last: dict[str, tuple[np.ndarray, np.ndarray]] = {}  # id -> (T_gt, T_est)
+        self.right_deg = float(right_deg)
+        self.flips = 0
+        self.from_right = 0
+
+    def update(
+        self,
+        gt: Mapping[str, tuple[str, np.ndarray]],
+        matched: Mapping[str, np.ndarray],
+        models: Mapping,
+    ) -> None:
+        """``matched``: ground-truth id -> the pose (4x4) of the estimate matched to it this
+        frame; ``models``: class name -> model (its symmetry and centre of mass)."""
+        for gid, T_est in matched.items():
+            cls, T_gt = gt[gid]
+            m = models[cls]
+            T_gt, T_est = np.asarray(T_gt, dtype=float), np.asarray(T_est, dtype=float)
+            last = self._last.get(gid)
+            if last is not None:
+                dt, dr = pose_change(last[0], T_gt)
+                if dt < STATIC_SHIFT and math.degrees(dr) < STATIC_TILT_DEG:
+                    turn = pose_change(last[1], T_est, m.symmetry, m.center_of_mass)[1]
+                    if math.degrees(turn) > FLIP_DEG:
+                        self.flips += 1
+                        was = pose_change(T_gt, last[1], m.symmetry, m.center_of_mass)[1]
+                        self.from_right += int(math.degrees(was) <= self.right_deg)
+            self._last[gid] = (T_gt, T_est)
