@@ -10,7 +10,8 @@ orientations with the data of its instance segment:
 * **candidates**: this frame's hypotheses of the object and the alternatives it kept from the
   previous frames (:attr:`ssp.frame_context.Known.alternatives`), turned by at least
   :data:`DISTINCT_TURN` from its pose after the search (symmetry-aware; closer ones are copies
-  of it), one per orientation;
+  of it), one per orientation, each aligned to the segment by ICP
+  (:func:`ssp.registration.icp_refine`; the pose was, by the polish);
 * **rank** (:func:`orientation_rank`): the F1 of the visible surface explained
   (:func:`ssp.verification.evidence`'s ``fit``; a face the camera sees through counts against
   it) and of the instance segment explained (``explained``: the segment's points near the
@@ -41,6 +42,7 @@ from ssp.errors import PhysicsError
 from ssp.geometry import validate_pose
 from ssp.library.model import ObjectModel
 from ssp.probability import pose_change
+from ssp.registration import icp_refine
 from ssp.verification import Evidence, check_new, evidence
 
 if TYPE_CHECKING:
@@ -166,6 +168,7 @@ def decide_orientations(ctx: FrameContext) -> None:
         candidates = [h.T_world_obj for h in ctx.groups.get(oid, [])]
         candidates += list(known.alternatives) if known is not None else []
         distinct = distinct_orientations(T, candidates, model)
+        distinct = [(_aligned(ctx, oid, U), turn) for U, turn in distinct]
         ev = ctx.evidence.get(oid) or _judged(ctx, oid, label, T)
         rank = orientation_rank(ev)
         if not distinct:
@@ -251,6 +254,13 @@ def alternatives_from_state(entry: Mapping[str, Any]) -> tuple[np.ndarray, ...]:
         validate_pose(np.asarray(U, dtype=float), f"object {entry['id']!r}: an alternative")
         for U in entry.get("alternatives", [])
     )
+
+
+def _aligned(ctx: FrameContext, oid: str, U: np.ndarray) -> np.ndarray:
+    """Candidate ``U`` of object ``oid`` aligned to its segment (point-to-plane ICP, as the
+    polish aligns the pose it is compared with): an estimator's alternative is often some
+    millimetres off, and a thin part (a handle) a few degrees off is seen through."""
+    return icp_refine(ctx.models[oid], U, ctx.segments[oid], ctx.sim.camera_position)
 
 
 def _judged(ctx: FrameContext, oid: str, label: int | None, T: np.ndarray) -> Evidence:
