@@ -260,7 +260,10 @@ def _aligned(ctx: FrameContext, oid: str, U: np.ndarray) -> np.ndarray:
     """Candidate ``U`` of object ``oid`` aligned to its segment (point-to-plane ICP, as the
     polish aligns the pose it is compared with): an estimator's alternative is often some
     millimetres off, and a thin part (a handle) a few degrees off is seen through."""
-    return icp_refine(ctx.models[oid], U, ctx.segments[oid], ctx.sim.camera_position)
+    segment = ctx.segments.get(oid)
+    if segment is None or not len(segment):
+        return np.asarray(U, dtype=float)
+    return icp_refine(ctx.models[oid], U, segment, ctx.sim.camera_position)
 
 
 def _judged(ctx: FrameContext, oid: str, label: int | None, T: np.ndarray) -> Evidence:
