@@ -78,6 +78,11 @@ class Source:
     file: str = "results.json"
 
 
+#: The mug protocol's model folder (``ssp models export-builtin MUG_MODELS --names ...``,
+#: examples/docs_figures.sh).
+MUG_MODELS = "bench-out/mug-models"
+
+
 def _sources() -> dict[str, Source]:
     out: list[Source] = []
     for e in ("isolated", "structure"):
@@ -95,6 +100,14 @@ def _sources() -> dict[str, Source]:
             Source(f"t1-{e}-nomask", f"{base} --noise realistic --masks none --methods "
                                      "ssp,ssp_single,estimator,icp_filter"),
         ]  # fmt: skip
+    mug = ("ssp bench table1 --experiment isolated --sequences 10 --seed 1000 --models "
+           f"{MUG_MODELS}")  # fmt: skip
+    out += [
+        Source("t1-isolated-mug",
+               f"{mug} --hypotheses estimated --methods ssp,ssp_single,estimator,icp_filter"),
+        Source("t1-isolated-mug-realistic",
+               f"{mug} --noise realistic --methods ssp,ssp_single,estimator,icp_filter"),
+    ]  # fmt: skip
     tower = "ssp bench tower --trials 10"
     for s in SEEDS:
         real = f"{tower} --seed {s} --noise realistic --methods"
@@ -247,6 +260,18 @@ def _realistic_table(e: str, sources: tuple[str, ...] | None = None):
                   "missed / frame", "false objects / frame", "id switches (static)",
                   "accuracy mm / deg", "max penetration mm")  # fmt: skip
         return _table(header, rows)
+
+    return render
+
+
+def _per_class_figure(source: str) -> Callable[[Results], list[str]]:
+    """The per-class table of a Table I run (``ssp.eval.table1``'s, without its title)."""
+
+    def render(results: Results) -> list[str]:
+        from ssp.eval.table1 import _per_class_markdown
+
+        lines = _per_class_markdown(results[source]["methods"])
+        return lines[3:]
 
     return render
 
@@ -485,6 +510,12 @@ def _figures() -> dict[str, Figure]:
         Figure("frame-processes", ("frame-processes",), _frame_table("frame-processes", 0)),
         Figure("tower-rgb", ("tower-rgb",), _tower_report_table(("tower-rgb",))),
     ]  # fmt: skip
+    for name, src in (("mug-estimated", "t1-isolated-mug"),
+                      ("mug-realistic", "t1-isolated-mug-realistic")):  # fmt: skip
+        out += [
+            Figure(name, (src,), _realistic_table("isolated", (src,))),
+            Figure(f"{name}-classes", (src,), _per_class_figure(src)),
+        ]
     for e in ("structure", "isolated"):
         out += [
             Figure(f"realistic-{e}", _realistic(e), _realistic_table(e)),
