@@ -157,7 +157,8 @@ def decide_orientations(ctx: FrameContext) -> None:
         return
     cfg, sim = ctx.config, ctx.sim
     world, score = sim.world, ctx.scene_score
-    turns: dict[str, tuple[np.ndarray, float, float]] = {}  # id -> (pose, turn deg, old rank)
+    # id -> (pose, turn deg, rank where it is, what to say if it stays there)
+    turns: dict[str, tuple[np.ndarray, float, float, Orientation]] = {}
     for oid in world.ids:
         label = ctx.owner.get(oid)
         if oid in ctx.removed or label is None:
@@ -181,7 +182,8 @@ def decide_orientations(ctx: FrameContext) -> None:
         best_rank, best, best_ev = ranked[0]
         if best_rank > rank + DECIDE_MARGIN and check_new(best_ev, cfg).keep:
             turn = pose_change(T, best, model.symmetry, model.center_of_mass)[1]
-            turns[oid] = (best, float(np.degrees(turn)), rank)
+            stay = _said(ranked, T, rank, model)
+            turns[oid] = (best, float(np.degrees(turn)), rank, stay)
             ranked = [(rank, T, ev)] + ranked[1:]  # the pose it leaves is a candidate now
             T, rank = best, best_rank
         ctx.orientations[oid] = _said(ranked, T, rank, model)
@@ -201,30 +203,38 @@ def _said(ranked: list, T: np.ndarray, rank: float, model: ObjectModel) -> Orien
     return Orientation(not tied, rank, tuple(tied))
 
 
-def _turn(ctx: FrameContext, turns: dict[str, tuple[np.ndarray, float, float]]) -> None:
-    """Turn the objects ``turns`` (id -> (pose, turn deg, rank where it was)) and settle the
-    scene (the search's window: with data forces, then without), so the turned poses rest on
-    what holds them and touch nothing; if a turned object then ranks no higher than where it
-    was by :data:`DECIDE_MARGIN` (physics took it off its data), or the world fails, nothing
-    is turned."""
+def _turn(
+    ctx: FrameContext, turns: dict[str, tuple[np.ndarray, float, float, Orientation]]
+) -> None:
+    """Turn the objects ``turns`` (id -> (pose, turn deg, rank where it was, its
+    :class:`Orientation` there)) and settle the scene (the search's window: with data forces,
+    then without), so the turned poses rest on what holds them and touch nothing; if a turned
+    object then ranks no higher than where it was by :data:`DECIDE_MARGIN` (physics took it
+    off its data), or the world fails, nothing is turned (and each says what it would have
+    said where it stays)."""
     sim = ctx.sim
     world = sim.world
     saved = world.save_state()
+
+    def undo(why: str) -> None:
+        log.info("orientations: %s: none turned", why)
+        world.restore_state(saved)
+        for oid, (*_, stay) in turns.items():
+            ctx.orientations[oid] = stay
+
     try:
-        for oid, (T, _, _) in turns.items():
+        for oid, (T, *_) in turns.items():
             world.set_pose(oid, T)
         sim.simulator.window()
     except PhysicsError as exc:
-        log.info("orientations: settling the turned objects failed (%s): none turned", exc)
-        world.restore_state(saved)
+        undo(f"settling the turned objects failed ({exc})")
         return
     settled = {}
-    for oid, (_, turn, old) in turns.items():
+    for oid, (_, turn, old, _) in turns.items():
         T = np.asarray(world.get_pose(oid), dtype=float)
         ev = _judged(ctx, oid, ctx.owner[oid], T)
         if orientation_rank(ev) <= old + DECIDE_MARGIN:
-            log.info("orientations: %s no better once settled: none turned", oid)
-            world.restore_state(saved)
+            undo(f"{oid} no better once settled")
             return
         settled[oid] = (ev, turn)
     for oid, (ev, turn) in settled.items():
