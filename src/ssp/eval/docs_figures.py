@@ -268,9 +268,9 @@ def _per_class_figure(source: str) -> Callable[[Results], list[str]]:
     """The per-class table of a Table I run (``ssp.eval.table1``'s, without its title)."""
 
     def render(results: Results) -> list[str]:
-        from ssp.eval.table1 import _per_class_markdown
+        from ssp.eval.table1 import per_class_markdown
 
-        lines = _per_class_markdown(results[source]["methods"])
+        lines = per_class_markdown(results[source]["methods"])
         return lines[3:]
 
     return render

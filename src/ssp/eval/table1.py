@@ -72,6 +72,8 @@ __all__ = [
     "SequencePart",
     "SequenceSpec",
     "merge_table1",
+    "per_class",
+    "per_class_markdown",
     "run_table1",
     "run_table1_parts",
     "table1_report",
@@ -898,7 +900,7 @@ def _tails_markdown(result: dict) -> list[str]:
         lines += ["", "Orientation flips of objects that did not move (an estimate turned by "
                   "over 15 deg since the object's last match; in brackets, from an orientation "
                   "within 10 deg of the truth): " + ", ".join(flips) + "."]  # fmt: skip
-    lines += _per_class_markdown(methods)
+    lines += per_class_markdown(methods)
     return lines
 
 
@@ -933,7 +935,7 @@ def per_class(objects: dict, bop_per_class: dict) -> dict[str, dict]:
     return out
 
 
-def _per_class_markdown(methods: dict) -> list[str]:
+def per_class_markdown(methods: dict) -> list[str]:
     """A row per class, a column per method: BOP AR, mean rotation error (deg) and gross
     object-frames."""
     classes = sorted({c for d in methods.values() for c in d.get("per_class", {})})
