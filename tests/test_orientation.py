@@ -131,3 +131,36 @@ def test_without_masks_nothing_is_said(lib):
                 hypotheses=[replace(h, segment=None) for h in f.hypotheses])  # fmt: skip
     (obj,) = SceneParser(lib, SSPConfig()).update(f).objects
     assert obj.orientation is None and obj.to_dict()["orientation"] is None
+
+
+def _remembering(lib, T, alternative):
+    state = _state("mug", T)
+    state["objects"][0]["alternatives"] = [alternative.tolist()]
+    return SceneParser.from_state(lib, state, SSPConfig())
+
+
+def test_a_remembered_alternative_decides_when_the_data_do(lib, monkeypatch):
+    """The estimator proposes only the wrong yaw; the parser remembers the true one as an
+    alternative (tied in an earlier view). The data of this view decide for it: the mug is
+    turned there and settled. If settling fails, nothing is turned and the output says the
+    pose is undecided, with the true yaw among its alternatives."""
+    mug = lib["mug"]
+    true, wrong = _standing(mug, 225.0), _standing(mug, 45.0)
+    gt = {"mug_0": ("mug", true)}
+    f = _frame(lib, gt, [Hypothesis("mug", wrong, 0.9)], stamp=1.0)
+    (obj,) = _remembering(lib, wrong, true).update(f).objects
+    _, dr = pose_change(true, obj.T_world_obj, mug.symmetry, mug.center_of_mass)
+    assert np.degrees(dr) < 5 and obj.orientation.turned_deg > 150
+
+    from ssp.errors import PhysicsError
+    from ssp.search import Simulator
+
+    def fail(self):
+        raise PhysicsError("test: the settle fails")
+
+    monkeypatch.setattr(Simulator, "window", fail)
+    (kept,) = _remembering(lib, wrong, true).update(f).objects
+    _, dr = pose_change(wrong, kept.T_world_obj, mug.symmetry, mug.center_of_mass)
+    o = kept.orientation
+    assert np.degrees(dr) < 5 and o.turned_deg == 0 and not o.decided
+    assert any(abs(a.turn_deg - 180) < 10 and a.rank > o.rank for a in o.alternatives)
