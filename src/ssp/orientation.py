@@ -43,6 +43,7 @@ from ssp.geometry import validate_pose
 from ssp.library.model import ObjectModel
 from ssp.probability import pose_change
 from ssp.registration import icp_refine
+from ssp.static import RANKED_TURN
 from ssp.verification import Evidence, check_new, evidence
 
 if TYPE_CHECKING:
@@ -62,10 +63,9 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-#: Candidates turned less than this (rad, symmetry-aware) from a pose are copies of it (an
-#: estimator's distinct orientations differ by more: its refinement keeps candidates turned
-#: by over 15 deg; ``ssp.static.RANKED_TURN`` is the same).
-DISTINCT_TURN = np.radians(15.0)
+#: Candidates turned less than this (rad, symmetry-aware) from a pose are copies of it: the
+#: unchanged test's (an estimator's distinct orientations differ by more).
+DISTINCT_TURN = RANKED_TURN
 
 #: A candidate replaces the pose when its rank is higher by more than this; within it, the
 #: two are tied (the class margin of the association, ``ssp.temporal.CLASS_MARGIN``).
@@ -193,10 +193,9 @@ def decide_orientations(ctx: FrameContext) -> None:
 
 def _said(ranked: list, T: np.ndarray, rank: float, model: ObjectModel) -> Orientation:
     """The :class:`Orientation` of an object at ``T`` (its rank ``rank``) among its other
-    ``ranked`` candidates (``(rank, pose, evidence)``)."""
-    others = [(r, U) for r, U, _ in ranked if not np.array_equal(U, T)]
+    ``ranked`` candidates (``(rank, pose, evidence)``, ``T`` not among them)."""
     tied = []
-    for r, U in others:
+    for r, U, _ in ranked:
         turn = np.degrees(pose_change(T, U, model.symmetry, model.center_of_mass)[1])
         if r >= rank - DECIDE_MARGIN and turn >= np.degrees(DISTINCT_TURN):
             tied.append(Alternative(U, float(turn), r))

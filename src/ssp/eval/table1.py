@@ -162,6 +162,11 @@ GROSS_MM = 10.0
 GROSS_DEG = 10.0
 
 
+def is_gross(trans_mm: float, rot_deg: float) -> bool:
+    """A matched estimate more than :data:`GROSS_MM` or :data:`GROSS_DEG` off."""
+    return trans_mm > GROSS_MM or rot_deg > GROSS_DEG
+
+
 class _Tails:
     """Per method: gross errors, false objects and id switches, and their causes."""
 
@@ -183,7 +188,7 @@ class _Tails:
         by_gt = fm.by_gt()
         for gid in sf.gt:
             mt = by_gt.get(gid)
-            bad = mt is None or mt.trans_mm > GROSS_MM or mt.rot_deg > GROSS_DEG
+            bad = mt is None or is_gross(mt.trans_mm, mt.rot_deg)
             self.object_frames += 1
             self.gross += int(bad)
             if sf.visib_fract.get(gid, 0.0) >= VISIBLE:
@@ -919,7 +924,7 @@ def per_class(objects: dict, bop_per_class: dict) -> dict[str, dict]:
         gross = sum(
             1 for i in rows
             if objects["trans_mm"][i] is None
-            or objects["trans_mm"][i] > GROSS_MM or objects["rot_deg"][i] > GROSS_DEG
+            or is_gross(objects["trans_mm"][i], objects["rot_deg"][i])
         )  # fmt: skip
         ar = bop_per_class.get(cls, {}).get("AR")
         out[cls] = {
