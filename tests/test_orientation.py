@@ -18,7 +18,7 @@ from ssp.library import ObjectLibrary
 from ssp.library.build import build_model
 from ssp.library.builtin import builtin_spec
 from ssp.library.symmetry import Symmetry
-from ssp.orientation import distinct_orientations, orientation_rank
+from ssp.orientation import DECIDE_MARGIN, decides, distinct_orientations, orientation_rank
 from ssp.parser import SceneParser
 from ssp.probability import pose_change
 from ssp.scene import Hypothesis
@@ -75,6 +75,23 @@ def test_rank_and_distinct_orientations(lib):
         T, [_standing(mug, a) for a in (5.0, 90.0, 100.0, 180.0)], mug
     )  # fmt: skip
     assert [round(np.degrees(t)) for _, t in got] == [90, 180]  # 5: a copy; 100: of 90's
+
+
+def test_a_gain_within_sampling_noise_does_not_decide():
+    """A heavily occluded block (the realistic structures, 98 segment points): a candidate
+    that hides 10 of its 46 visible samples behind the occluder explains all of the 36 left
+    (fit 0.913 -> 1.0, rank +0.05 and more) and one more segment point; that is chance, not
+    an orientation the data decide. The same gain over ten times the data decides."""
+    old = Evidence(184, 46, 42 / 46, 97 / 98, 0.0, 0.75)
+    new = Evidence(184, 36, 1.0, 1.0, 0.0, 0.80)
+    assert orientation_rank(new) > orientation_rank(old) + DECIDE_MARGIN
+    assert not decides(new, old, 98)
+    old10, new10 = replace(old, visible=460), replace(new, visible=360)
+    assert decides(new10, old10, 980)
+    # the segment's points decide alone (a seen handle the pose leaves unexplained)
+    assert decides(replace(new, fit=old.fit), replace(old, explained=0.85), 400)
+    # a rank within the margin never decides, however much data
+    assert not decides(replace(new10, fit=0.95), replace(old10, fit=0.94), 10_000)
 
 
 def test_a_remembered_wrong_orientation_turns_when_the_data_decide(lib):
@@ -162,5 +179,5 @@ def test_a_remembered_alternative_decides_when_the_data_do(lib, monkeypatch):
     (kept,) = _remembering(lib, wrong, true).update(f).objects
     _, dr = pose_change(wrong, kept.T_world_obj, mug.symmetry, mug.center_of_mass)
     o = kept.orientation
-    assert np.degrees(dr) < 5 and o.turned_deg == 0 and not o.decided
+    assert np.degrees(dr) < 10 and o.turned_deg == 0 and not o.decided  # the body's yaw: ICP
     assert any(abs(a.turn_deg - 180) < 10 and a.rank > o.rank for a in o.alternatives)

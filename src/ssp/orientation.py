@@ -11,19 +11,25 @@ orientations with the data of its instance segment:
   previous frames (:attr:`ssp.frame_context.Known.alternatives`), turned by at least
   :data:`DISTINCT_TURN` from its pose after the search (symmetry-aware; closer ones are copies
   of it), one per orientation, each aligned to the segment by ICP
-  (:func:`ssp.registration.icp_refine`; the pose was, by the polish);
+  (:func:`ssp.registration.icp_refine`) and kept only if still distinct from the pose (ICP
+  can bring one back to it);
 * **rank** (:func:`orientation_rank`): the F1 of the visible surface explained
   (:func:`ssp.verification.evidence`'s ``fit``; a face the camera sees through counts against
   it) and of the instance segment explained (``explained``: the segment's points near the
   model, where the hidden-handle pose leaves the seen handle's points unexplained);
-* **the data decides**: a candidate that passes the new-object check
-  (:func:`ssp.verification.check_new`) and ranks higher than the pose by more than
-  :data:`DECIDE_MARGIN` replaces it (the object is turned there, in the world too);
-* **tied**: the candidates within :data:`DECIDE_MARGIN` of the pose are its alternatives: the
-  output says the orientation is undecided and lists them (``ObjectEstimate.orientation``),
-  and the next frame remembers them, so a later view can decide between them even when the
-  estimator no longer proposes them; one ranked lower by more than the margin is dropped (the
-  data decided against it). The pose stays while the evidence is tied.
+* **the data decides** (:func:`decides`): a candidate that passes the new-object check
+  (:func:`ssp.verification.check_new`), ranks higher than the pose by more than
+  :data:`DECIDE_MARGIN`, and beats it by more than sampling noise (:data:`DECIDE_Z` standard
+  errors of its fit or explained fraction) replaces it: the object is turned there, in the
+  world too. The pose is ranked at its best, as it is or aligned by ICP as the candidates
+  are, so that the millimetres the physics' settle put it off its data do not count as a
+  worse orientation;
+* **tied**: the other candidates within :data:`DECIDE_MARGIN` of the pose (or above it) are
+  its alternatives: the output says the orientation is undecided and lists them
+  (``ObjectEstimate.orientation``), and the next frame remembers them, so a later view can
+  decide between them even when the estimator no longer proposes them; one ranked lower by
+  more than the margin is dropped (the data decided against it). The pose stays while the
+  evidence is tied.
 
 Only with instance masks (``Frame.instance_masks``): without them an object's points are a
 cluster's, which need not all be its own, and ``explained`` would count its neighbours.
@@ -51,12 +57,14 @@ if TYPE_CHECKING:
 
 __all__ = [
     "DECIDE_MARGIN",
+    "DECIDE_Z",
     "DISTINCT_TURN",
     "Alternative",
     "Orientation",
     "alternatives_from_state",
     "alternatives_state",
     "decide_orientations",
+    "decides",
     "distinct_orientations",
     "orientation_rank",
 ]
@@ -70,6 +78,9 @@ DISTINCT_TURN = RANKED_TURN
 #: A candidate replaces the pose when its rank is higher by more than this; within it, the
 #: two are tied (the class margin of the association, ``ssp.temporal.CLASS_MARGIN``).
 DECIDE_MARGIN = 0.05
+
+#: ... and by this many standard errors of its fit or explained fraction (:func:`decides`).
+DECIDE_Z = 3.0
 
 
 @dataclass(frozen=True)
@@ -127,6 +138,35 @@ def orientation_rank(ev: Evidence) -> float:
     return 0.0 if s <= 0 else float(2 * ev.fit * ev.explained / s)
 
 
+def decides(new: Evidence, old: Evidence, segment_points: int) -> bool:
+    """Whether evidence ``new`` (a candidate's) decides against ``old`` (the pose's) on an
+    instance segment of ``segment_points`` points: its :func:`orientation_rank` is higher by
+    more than :data:`DECIDE_MARGIN`, and by more than sampling noise: its fit (a fraction of
+    the visible samples) or its explained fraction (of the segment's points) is higher by at
+    least :data:`DECIDE_Z` standard errors of the difference of two proportions. A heavily
+    occluded object shows a few dozen samples, where a pose that hides a few more of them
+    behind the occluder gains 0.05 by chance."""
+    if orientation_rank(new) <= orientation_rank(old) + DECIDE_MARGIN:
+        return False
+    if _z(new.fit, new.visible, old.fit, old.visible) >= DECIDE_Z:
+        return True
+    if new.explained is None or old.explained is None:
+        return False
+    return _z(new.explained, segment_points, old.explained, segment_points) >= DECIDE_Z
+
+
+def _z(p1: float, n1: int, p2: float, n2: int) -> float:
+    """Two-proportion z statistic of ``p1 - p2`` (fractions of ``n1`` and ``n2`` trials;
+    pooled; infinite for a gain with no variance, 0 without trials)."""
+    if n1 <= 0 or n2 <= 0:
+        return 0.0
+    pooled = (p1 * n1 + p2 * n2) / (n1 + n2)
+    var = pooled * (1.0 - pooled) * (1.0 / n1 + 1.0 / n2)
+    if var <= 0.0:
+        return float("inf") if p1 > p2 else 0.0
+    return float((p1 - p2) / np.sqrt(var))
+
+
 def distinct_orientations(
     T: np.ndarray, candidates: list[np.ndarray], model: ObjectModel
 ) -> list[tuple[np.ndarray, float]]:
@@ -168,10 +208,18 @@ def decide_orientations(ctx: FrameContext) -> None:
         known = ctx.known.get(oid)
         candidates = [h.T_world_obj for h in ctx.groups.get(oid, [])]
         candidates += list(known.alternatives) if known is not None else []
-        distinct = distinct_orientations(T, candidates, model)
-        distinct = [(_aligned(ctx, oid, U), turn) for U, turn in distinct]
         ev = ctx.evidence.get(oid) or _judged(ctx, oid, label, T)
-        rank = orientation_rank(ev)
+        rank = bar = orientation_rank(ev)
+        bar_ev = ev
+        distinct = distinct_orientations(T, candidates, model)
+        if distinct:
+            # what a candidate must beat: the pose aligned as the candidates are (a candidate
+            # decides an orientation, not the millimetres the settle put the pose off its data)
+            ev_aligned = _judged(ctx, oid, label, _aligned(ctx, oid, T))
+            if orientation_rank(ev_aligned) > bar:
+                bar, bar_ev = orientation_rank(ev_aligned), ev_aligned
+            aligned = [_aligned(ctx, oid, U) for U, _ in distinct]
+            distinct = distinct_orientations(T, aligned, model)  # ICP may bring one back to T
         if not distinct:
             ctx.orientations[oid] = Orientation(True, rank)
             continue
@@ -180,24 +228,28 @@ def decide_orientations(ctx: FrameContext) -> None:
         ]
         ranked.sort(key=lambda r: -r[0])
         best_rank, best, best_ev = ranked[0]
-        if best_rank > rank + DECIDE_MARGIN and check_new(best_ev, cfg).keep:
+        if decides(best_ev, bar_ev, _points(ctx, oid)) and check_new(best_ev, cfg).keep:
             turn = pose_change(T, best, model.symmetry, model.center_of_mass)[1]
-            stay = _said(ranked, T, rank, model)
-            turns[oid] = (best, float(np.degrees(turn)), rank, stay)
-            ranked = [(rank, T, ev)] + ranked[1:]  # the pose it leaves is a candidate now
+            stay = _said(ranked, T, rank, model, bar)
+            turns[oid] = (best, float(np.degrees(turn)), bar, stay)
+            ranked = [(bar, T, ev)] + ranked[1:]  # the pose it leaves is a candidate now
             T, rank = best, best_rank
-        ctx.orientations[oid] = _said(ranked, T, rank, model)
+            bar = rank
+        ctx.orientations[oid] = _said(ranked, T, rank, model, bar)
     if turns:
         _turn(ctx, turns)
 
 
-def _said(ranked: list, T: np.ndarray, rank: float, model: ObjectModel) -> Orientation:
-    """The :class:`Orientation` of an object at ``T`` (its rank ``rank``) among its other
-    ``ranked`` candidates (``(rank, pose, evidence)``, ``T`` not among them)."""
+def _said(
+    ranked: list, T: np.ndarray, rank: float, model: ObjectModel, bar: float
+) -> Orientation:
+    """The :class:`Orientation` of an object at ``T`` (its rank ``rank``; ``bar``: the rank
+    its candidates are compared with, ``rank`` or more) among its other ``ranked``
+    candidates (``(rank, pose, evidence)``, ``T`` not among them)."""
     tied = []
     for r, U, _ in ranked:
         turn = np.degrees(pose_change(T, U, model.symmetry, model.center_of_mass)[1])
-        if r >= rank - DECIDE_MARGIN and turn >= np.degrees(DISTINCT_TURN):
+        if r >= bar - DECIDE_MARGIN and turn >= np.degrees(DISTINCT_TURN):
             tied.append(Alternative(U, float(turn), r))
     return Orientation(not tied, rank, tuple(tied))
 
@@ -263,6 +315,12 @@ def alternatives_from_state(entry: Mapping[str, Any]) -> tuple[np.ndarray, ...]:
         validate_pose(np.asarray(U, dtype=float), f"object {entry['id']!r}: an alternative")
         for U in entry.get("alternatives", [])
     )
+
+
+def _points(ctx: FrameContext, oid: str) -> int:
+    """The number of points of object ``oid``'s instance segment."""
+    segment = ctx.segments.get(oid)
+    return 0 if segment is None else len(segment)
 
 
 def _aligned(ctx: FrameContext, oid: str, U: np.ndarray) -> np.ndarray:
