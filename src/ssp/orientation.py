@@ -240,9 +240,7 @@ def decide_orientations(ctx: FrameContext) -> None:
         _turn(ctx, turns)
 
 
-def _said(
-    ranked: list, T: np.ndarray, rank: float, model: ObjectModel, bar: float
-) -> Orientation:
+def _said(ranked: list, T: np.ndarray, rank: float, model: ObjectModel, bar: float) -> Orientation:
     """The :class:`Orientation` of an object at ``T`` (its rank ``rank``; ``bar``: the rank
     its candidates are compared with, ``rank`` or more) among its other ``ranked``
     candidates (``(rank, pose, evidence)``, ``T`` not among them)."""
