@@ -10,6 +10,7 @@ import trimesh
 import yaml
 from scipy.spatial import ConvexHull, Delaunay
 
+from ssp.config import SSPConfig
 from ssp.errors import UnknownObjectError
 from ssp.library import builtin
 from ssp.library.builtin import (
@@ -386,12 +387,13 @@ def test_export_subset(tmp_path):
 
 def test_view_ambiguous_mug():
     """The mug (not in the default library): a watertight solid, its convex parts its exact
-    decomposition, no symmetry (the handle), standing on its base; from the side opposite the
-    handle it is the body's cylinder (what makes its yaw undecidable there)."""
+    decomposition, no symmetry (the handle), standing on its base, open at the top (the
+    cavity tells its top from its bottom); from the side opposite the handle it is the body's
+    cylinder (what makes its yaw undecidable there)."""
     from ssp.library.builtin import VIEW_AMBIGUOUS_NAMES, view_ambiguous_specs
 
-    (mug,) = view_ambiguous_specs()
-    assert mug.name == "mug" and VIEW_AMBIGUOUS_NAMES == ("mug",) and "mug" not in NAMES
+    mug, _ = view_ambiguous_specs()
+    assert mug.name == "mug" and VIEW_AMBIGUOUS_NAMES == ("mug", "tin") and "mug" not in NAMES
     m = mug.mesh
     assert m.is_watertight and m.body_count == 1 and len(mug.symmetry.discrete) == 1
     assert all(p.is_convex for p in mug.parts)
@@ -401,6 +403,31 @@ def test_view_ambiguous_mug():
     base = m.vertices[:, 2].min()
     assert np.ptp(m.vertices[np.isclose(m.vertices[:, 2], base), 0]) == pytest.approx(0.08, 0.01)
     assert builtin_spec("mug").name == "mug"
+    # open: the axis is outside the solid above the floor, inside it below
+    axis = np.array([[0.0, 0.0, base + z] for z in (0.004, 0.05, 0.09)])
+    axis[:, 0] = m.vertices[np.isclose(m.vertices[:, 2], base), 0].mean()  # the body's axis
+    assert m.contains(axis).tolist() == [True, False, False]
+
+
+def test_view_ambiguous_tin():
+    """The tin (not in the default library): a box nearly square in plan, so its exact
+    symmetries are the box's four half-turns, and a quarter turn about z moves each side by
+    3 mm, less than the data term's inlier radius (the fit of the outline tells them apart)."""
+    from ssp.library.builtin import view_ambiguous_specs
+    from ssp.probability import pose_change
+
+    _, tin = view_ambiguous_specs()
+    assert tin.name == "tin" and "tin" not in NAMES and len(tin.symmetry.discrete) == 4
+    assert tin.mesh.is_watertight and tin.parts[0].is_convex
+    np.testing.assert_allclose(tin.mesh.extents, [0.066, 0.060, 0.045])
+    quarter = np.eye(4)
+    quarter[:3, :3] = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+    # no declared symmetry takes the tin to its quarter turn ...
+    assert np.degrees(pose_change(np.eye(4), quarter, tin.symmetry)[1]) == pytest.approx(90.0)
+    # ... whose sides are 3 mm off the tin's
+    moved = np.abs(quarter[:3, :3]) @ tin.mesh.extents - tin.mesh.extents
+    np.testing.assert_allclose(np.abs(moved) / 2, [0.003, 0.003, 0.0], atol=1e-12)
+    assert SSPConfig().data.inlier_radius > 0.003
 
 
 def test_export_chosen_and_view_ambiguous_models(tmp_path):
@@ -409,7 +436,7 @@ def test_export_chosen_and_view_ambiguous_models(tmp_path):
     assert list(info["objects"]) == ["mug", "drill"] and len(paths) == 5
     export_builtin(tmp_path / "b", view_ambiguous=True)
     info = yaml.safe_load((tmp_path / "b" / "models.yaml").read_text())
-    assert list(info["objects"]) == [*NAMES, "mug"]
+    assert list(info["objects"]) == [*NAMES, "mug", "tin"]
     with pytest.raises(UnknownObjectError):
         export_builtin(tmp_path / "c", ["mug", "teacup"])
     assert not (tmp_path / "c").exists()  # nothing written for a bad name

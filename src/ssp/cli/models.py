@@ -158,7 +158,8 @@ def models_export_builtin(
     view_ambiguous: bool = typer.Option(
         False,
         "--view-ambiguous",
-        help="Also write the models whose orientation a view often cannot decide (a mug): "
+        help="Also write the models whose orientation a view often cannot decide (a mug, a "
+        "nearly square tin): "
         "with --models, the isolated experiment's tools then include them.",
     ),
     names: str | None = typer.Option(

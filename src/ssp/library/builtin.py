@@ -61,10 +61,11 @@ TOOL_NAMES: tuple[str, ...] = (
 )
 """The tool-like, non-convex models."""
 
-VIEW_AMBIGUOUS_NAMES: tuple[str, ...] = ("mug",)
+VIEW_AMBIGUOUS_NAMES: tuple[str, ...] = ("mug", "tin")
 """Models whose orientation a view often cannot decide (a mug's handle hidden behind its
-body): not in the default library, written by ``export_builtin(..., view_ambiguous=True)``
-for the protocols that measure it (docs/benchmarks.md, "View-ambiguous objects")."""
+body; a nearly square tin, whose quarter turns nearly fit): not in the default library,
+written by ``export_builtin(..., view_ambiguous=True)`` for the protocols that measure it
+(docs/benchmarks.md, "View-ambiguous objects")."""
 
 MAX_FACES = 5000
 """Upper bound on the face count of a built-in mesh (kept modest for collision and rendering)."""
@@ -621,15 +622,29 @@ def _clamp() -> BuiltinSpec:
 
 
 def _mug() -> BuiltinSpec:
-    """Mug standing on its base (z up): a 32-gon body, 80 mm across and 95 mm tall, and a
-    square-section handle at +x (a C of three bars, 12 mm wide). Seen from the side opposite
-    its handle it is a cylinder: any yaw explains that view."""
+    """Mug standing on its base (z up): a 32-gon body 80 mm across and 95 mm tall, open at the
+    top (5 mm wall, 8 mm floor), and a square-section handle at +x (a C of three bars, 12 mm
+    wide). Seen from the side opposite its handle it is a cylinder: any yaw explains that view.
+    The cavity, which a camera above the rim sees, tells its top from its bottom (a solid mug's
+    handle, nearly centred in height, would leave that to a few millimetres).
+
+    Convex parts: the floor, one wall piece per side of the 32-gon (an annular sector), the
+    handle's bars."""
     n = 32
     r, h = 0.040, 0.095
+    wall, floor = 0.005, 0.008
     w = 0.012  # the handle's section
     reach = 0.030  # how far the handle stands off the body
+    # polygon corners at phase + 2 pi k / n, as _frustum's (the inner ring's edges parallel)
+    ang = np.pi / n + 2.0 * np.pi * np.arange(n + 1) / n
+    ring = np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    walls = []
+    for k in range(n):
+        xy = np.concatenate([ring[k : k + 2] * r, ring[k : k + 2] * (r - wall)])
+        walls.append(_convex(np.concatenate([np.c_[xy, np.zeros(4)], np.c_[xy, np.full(4, h)]])))
     parts = [
-        _frustum("z", 0.0, h, r, sections=n, phase=np.pi / n),
+        _frustum("z", 0.0, floor, r, sections=n, phase=np.pi / n),
+        *walls,
         _box((reach + 0.006, w, w), center=(r + reach / 2 - 0.003, 0.0, 0.078)),  # top bar
         _box((reach + 0.006, w, w), center=(r + reach / 2 - 0.003, 0.0, 0.022)),  # bottom bar
         _box((w, w, 0.056 + w), center=(r + reach - w / 2, 0.0, 0.050)),  # grip
@@ -637,13 +652,29 @@ def _mug() -> BuiltinSpec:
     return _finish(
         "mug",
         parts,
-        density=700.0,  # a ceramic shell, hollow inside: the solid's effective density
+        density=2000.0,  # stoneware
         friction=0.8,
-        description="mug, 80 mm body 95 mm tall with a side handle (solid: no cavity)",
+        description="mug, 80 mm body 95 mm tall, open top, with a side handle",
     )
 
 
-_VIEW_AMBIGUOUS_BUILDERS: tuple[Callable[[], BuiltinSpec], ...] = (_mug,)
+def _tin() -> BuiltinSpec:
+    """A tea tin lying flat (z up): a box 66 x 60 x 45 mm, nearly square in plan. Its exact
+    symmetries are the box's four half-turns; a quarter turn about z moves each side by 3 mm,
+    less than the data term's inlier radius (3.7 mm): what tells the two apart is the fit of
+    the whole outline (ICP), not the visible surface explained."""
+    e = (0.066, 0.060, 0.045)
+    return _finish(
+        "tin",
+        [_box(e)],
+        _box_group(e)[1:],
+        density=450.0,  # a tin half full of tea: 80 g
+        friction=0.4,
+        description="tea tin, 66 x 60 x 45 mm box, nearly square in plan",
+    )
+
+
+_VIEW_AMBIGUOUS_BUILDERS: tuple[Callable[[], BuiltinSpec], ...] = (_mug, _tin)
 
 
 _BUILDERS: tuple[Callable[[], BuiltinSpec], ...] = (
