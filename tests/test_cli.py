@@ -114,8 +114,11 @@ def test_simulate_and_table1_commands(tmp_path):
     result = json.loads((tmp_path / "t1" / "results.json").read_text())
     assert result["protocol"] == "table1" and result["experiment"] == "isolated"
     assert result["frames"] == 2 and "ssp" in result["methods"]
+    assert result["command"]["camera"] == "static"
     r = runner.invoke(app, ["bench", "table1", "--experiment", "towers", "--out", str(tmp_path)])
     assert r.exit_code != 0 and "isolated or structure" in r.output
+    r = runner.invoke(app, ["bench", "table1", "--camera", "drone", "--out", str(tmp_path)])
+    assert r.exit_code != 0 and "--camera must be one of" in r.output
 
 
 def test_run_reports_bad_frames_and_fails_without_good_ones(tmp_path):

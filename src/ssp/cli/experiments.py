@@ -149,6 +149,16 @@ def bench_table1(
             "estimates on the clusters)."
         ),
     ),
+    camera: str = typer.Option(
+        "static",
+        "--camera",
+        help=(
+            "static: the paper's fixed camera; orbit (3.6 deg and 3.6 mm of sideways drift per "
+            "frame), handheld (shaking about the static pose) or keyframes (BOP-style views "
+            "10-30 deg apart): a moving camera, its pose given with each frame "
+            "(docs/benchmarks.md, moving cameras)."
+        ),
+    ),
     methods: str | None = typer.Option(
         None, help="Comma-separated methods to compare (default: ssp and all six baselines)."
     ),
@@ -162,7 +172,7 @@ def bench_table1(
     results.md and plots."""
     from ssp.eval.table1 import DEFAULT_METHODS, table1_report, write_table1
 
-    _check_table1_options(hypotheses, noise, masks)
+    _check_table1_options(hypotheses, noise, masks, camera)
     names = _methods(methods) if methods else list(DEFAULT_METHODS)
     experiment = check_experiment(experiment)
     parallel = get_parallel(executor, workers, ray_address)
@@ -171,7 +181,8 @@ def bench_table1(
     command = {"experiment": experiment, "sequences": sequences, "seed": seed,
                "models": None if models is None else str(models), "stages": stages,
                "frames_per_stage": frames_per_stage, "stride": stride, "hypotheses": hypotheses,
-               "noise": noise, "masks": masks, "methods": names, "vsd": vsd}  # fmt: skip
+               "noise": noise, "masks": masks, "camera": camera, "methods": names,
+               "vsd": vsd}  # fmt: skip
     parts = _table1_parts(command, lib, cfg, parallel)
     result = table1_report(parts, names, hypotheses=hypotheses, noise=noise, command=command)
     files = write_table1(result, out)
@@ -181,8 +192,14 @@ def bench_table1(
         console.print(f"wrote [bold]{f}[/]")
 
 
-def _check_table1_options(hypotheses: str, noise: str, masks: str = "instance") -> None:
-    """The --hypotheses, --noise and --masks of ``ssp bench table1``."""
+def _check_table1_options(
+    hypotheses: str, noise: str, masks: str = "instance", camera: str = "static"
+) -> None:
+    """The --hypotheses, --noise, --masks and --camera of ``ssp bench table1``."""
+    from ssp.sim.camera_path import CAMERA_PATHS
+
+    if camera not in CAMERA_PATHS:
+        raise typer.BadParameter(f"--camera must be one of {', '.join(CAMERA_PATHS)}")
     if hypotheses not in ("noisy", "estimated"):
         raise typer.BadParameter("--hypotheses must be 'noisy' or 'estimated'")
     if noise not in ("paper", "realistic", "rgb"):
@@ -208,6 +225,7 @@ def _table1_parts(command: dict, lib, cfg, parallel) -> list:
             estimated=command["hypotheses"] == "estimated",
             rgb=command["noise"] == "rgb",
             masks=command.get("masks", "instance") == "instance",
+            camera=command.get("camera", "static"),
         )
         for i in range(sequences)
     ]

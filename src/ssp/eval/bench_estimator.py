@@ -62,8 +62,8 @@ def collect_segments(
             progress(f"rendering sequence {s}")
         seq = generate_sequence(experiment, s, library, stages=stages)
         perception = Perception(library, config, classes=seq.models or None)
-        cam = np.asarray(seq.T_world_cam, dtype=float)[:3, 3]
         for i, sf in enumerate(seq.frames):
+            cam = np.asarray(seq.camera_pose(i), dtype=float)[:3, 3]
             if progress is not None:
                 progress(f"segments of sequence {s}, frame {i + 1}/{len(seq)}")
             res = perceive_frame(perception, seq, sf, hypotheses=[])

@@ -99,18 +99,24 @@ def estimate_sequence(
     return replace(seq, frames=frames, info=info), records
 
 
+def _camera_of(seq: SimSequence, sf) -> np.ndarray:
+    """The camera pose of frame ``sf`` (its own when the camera moves)."""
+    return seq.T_world_cam if sf.T_world_cam is None else sf.T_world_cam
+
+
 def perceive_frame(
     perception: Perception, seq: SimSequence, sf, hypotheses=None, *, masks: bool = True
 ):
     """:meth:`Perception.from_depth` of the rendered frame ``sf`` of ``seq``, segmented by its
     instance mask (``masks`` False: clustered), with the sequence's camera pose
-    (``hypotheses``: given instead of estimated, ``[]`` to segment only)."""
+    (the frame's own when the camera moves; ``hypotheses``: given instead of estimated,
+    ``[]`` to segment only)."""
     mask = None
     if masks:
         mask = np.asarray(sf.instance).astype(np.int64)
         mask[mask < -1] = -1
     return perception.from_depth(
-        sf.depth, seq.camera, stamp=sf.stamp, T_world_cam=seq.T_world_cam, mask=mask,
+        sf.depth, seq.camera, stamp=sf.stamp, T_world_cam=_camera_of(seq, sf), mask=mask,
         hypotheses=hypotheses,
     )  # fmt: skip
 

@@ -111,7 +111,7 @@ def run_sequence_demo(
     frames = []
     for i in sorted(outputs):
         f = seq.frames[i]
-        img = overlay(lib, f.depth, seq.camera, seq.T_world_cam, list(f.gt.values()), outputs[i])
+        img = overlay(lib, f.depth, seq.camera, seq.camera_pose(i), list(f.gt.values()), outputs[i])
         caption = f"frame {i}: {len(f.gt)} objects"
         png = save_png(out / "frames" / f"{i:03d}.png", img, caption, ["truth", *DRAWN])
         frames.append((caption, png))

@@ -57,7 +57,7 @@ from ssp.eval.metrics import (
     precision_deviations,
     summarize,
 )
-from ssp.eval.tracking import Flips, IdSwitches
+from ssp.eval.tracking import Flips, IdSwitches, ReportedMoves
 from ssp.library.model import ObjectInstance
 from ssp.physics import World
 from ssp.pipeline.executor import Parallel, done_messages, map_items
@@ -183,6 +183,8 @@ class _Tails:
         self.switch_events: list[dict] = []
         self.flips = 0
         self.flips_from_right = 0
+        self.static_modes = 0  # object-frames of objects that did not move, with a mode
+        self.reported_moved = 0  # ... reported perturbed
 
     def add(self, sf, fm: FrameMatch, dets, conditions, kinds, gate: float) -> None:
         by_gt = fm.by_gt()
@@ -205,7 +207,11 @@ class _Tails:
             )
             self.fp_causes[cause] = self.fp_causes.get(cause, 0) + 1
 
-    def add_ids(self, ids: IdSwitches, tracked: bool, sequence: int, flips: Flips) -> None:
+    def add_ids(
+        self, ids: IdSwitches, tracked: bool, sequence: int, flips: Flips, moves: ReportedMoves
+    ) -> None:
+        self.static_modes += moves.static
+        self.reported_moved += moves.moved
         self.flips += flips.flips
         self.flips_from_right += flips.from_right
         self.tracked |= tracked
@@ -229,6 +235,8 @@ class _Tails:
         self.static_switches += other.static_switches
         self.flips += other.flips
         self.flips_from_right += other.flips_from_right
+        self.static_modes += other.static_modes
+        self.reported_moved += other.reported_moved
         self.tracked |= other.tracked
         self.switch_events += other.switch_events
 
@@ -242,6 +250,7 @@ class _Tails:
             "id_switches_static": self.static_switches if self.tracked else None,
             "flips": self.flips,
             "flips_from_right": self.flips_from_right,
+            "static_reported_moved": self.reported_moved if self.static_modes else None,
             "false_object_causes": dict(sorted(self.fp_causes.items())),
         }
         if self.by_condition:
@@ -252,6 +261,20 @@ class _Tails:
         if self.tracked:
             out["id_switch_examples"] = self.switch_events[:20]
         return out
+
+
+def _modes(fm: FrameMatch, dets, estimate) -> dict[str, str]:
+    """Ground-truth id -> the transition mode of its matched estimate (``estimate``: the
+    method's last :class:`~ssp.estimate.SceneEstimate`, None for methods without modes)."""
+    if estimate is None:
+        return {}
+    mode = {o.id: str(o.mode) for o in estimate.objects}
+    out = {}
+    for mt in fm.matches:
+        eid = dets[mt.est_index].id
+        if eid in mode:
+            out[mt.gt_id] = mode[eid]
+    return out
 
 
 def _sources(seq: SimSequence) -> list | None:
@@ -277,7 +300,8 @@ class SequenceSpec:
     :meth:`RealisticNoise.rgb <ssp.sim.realistic.RealisticNoise.rgb>`), then, with
     ``estimated``, its hypotheses replaced by the perception front end's
     (:func:`ssp.eval.estimated.estimate_sequence`; ``masks`` False: on the cloud's clusters, as
-    ``ssp run --masks none`` does it)."""
+    ``ssp run --masks none`` does it); ``camera``: the camera's path
+    (:data:`ssp.sim.camera_path.CAMERA_PATHS`)."""
 
     experiment: str
     seed: int
@@ -288,6 +312,7 @@ class SequenceSpec:
     estimated: bool = False
     rgb: bool = False
     masks: bool = True
+    camera: str = "static"
 
     def build(self, library, config: SSPConfig) -> tuple[SimSequence, list[dict]]:
         """The sequence and the estimator's records (empty unless ``estimated``)."""
@@ -305,6 +330,7 @@ class SequenceSpec:
             if self.realistic
             else None,
             realism=SceneRealism() if self.realistic else None,
+            camera_path=self.camera,
         )
         if not self.estimated:
             return seq, []
@@ -537,6 +563,7 @@ def _sequence_part(
     runners = {m: make_method(m, library, config) for m in methods}
     ids = {m: IdSwitches() for m in methods}
     flips = {m: Flips() for m in methods}
+    moves = {m: ReportedMoves() for m in methods}
     sources = _sources(seq)
     kinds = (seq.info or {}).get("hypothesis_kinds") if sources is not None else None
     history = DetectionHistory()
@@ -570,13 +597,14 @@ def _sequence_part(
                 sf.visib_fract,
                 [(d.class_name, d.T_world_obj, d.score) for d in dets],
                 seq.camera,
-                seq.T_world_cam,
+                seq.camera_pose(i),
                 sf.depth,
             )
             ids[m].update(sf.index, sf.gt, {mt.gt_id: dets[mt.est_index].id for mt in fm.matches})
             flips[m].update(
                 sf.gt, {mt.gt_id: dets[mt.est_index].T_world_obj for mt in fm.matches}, library
             )
+            moves[m].update(sf.gt, _modes(fm, dets, getattr(runner, "last_estimate", None)))
             tails[m].add(sf, fm, dets, conditions, kinds[i] if kinds else None, gate)
             depth, n_unsup = physics(dets)
             c = counts[m]
@@ -615,7 +643,7 @@ def _sequence_part(
             ):
                 fr[name].append(value)
     for m in methods:
-        tails[m].add_ids(ids[m], getattr(runners[m], "tracks_ids", False), s, flips[m])
+        tails[m].add_ids(ids[m], getattr(runners[m], "tracks_ids", False), s, flips[m], moves[m])
     precision = {}
     for m in methods:
         pt, pr = [], []
@@ -899,6 +927,11 @@ def _tails_markdown(result: dict) -> list[str]:
         str,
         missing="0",
     )
+    moved = [f"{name} {d['static_reported_moved']}" for name, d in methods.items()
+             if d.get("static_reported_moved") is not None]  # fmt: skip
+    if moved:
+        lines += ["", "Objects reported moved (transition mode perturbed) that did not move "
+                  "(object-frames): " + ", ".join(moved) + "."]  # fmt: skip
     flips = [f"{name} {d['flips']} ({d['flips_from_right']})" for name, d in methods.items()
              if d.get("flips") is not None]  # fmt: skip
     if flips:

@@ -18,7 +18,7 @@ import numpy as np
 
 from ssp.probability import pose_change
 
-__all__ = ["FLIP_DEG", "STATIC_SHIFT", "STATIC_TILT_DEG", "Flips", "IdSwitches"]
+__all__ = ["FLIP_DEG", "STATIC_SHIFT", "STATIC_TILT_DEG", "Flips", "IdSwitches", "ReportedMoves"]
 
 #: A ground-truth object moved less than this since its last match is static (m, deg).
 STATIC_SHIFT = 0.0005
@@ -97,3 +97,29 @@ class Flips:
                         was = pose_change(T_gt, last[1], m.symmetry, m.center_of_mass)[1]
                         self.from_right += int(math.degrees(was) <= self.right_deg)
             self._last[gid] = (T_gt, T_est)
+
+
+class ReportedMoves:
+    """Objects reported moved that did not: a matched estimate whose transition mode is
+    ``perturbed`` while its object has not moved in the world since its last match (as for a
+    static id switch). A moving camera must not make the scene's objects move. Only methods
+    that report transition modes (ssp) are counted; ``static``: the object-frames that could
+    have been so reported."""
+
+    def __init__(self) -> None:
+        self._last: dict[str, np.ndarray] = {}
+        self.static = 0
+        self.moved = 0
+
+    def update(self, gt: Mapping[str, tuple[str, np.ndarray]], modes: Mapping[str, str]) -> None:
+        """``modes``: ground-truth id -> the transition mode of the estimate matched to it
+        this frame (ids without a match or a mode left out)."""
+        for gid, mode in modes.items():
+            T = np.asarray(gt[gid][1], dtype=float)
+            last = self._last.get(gid)
+            if last is not None:
+                dt, dr = pose_change(last, T)
+                if dt < STATIC_SHIFT and math.degrees(dr) < STATIC_TILT_DEG:
+                    self.static += 1
+                    self.moved += int(str(mode) == "perturbed")
+            self._last[gid] = T.copy()

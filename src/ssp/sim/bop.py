@@ -14,8 +14,9 @@ too): ``DATASET/camera.json``, ``DATASET/models/`` (``obj_XXXXXX.ply`` in mm and
     objects of each frame in the order of ``SimFrame.gt`` (``inst_id`` is our extra key: the
     instance id).
 ``scene_camera.json``
-    ``{im_id: {cam_K, depth_scale, cam_R_w2c, cam_t_w2c (mm)}}``; the camera is static, the
-    world-to-camera pose gives the world frame (z up, table top at z = 0).
+    ``{im_id: {cam_K, depth_scale, cam_R_w2c, cam_t_w2c (mm)}}``; each image's
+    world-to-camera pose (the same for a static camera, its own along a camera path) gives
+    the world frame (z up, table top at z = 0).
 ``scene_gt_info.json``
     ``{im_id: [{obj_id, inst_id, visib_fract, px_count_visib, px_count_all, bbox_visib}]}``
     (``px_count_all``: pixels of the object rendered alone, when the generator recorded them;
@@ -150,19 +151,17 @@ def write_bop(seq: SimSequence, out_dir, scene_id: int = 1) -> Path:
     obj_id = {c: i + 1 for i, c in enumerate(lib_classes)}
 
     cam = seq.camera
-    T_wc = np.asarray(seq.T_world_cam, dtype=float)
-    T_cw = np.linalg.inv(T_wc)
-    cam_entry = {
-        "cam_K": [cam.fx, 0.0, cam.cx, 0.0, cam.fy, cam.cy, 0.0, 0.0, 1.0],
-        "depth_scale": DEPTH_SCALE,
-        "cam_R_w2c": T_cw[:3, :3].reshape(-1).tolist(),
-        "cam_t_w2c": (T_cw[:3, 3] * 1000.0).tolist(),
-    }
     scene_gt, scene_camera, scene_info, hyps, hyps_gt = {}, {}, {}, {}, {}
     instances: dict[str, str] = {}
-    for f in seq.frames:
+    for i, f in enumerate(seq.frames):
         im = str(f.index)
-        scene_camera[im] = cam_entry
+        T_cw = np.linalg.inv(np.asarray(seq.camera_pose(i), dtype=float))
+        scene_camera[im] = {
+            "cam_K": [cam.fx, 0.0, cam.cx, 0.0, cam.fy, cam.cy, 0.0, 0.0, 1.0],
+            "depth_scale": DEPTH_SCALE,
+            "cam_R_w2c": T_cw[:3, :3].reshape(-1).tolist(),
+            "cam_t_w2c": (T_cw[:3, 3] * 1000.0).tolist(),
+        }
         gts, infos = [], []
         inst = np.asarray(f.instance)
         for k, (iid, (cls, T)) in enumerate(f.gt.items()):
@@ -259,7 +258,7 @@ def write_bop(seq: SimSequence, out_dir, scene_id: int = 1) -> Path:
                 "cx": cam.cx,
                 "cy": cam.cy,
             },
-            "T_world_cam": T_wc.tolist(),
+            "T_world_cam": np.asarray(seq.T_world_cam, dtype=float).tolist(),
             "units": "poses in metres except *_t_* and hypotheses t (mm); depth PNG in "
             "depth_scale mm; hypotheses in the world frame",
             "frames": [
@@ -290,10 +289,10 @@ def open_bop(path, library: Mapping) -> BopScene:
 
 
 def sim_frame(scene: BopScene, k: int) -> SimFrame:
-    """The ``k``-th frame of an ssp scene as a :class:`SimFrame` (ground truth in the world
-    frame of the scene's first image)."""
+    """The ``k``-th frame of an ssp scene as a :class:`SimFrame` (ground truth in the scene's
+    world frame, through this image's camera pose)."""
     f = scene.load(k)
-    T_wc = scene.T_world_cam_of(0)
+    T_wc = scene.T_world_cam_of(k)
     return SimFrame(
         index=f.im_id,
         stamp=f.stamp,
@@ -303,6 +302,7 @@ def sim_frame(scene: BopScene, k: int) -> SimFrame:
         visib_fract=f.visib_fract,
         hypotheses=f.hypotheses,
         static_group=f.static_group,
+        T_world_cam=None if T_wc is None else np.array(T_wc, dtype=float),
     )
 
 

@@ -29,9 +29,11 @@ leave the view; in a structure no object may move more than ``STRUCTURE_MAX_SHIF
 
 The camera is static: ``CAMERA_DISTANCE`` (1 m) from the workspace centre, looking down at
 ``CAMERA_ELEVATION_DEG`` (45 degrees) from the -y side (:func:`default_camera_pose`), with the
-Kinect-like intrinsics of :meth:`Camera.default`. Every object is inside the view (all its
+Kinect-like intrinsics of :meth:`Camera.default`. Every object is inside its view (all its
 hull vertices project at least :data:`ssp.sim.placement.VIEW_MARGIN_PX` pixels inside the
-full-resolution image).
+full-resolution image). A moving camera (``camera_path``, :mod:`ssp.sim.camera_path`) starts
+there and ray casts every frame from its own pose; objects may then leave its view (their
+``visib_fract`` says so), as they do for a user walking around a table.
 
 Each stage is shown for ``frames_per_stage`` frames (the paper: the parser ran 4-5 times on
 each static scene), all with the same ground truth. Per stage the clean scene is ray cast once
@@ -57,11 +59,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ssp.config import PhysicsConfig
+from ssp.errors import ArgumentError
 from ssp.geometry import yaw_pose
 from ssp.library.builtin import BLOCK_NAMES
 from ssp.library.model import ObjectInstance, ObjectModel
 from ssp.physics.world import World
 from ssp.probability import pose_change
+from ssp.sim.camera_path import camera_path
 from ssp.sim.distractors import distractor_models
 from ssp.sim.events import run_event
 from ssp.sim.hypotheses import (
@@ -539,7 +543,7 @@ def observe_static_scene(
     ``extras`` (id -> ``(model, T_world_obj)``: distractors) are rendered after the ground
     truth (their instance labels follow its), hide it, and get no visible fraction.
     ``cache`` (a dict kept by the caller) remembers each object's alone count while its pose
-    does not change."""
+    and the camera's do not change."""
     objects = [(iid, library[cls].mesh, T) for iid, (cls, T) in gt.items()]
     objects += [(did, m.mesh, T) for did, (m, T) in (extras or {}).items()]
     scene = render(objects, T_wc, camera, stride=stride)
@@ -548,11 +552,15 @@ def observe_static_scene(
     visib, alone = {}, {}
     for iid, (cls, T) in gt.items():
         hit = cache.get(iid)
-        if hit is not None and np.allclose(hit[0], T, rtol=0.0, atol=1e-7):
-            n = hit[1]
+        if (
+            hit is not None
+            and np.allclose(hit[0], T, rtol=0.0, atol=1e-7)
+            and np.allclose(hit[1], T_wc, rtol=0.0, atol=1e-9)
+        ):
+            n = hit[2]
         else:
             n = _alone_count(library[cls], T, T_wc, cam)
-            cache[iid] = (T.copy(), n)
+            cache[iid] = (T.copy(), np.array(T_wc, dtype=float), n)
         alone[iid] = n
         visib[iid] = min(1.0, counts[iid] / n) if n else 0.0
     return scene, visib, alone, counts
@@ -576,6 +584,7 @@ def generate_sequence(
     T_world_cam: np.ndarray | None = None,
     frame_period: float = 1.0,
     physics: PhysicsConfig | None = None,
+    camera_path: str = "static",
 ) -> SimSequence:
     """One synthetic sequence of ``experiment`` (see the module docstring).
 
@@ -597,7 +606,10 @@ def generate_sequence(
         n_objects: structure: total objects, or an inclusive ``(lo, hi)`` range to draw from
             (default ``STRUCTURE_OBJECTS`` = 9-13); split over the stages bottom-up.
         classes: isolated: the classes to draw from (default: all non-block classes).
-        T_world_cam: camera pose (default :func:`default_camera_pose`).
+        T_world_cam: camera pose (default :func:`default_camera_pose`) of a static camera.
+        camera_path: ``"static"`` or a moving camera's path starting at the static camera
+            (:mod:`ssp.sim.camera_path`): each frame is then ray cast from its own camera
+            (``SimFrame.T_world_cam``); the layout is the static camera's.
         frame_period: time between frames, s (``stamp = index * frame_period``).
         physics: MuJoCo settings for settling (default ``PhysicsConfig()``).
 
@@ -617,6 +629,8 @@ def generate_sequence(
         raise ValueError("stages and frames_per_stage must be >= 1")
     camera = camera or Camera.default()
     T_wc = default_camera_pose() if T_world_cam is None else np.asarray(T_world_cam, float)
+    if camera_path != "static" and T_world_cam is not None:
+        raise ArgumentError("a camera path starts at the static camera: give no T_world_cam")
     noise = hypotheses if hypotheses is not None else HypothesisNoise.for_experiment(experiment)
     config = physics or PhysicsConfig()
     rng = np.random.default_rng([seed, 0, _EXPERIMENT_CODE[experiment]])
@@ -656,6 +670,7 @@ def generate_sequence(
             T_world_cam=T_wc,
         )
 
+    path = _camera_path(camera_path, len(layout.stages) * int(frames_per_stage), seed)
     frames: list[SimFrame] = []
     sources: list[list[str | None]] = []
     kinds: list[list[str]] = []
@@ -666,12 +681,17 @@ def generate_sequence(
         gt = {iid: (layout.classes[iid], T) for iid, T in stage.poses.items()}
         extras = {did: (extra_models[did], T) for did, T in stage.extras.items()}
         scene, visib, alone, _ = observe_static_scene(
-            library, gt, T_wc, camera, stride, cache, extras
+            library, gt, path[len(frames)] if path else T_wc, camera, stride, cache, extras
         )
         px_all.append(alone)
         labels = {oid: k for k, oid in enumerate([*gt, *extras])}
-        for _ in range(frames_per_stage):
+        for k in range(frames_per_stage):
             i = len(frames)
+            T_wc_i = path[i] if path else T_wc
+            if path and k > 0:  # a moving camera: this frame's own view
+                scene, visib, _, _ = observe_static_scene(
+                    library, gt, T_wc_i, camera, stride, cache, extras
+                )
             frng = np.random.default_rng([seed, 1, i])
             depth = add_depth_noise(scene.depth, frng, quantum=KINECT_QUANTUM)
             instance = scene.instance
@@ -683,7 +703,9 @@ def generate_sequence(
                 hyps, src = draw_hypotheses(gt, visib, library, noise, frng)
                 kind = ["nominal"] * len(hyps)
             else:
-                drawn = stream.draw(i, gt, visib, segments=labels, distractors=extras)
+                drawn = stream.draw(
+                    i, gt, visib, segments=labels, distractors=extras, T_world_cam=T_wc_i
+                )
                 hyps = [d.hypothesis for d in drawn]
                 src, kind = [d.source for d in drawn], [d.kind for d in drawn]
             frames.append(
@@ -697,6 +719,7 @@ def generate_sequence(
                     hypotheses=hyps,
                     static_group=g,
                     distractors={d: (m.name, T.copy()) for d, (m, T) in extras.items()},
+                    T_world_cam=np.array(T_wc_i, dtype=float),
                 )
             )
             sources.append(src)
@@ -713,6 +736,7 @@ def generate_sequence(
         "frame_period": float(frame_period),
         "camera_full": _camera_dict(camera),
         "noise": noise.to_dict(),
+        "camera_path": camera_path,
         "library_classes": list(library),
         "stage_objects": [len(s.poses) for s in layout.stages],
         "stage_added": [list(s.added) for s in layout.stages],
@@ -737,6 +761,15 @@ def generate_sequence(
         frames=frames,
         models=tuple(n for n in library if n in used),
         info=info,
+    )
+
+
+def _camera_path(kind: str, n_frames: int, seed: int) -> list[np.ndarray]:
+    """The cameras of a moving path's frames, or none for the static camera."""
+    if kind == "static":
+        return []
+    return camera_path(
+        kind, n_frames, seed, distance=CAMERA_DISTANCE, elevation_deg=CAMERA_ELEVATION_DEG
     )
 
 

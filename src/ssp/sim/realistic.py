@@ -644,6 +644,7 @@ class RealisticStream:
         *,
         segments: Mapping[str, int] | None = None,
         distractors: Mapping[str, tuple[ObjectModel, np.ndarray]] | None = None,
+        T_world_cam: np.ndarray | None = None,
     ) -> list[StreamHypothesis]:
         """The hypotheses of frame ``frame`` (best score first).
 
@@ -652,7 +653,11 @@ class RealisticStream:
             visib_fract: instance id -> visible fraction (missing: 0).
             segments: instance id (objects and distractors) -> mask label, to tag hypotheses.
             distractors: distractor id -> ``(model, T_world_obj)`` (objects not in the library).
+            T_world_cam: this frame's camera pose when the camera moves (it becomes the
+                stream's: the RGB errors follow its rays); None: the stream's.
         """
+        if T_world_cam is not None:
+            self.T_world_cam = np.asarray(T_world_cam, dtype=float)
         segments = segments or {}
         out: list[StreamHypothesis] = []
         for oid, (cls, T) in gt.items():

@@ -68,6 +68,8 @@ class SimFrame:
         distractors: objects in the scene that are not in the library (realistic scenes):
             id -> ``(model name, T_world_obj)``; their instance labels follow ``gt``'s, in
             this order. Never part of the ground truth the methods are scored against.
+        T_world_cam: this frame's camera pose (4, 4; OpenCV axes); None: the sequence's
+            static camera.
     """
 
     index: int
@@ -79,6 +81,7 @@ class SimFrame:
     hypotheses: list[Hypothesis]
     static_group: int = 0
     distractors: dict[str, tuple[str, np.ndarray]] = field(default_factory=dict)
+    T_world_cam: np.ndarray | None = None
 
     @property
     def ids(self) -> tuple[str, ...]:
@@ -93,7 +96,8 @@ class SimSequence:
         experiment: ``"isolated"`` or ``"structure"``.
         seed: the seed it was generated from.
         camera: intrinsics of ``depth``.
-        T_world_cam: (4, 4) camera pose (OpenCV axes), static.
+        T_world_cam: (4, 4) camera pose (OpenCV axes) of the first frame; a moving camera's
+            frames carry their own (:meth:`camera_pose`).
         frames: the frames in time order.
         models: model class names used (a subset of the library).
         info: free-form provenance (generator settings, noise calibration).
@@ -110,6 +114,19 @@ class SimSequence:
     def __len__(self) -> int:
         return len(self.frames)
 
+    def camera_pose(self, i: int) -> np.ndarray:
+        """``T_world_cam`` (4, 4) of frame ``i``."""
+        T = self.frames[i].T_world_cam
+        return self.T_world_cam if T is None else T
+
+    @property
+    def camera_moves(self) -> bool:
+        """Whether any frame's camera differs from the first's."""
+        return any(
+            not np.allclose(self.camera_pose(i), self.T_world_cam, rtol=0.0, atol=1e-9)
+            for i in range(len(self.frames))
+        )
+
     def frame(self, i: int, *, labels: bool = True) -> Frame:
         """The parser's input for frame ``i``: the cloud back-projected from the depth image
         (world frame) with per-point instance labels (table -1) and the noisy hypotheses."""
@@ -118,7 +135,7 @@ class SimSequence:
             f.depth,
             f.instance if labels else None,
             self.camera,
-            self.T_world_cam,
+            self.camera_pose(i),
             f.hypotheses,
             f.stamp,
         )
