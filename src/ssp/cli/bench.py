@@ -14,6 +14,7 @@ from ssp.cli.common import ConfigOption, console, friendly, load_config, progres
 __all__ = [
     "bench_calibrate",
     "bench_docs_figures",
+    "bench_camera_cmd",
     "bench_estimator_cmd",
     "bench_main",
     "bench_parser_cmd",
@@ -325,6 +326,42 @@ def bench_estimator_cmd(
                 compare, experiment, sequences, seed, rounds, progress=status.update
             )
     files = write_report(result, out)
+    console.print(files[1].read_text())
+    for f in files:
+        console.print(f"wrote [bold]{f}[/]")
+
+
+@friendly
+def bench_camera_cmd(
+    out: Path = typer.Option(Path("bench-out/camera"), "--out", "-o", help="Output folder."),
+    experiment: str = typer.Option("structure", help="isolated (tools) or structure (blocks)."),
+    camera: str = typer.Option(
+        "orbit,handheld,keyframes,static",
+        "--camera",
+        help="Comma-separated camera paths (static, orbit, handheld, keyframes).",
+    ),
+    sequences: int = typer.Option(2, min=1, help="Sequences per path (20 frames each)."),
+    seed: int = typer.Option(1000, min=0, help="Seed of the first sequence."),
+) -> None:
+    """Locating a moving camera with no pose given: the table's frame (what ssp run did),
+    egomotion on the map of the frames before, and egomotion told the objects; the error at
+    the scene and the frames refused, per camera path (docs/benchmarks.md, moving cameras)."""
+    from ssp.cli.common import load_library
+    from ssp.eval.camera_bench import bench_camera, write_camera_report
+    from ssp.sim.camera_path import CAMERA_PATHS
+
+    if experiment not in ("isolated", "structure"):
+        raise typer.BadParameter(f"--experiment must be isolated or structure, not {experiment!r}")
+    paths = [c.strip() for c in camera.split(",") if c.strip()]
+    bad = [c for c in paths if c not in CAMERA_PATHS]
+    if bad or not paths:
+        raise typer.BadParameter(f"--camera must list paths of {', '.join(CAMERA_PATHS)}")
+    lib = load_library(None, None, None)
+    with console.status("tracking cameras") as status:
+        result = bench_camera(lib, experiment, paths, sequences, seed, progress=status.update)
+    result["command"] = {"experiment": experiment, "camera": paths, "sequences": sequences,
+                         "seed": seed}  # fmt: skip
+    files = write_camera_report(result, out)
     console.print(files[1].read_text())
     for f in files:
         console.print(f"wrote [bold]{f}[/]")

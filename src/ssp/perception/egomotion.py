@@ -1,0 +1,357 @@
+"""Camera egomotion when no camera pose is given (issue 32; DESIGN "The world frame is the
+table's, and stays put").
+
+A camera that moves with no pose given (a BOP test scene without ``cam_R_w2c``, a wrist
+camera without tf) must be located in the world frame of its first frame, or the camera's
+motion becomes the objects'. The table plane fixes three of the six degrees of freedom exactly
+(tilt and height: :func:`ssp.perception.table.table_frame`); the other three (the turn about
+the table's normal and the position along the table) come from registering the frame's points
+above the table to what is known static: a map of the points above the table in the frames
+located before (world frame, :data:`MAP_VOXEL` grid, the last :data:`MAP_FRAMES` frames).
+
+The registration is :func:`planar_icp`: point-to-plane ICP in those three degrees of freedom
+with Tukey weights over coarse-to-fine correspondence distances (:data:`ICP_SCALES`), so
+objects that moved and new ones, which find no surface of the map near them, are what does
+not register. It starts from the constant-velocity prediction of the camera; when too few
+points register there (:data:`MIN_INLIERS`: a hand-held camera's jump, BOP keyframes 10-30
+degrees apart), from every :data:`GLOBAL_YAW_STEP` degrees of turn about the map's centre
+with the centroids matched. A frame whose camera no start registers is refused
+(:class:`CameraNotLocatedError`): it is reported and skipped, never guessed.
+
+A static camera keeps its world frame bit for bit (:attr:`CameraFix.how` ``"kept"``) when the
+registration from its last pose moves the points above the table by less than
+:data:`KEEP_SHIFT` on average.
+
+Why not a registration library: small_gicp's GICP (``small_gicp.align``, frame to map, 6
+degrees of freedom) was measured on the simulated orbit (structure, seed 0): the world frame
+drifted to 35 mm and 1.2 deg over 20 frames, then failed; the table's points, most of every
+frame, constrain only the three degrees the plane fixes anyway, and the library's Python
+interface has no robust kernel for the points that moved. The three-parameter ICP here,
+on the same frames and map, stayed within 1 mm at the scene (docs/benchmarks.md, moving
+cameras).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+from scipy.spatial import cKDTree
+
+from ssp.errors import PerceptionError
+from ssp.perception.table import table_frame
+
+__all__ = [
+    "ABOVE_TABLE",
+    "GLOBAL_YAW_STEP",
+    "LOCAL_TURNS",
+    "ICP_SCALES",
+    "KEEP_SHIFT",
+    "MAP_FRAMES",
+    "MAP_VOXEL",
+    "MIN_INLIERS",
+    "MIN_INLIER_POINTS",
+    "SEARCH_INLIERS",
+    "CameraFix",
+    "CameraNotLocatedError",
+    "CameraTracker",
+    "planar_icp",
+]
+
+log = logging.getLogger(__name__)
+
+ABOVE_TABLE = 0.004
+"""Points higher than this above the table plane (m) are registered (the rest is the table)."""
+ICP_SCALES = (0.03, 0.01, 0.005)
+"""Correspondence distances of the coarse-to-fine ICP, m."""
+INLIER_DISTANCE = 0.003
+"""A registered point within this point-to-plane distance of the map is an inlier, m."""
+MIN_INLIERS = 0.3
+"""Fewest inlier fraction of the points above the table for a camera tracked from its
+prediction (new objects, which the map does not hold yet, do not register)."""
+MIN_INLIER_POINTS = 100
+"""... and fewest inlier points."""
+LOCAL_TURNS = (0.0, -4.0, 4.0, -8.0, 8.0)
+"""Turns about the map's centre (degrees) added to the prediction, each a start of the
+tracking ICP (the best registering wins): a camera that speeds up or turns."""
+GLOBAL_YAW_STEP = 10.0
+"""Turn step of the global search, degrees."""
+SEARCH_INLIERS = 0.5
+"""Fewest inlier fraction of a global search's solution (more than a tracked one needs)."""
+SEARCH_MARGIN = 0.15
+"""A global solution is ambiguous when another this close in inlier fraction ..."""
+DISTINCT_YAW = 20.0
+"""... is turned at least this far from it, degrees."""
+KEEP_SHIFT = 0.002
+"""A registration that moves the points above the table by less than this on average (m) from
+where the last pose puts them keeps the last pose exactly (a static camera: the registration's
+own noise is about a millimetre)."""
+MAP_VOXEL = 0.003
+"""Voxel size of the map of points above the table, m."""
+MAP_FRAMES = 5
+"""The map holds the points of the last this many located frames."""
+MAX_POINTS = 6000
+"""Points above the table registered per frame (an even subsample)."""
+
+
+class CameraNotLocatedError(PerceptionError):
+    """The camera of a frame could not be located in the world frame (module docstring)."""
+
+
+@dataclass(frozen=True)
+class CameraFix:
+    """Where a frame's camera is.
+
+    Attributes:
+        T_world_cam: (4, 4) camera pose in the world frame of the first frame.
+        how: ``"table"`` (the first frame: the table defines the world), ``"kept"`` (the
+            camera did not move), ``"tracked"`` (registered from its predicted pose) or
+            ``"searched"`` (registered by the global search).
+        inliers: fraction of the points above the table that registered (None: first).
+        residual_mm: RMS point-to-plane distance of those inliers, mm (None: first).
+        points: points above the table registered.
+    """
+
+    T_world_cam: np.ndarray
+    how: str
+    inliers: float | None = None
+    residual_mm: float | None = None
+    points: int = 0
+
+    def as_dict(self) -> dict:
+        return {
+            "how": self.how,
+            "inliers": None if self.inliers is None else round(self.inliers, 4),
+            "residual_mm": None if self.residual_mm is None else round(self.residual_mm, 3),
+            "points": int(self.points),
+        }
+
+
+def _yaw_pose(theta: float, tx: float, ty: float) -> np.ndarray:
+    c, s = np.cos(theta), np.sin(theta)
+    G = np.eye(4)
+    G[:2, :2] = [[c, -s], [s, c]]
+    G[0, 3], G[1, 3] = tx, ty
+    return G
+
+
+def planar_icp(
+    q: np.ndarray,
+    tree: cKDTree,
+    normals: np.ndarray,
+    G0: np.ndarray,
+    scales=ICP_SCALES,
+    iterations: int = 12,
+) -> np.ndarray:
+    """The planar motion ``G`` (4, 4: a turn about z and a shift in x, y) that puts points
+    ``q`` (N, 3; m, z up, the table at z = 0) on the surface of the map (``tree`` over its
+    points, ``normals`` (M, 3) unit), starting from ``G0``: Gauss-Newton on point-to-plane
+    distances with Tukey weights (scale a third of each correspondence distance of
+    ``scales``)."""
+    target = tree.data
+    th = float(np.arctan2(G0[1, 0], G0[0, 0]))
+    tx, ty = float(G0[0, 3]), float(G0[1, 3])
+    for d in scales:
+        for _ in range(iterations):
+            G = _yaw_pose(th, tx, ty)
+            s = q @ G[:3, :3].T + G[:3, 3]
+            dist, idx = tree.query(s, distance_upper_bound=d)
+            ok = np.isfinite(dist)
+            if np.count_nonzero(ok) < 10:
+                return _yaw_pose(th, tx, ty)
+            n, t, p = normals[idx[ok]], target[idx[ok]], s[ok]
+            r = np.einsum("ij,ij->i", n, p - t)
+            d_th = np.stack([-(p[:, 1] - ty), p[:, 0] - tx], axis=1)  # d p / d theta (x, y)
+            J = np.stack([np.einsum("ij,ij->i", n[:, :2], d_th), n[:, 0], n[:, 1]], axis=1)
+            w = np.clip(1.0 - (r / (d / 3.0)) ** 2, 0.0, None) ** 2
+            A = J.T @ (J * w[:, None]) + 1e-9 * np.eye(3)
+            step = np.linalg.solve(A, -J.T @ (w * r))
+            th, tx, ty = th + step[0], tx + step[1], ty + step[2]
+            if np.abs(step).max() < 1e-7:
+                break
+    return _yaw_pose(th, tx, ty)
+
+
+def _normals(points: np.ndarray, tree: cKDTree, k: int = 12) -> np.ndarray:
+    """Unit normals of ``points`` (M, 3): the least-variance axis of their ``k`` nearest."""
+    _, idx = tree.query(points, k=min(k, len(points)))
+    nb = points[idx] - points[idx].mean(axis=1, keepdims=True)
+    _, v = np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb))
+    return v[:, :, 0]
+
+
+def _surface(model) -> tuple[np.ndarray, np.ndarray]:
+    """``(points (K, 3), unit normals (K, 3))`` on a model's surface, model frame."""
+    samples = getattr(model, "surface_points", None)
+    normals = getattr(model, "surface_normals", None)
+    if samples is not None and normals is not None:
+        return np.asarray(samples, dtype=float), np.asarray(normals, dtype=float)
+    mesh = getattr(model, "mesh", model)
+    pts, faces = trimesh.sample.sample_surface_even(mesh, 3000, seed=0)
+    return np.asarray(pts, dtype=float), np.asarray(mesh.face_normals[faces], dtype=float)
+
+
+def _turned(G: np.ndarray, degrees: float, centre: np.ndarray) -> np.ndarray:
+    """Planar motion ``G`` followed by a turn of ``degrees`` about the vertical through
+    ``centre``."""
+    R = _yaw_pose(np.radians(degrees), 0.0, 0.0)
+    C = np.eye(4)
+    C[:2, 3] = centre[:2]
+    return C @ R @ np.linalg.inv(C) @ G
+
+
+def _voxel(points: np.ndarray, size: float) -> np.ndarray:
+    """One point per occupied voxel of ``size`` m (the last given)."""
+    keys = np.floor(points / size).astype(np.int64)
+    _, first = np.unique(keys[::-1], axis=0, return_index=True)
+    return points[::-1][np.sort(first)]
+
+
+def _snap(T: np.ndarray, T_plane: np.ndarray) -> np.ndarray:
+    """``T`` (world from camera) turned by the least rotation that gives it ``T_plane``'s up
+    direction, at ``T_plane``'s height: the plane's tilt and height, ``T``'s turn and place."""
+    up, up_p = T[2, :3], T_plane[2, :3]  # world z in camera coordinates
+    v = np.cross(up, up_p)
+    s, c = float(np.linalg.norm(v)), float(up @ up_p)
+    R = np.eye(3)
+    if s > 1e-12:
+        k = v / s
+        K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+        R = np.eye(3) + s * K + (1.0 - c) * K @ K
+    out = T.copy()
+    out[:3, :3] = T[:3, :3] @ R.T
+    out[2, 3] = T_plane[2, 3]
+    return out
+
+
+class CameraTracker:
+    """``T_world_cam`` of each frame of a camera with no pose given (module docstring).
+
+    Args:
+        table_distance: the table fit's inlier distance, m.
+    """
+
+    def __init__(self, table_distance: float = 0.006) -> None:
+        self.table_distance = float(table_distance)
+        self.T_world_cam: np.ndarray | None = None
+        self._before: np.ndarray | None = None  # the pose before the last
+        self._map: list[np.ndarray] = []  # world points above the table, per located frame
+        self._known: tuple[np.ndarray, np.ndarray] | None = None  # model points, normals
+
+    def know(self, objects) -> None:
+        """The objects known static, ``[(model, T_world_obj (4, 4))]`` (an
+        :class:`~ssp.library.model.ObjectModel` with ``surface_points`` and
+        ``surface_normals``, or a trimesh with faces): their whole surfaces join the map as
+        the next frames' reference (a view from another side sees faces no frame before saw).
+        An empty list forgets them."""
+        pts, nrm = [], []
+        for model, T in objects:
+            T = np.asarray(T, dtype=float)
+            p, n = _surface(model)
+            pts.append(p @ T[:3, :3].T + T[:3, 3])
+            nrm.append(n @ T[:3, :3].T)
+        self._known = (np.concatenate(pts), np.concatenate(nrm)) if pts else None
+
+    def update(self, points_cam: np.ndarray) -> CameraFix:
+        """Locate the camera of a frame from its cloud ``points_cam`` (N, 3; camera frame, m).
+
+        Raises:
+            TableNotFoundError: no table in the frame.
+            CameraNotLocatedError: the frame's points above the table do not register to the
+                map from any start (the tracker is unchanged).
+        """
+        p = np.asarray(points_cam, dtype=float)
+        T_plane, _ = table_frame(p, distance=self.table_distance)
+        if self.T_world_cam is None:
+            self._accept(T_plane, p)
+            return CameraFix(T_plane, "table")
+        q = p @ T_plane[:3, :3].T + T_plane[:3, 3]
+        q = q[(q[:, 2] > ABOVE_TABLE) & (q[:, 2] < 1.0)]
+        if len(q) > MAX_POINTS:
+            q = q[np.linspace(0, len(q) - 1, MAX_POINTS).astype(int)]
+        target = _voxel(np.concatenate(self._map), MAP_VOXEL) if self._map else np.zeros((0, 3))
+        normals = _normals(target, cKDTree(target)) if len(target) >= 3 else np.zeros((0, 3))
+        if self._known is not None:
+            target = np.concatenate([target, self._known[0]])
+            normals = np.concatenate([normals, self._known[1]])
+        if len(q) < 10 or len(target) < 10:
+            raise CameraNotLocatedError(
+                f"nothing above the table to locate the camera by ({len(q)} points in the "
+                f"frame, {len(target)} in the map of the frames before)"
+            )
+        tree = cKDTree(target)
+        last = self.T_world_cam
+        pred = last if self._before is None else last @ np.linalg.inv(self._before) @ last
+        G0 = _snap(pred, T_plane) @ np.linalg.inv(T_plane)
+        c = tree.data.mean(axis=0)
+        G, inl, res = max(
+            (self._register(q, tree, normals, _turned(G0, deg, c)) for deg in LOCAL_TURNS),
+            key=lambda f: f[1],
+        )
+        how = "tracked"
+        if inl < MIN_INLIERS or inl * len(q) < MIN_INLIER_POINTS:
+            G, inl, res = self._search(q, tree, normals)
+            how = "searched"
+        if inl < MIN_INLIERS:
+            raise CameraNotLocatedError(
+                f"the camera could not be located: from its predicted pose too few of the "
+                f"{len(q)} points above the table register to the map (at least "
+                f"{100 * MIN_INLIERS:.0f} % needed), and no turn of a global search does so "
+                f"unambiguously (at least {100 * SEARCH_INLIERS:.0f} %)"
+            )
+        T = G @ T_plane
+        G_last = last @ np.linalg.inv(T_plane)  # where the last pose puts the points
+        moved = np.linalg.norm(q @ (G - G_last)[:3, :3].T + (G - G_last)[:3, 3], axis=1)
+        log.debug("camera registered: points moved %.2f mm on average", 1000 * moved.mean())
+        if float(moved.mean()) < KEEP_SHIFT:
+            T, how = last, "kept"
+        self._accept(T, p)
+        return CameraFix(T.copy(), how, inl, res, len(q))
+
+    def _register(self, q, tree, normals, G0) -> tuple[np.ndarray, float, float]:
+        """``(G, inlier fraction, RMS inlier distance mm)`` of :func:`planar_icp` from ``G0``."""
+        G = planar_icp(q, tree, normals, G0)
+        s = q @ G[:3, :3].T + G[:3, 3]
+        dist, idx = tree.query(s, distance_upper_bound=ICP_SCALES[-1])
+        ok = np.isfinite(dist)
+        d = np.abs(np.einsum("ij,ij->i", normals[idx[ok]], s[ok] - tree.data[idx[ok]]))
+        d = d[d < INLIER_DISTANCE]
+        rms = float(np.sqrt(np.mean(d**2))) * 1000.0 if len(d) else float("nan")
+        return G, len(d) / len(q), rms
+
+    def _search(self, q, tree, normals) -> tuple[np.ndarray, float, float]:
+        """The best registration from every :data:`GLOBAL_YAW_STEP` turn, centroids matched,
+        when it is unambiguous: at least :data:`SEARCH_INLIERS` register, and no solution
+        turned :data:`DISTINCT_YAW` or more from it comes within :data:`SEARCH_MARGIN` (a
+        scene of a few cubes looks alike from several sides); else its inlier fraction is
+        reported as 0 (not located)."""
+        c, qc = tree.data.mean(axis=0), q.mean(axis=0)
+        found = []
+        for deg in np.arange(0.0, 360.0, GLOBAL_YAW_STEP):
+            G0 = _yaw_pose(np.radians(deg), 0.0, 0.0)
+            m = G0[:3, :3] @ qc
+            G0[0, 3], G0[1, 3] = c[0] - m[0], c[1] - m[1]
+            found.append(self._register(q, tree, normals, G0))
+        found.sort(key=lambda f: -f[1])
+        best = found[0]
+        yaw = np.arctan2(best[0][1, 0], best[0][0, 0])
+        for other in found[1:]:
+            turn = abs(
+                (np.arctan2(other[0][1, 0], other[0][0, 0]) - yaw + np.pi) % (2 * np.pi) - np.pi
+            )
+            if turn >= np.radians(DISTINCT_YAW) and other[1] > best[1] - SEARCH_MARGIN:
+                log.info("camera search ambiguous: %.2f and %.2f inliers %.0f deg apart",
+                         best[1], other[1], np.degrees(turn))  # fmt: skip
+                return best[0], 0.0, best[2]
+        if best[1] < SEARCH_INLIERS:
+            return best[0], 0.0, best[2]
+        return best
+
+    def _accept(self, T: np.ndarray, p: np.ndarray) -> None:
+        """Keep ``T`` as the frame's pose and its points above the table in the map."""
+        w = p @ T[:3, :3].T + T[:3, 3]
+        w = w[(w[:, 2] > ABOVE_TABLE) & (w[:, 2] < 1.0)]
+        self._map = ([*self._map, _voxel(w, MAP_VOXEL)] if len(w) else self._map)[-MAP_FRAMES:]
+        self._before, self.T_world_cam = self.T_world_cam, T.copy()
