@@ -88,3 +88,25 @@ def test_a_camera_it_cannot_locate_is_refused_not_guessed(lib):
         tr.update(np.concatenate([table_only, far[far[:, 0] > 10.0]]))
     np.testing.assert_array_equal(tr.T_world_cam, first)  # refused frames change nothing
     assert tr.update(p).how == "kept"
+
+
+def test_the_camera_bench_shows_the_table_frame_moving_with_the_camera(lib):
+    from ssp.eval.camera_bench import _summary, _track
+
+    seq = generate_sequence("structure", 3, lib, camera_path="orbit", **SMALL)
+    table = _track("table", seq, lib)
+    ego = _track("egomotion", seq, lib)
+    assert table[-1]["scene_mm"] > 10.0  # the orbit became the objects' motion
+    located = [r for r in ego if r["located"]]
+    assert located and max(r["scene_mm"] for r in located) < 3.0
+    s = _summary(ego)
+    assert s["frames"] == len(seq) and s["located"] + s["not_located"] == len(seq)
+
+
+def test_bench_camera_refuses_unknown_paths():
+    from typer.testing import CliRunner
+
+    from ssp.cli import app
+
+    r = CliRunner().invoke(app, ["bench", "camera", "--camera", "orbit,drone"])
+    assert r.exit_code != 0 and "--camera must list paths" in r.output

@@ -21,7 +21,6 @@ on moves by that much), the camera's rotation error, and frames not located (ref
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -29,6 +28,8 @@ from pathlib import Path
 import numpy as np
 
 from ssp.errors import PerceptionError
+from ssp.io import write_json
+from ssp.io._files import atomic_write_text
 from ssp.perception.egomotion import CameraTracker
 from ssp.perception.table import TableTracker
 from ssp.probability import pose_change
@@ -137,11 +138,10 @@ def bench_camera(
 
 
 def write_camera_report(result: dict, out: Path) -> tuple[Path, Path]:
-    """``out/results.json`` and ``out/results.md``."""
+    """``out/results.json`` and ``out/results.md`` (written atomically, as the umask says)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    j = out / "results.json"
-    j.write_text(json.dumps(result, indent=2))
+    j = write_json(out / "results.json", result)
     lines = [
         f"# Camera egomotion: {result['experiment']}, {result['sequences']} sequences from "
         f"seed {result['seed']}",
@@ -166,6 +166,4 @@ def write_camera_report(result: dict, out: Path) -> tuple[Path, Path]:
                 f"{f(s['camera_deg_median'])} / {f(s['camera_deg_max'])} | "
                 f"{s['sec_per_frame_mean']:.3f} |"
             )
-    m = out / "results.md"
-    m.write_text("\n".join(lines) + "\n")
-    return j, m
+    return j, atomic_write_text(out / "results.md", "\n".join(lines) + "\n")
