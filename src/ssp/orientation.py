@@ -348,7 +348,7 @@ def closer(
 
 def _said(
     ranked: list, T: np.ndarray, rank: float, model: ObjectModel, bar: float,
-    segment: np.ndarray | None = None, T_fit: np.ndarray | None = None, tau: float = 0.0,
+    segment: np.ndarray | None, T_fit: np.ndarray, tau: float,
 ) -> Orientation:  # fmt: skip
     """The :class:`Orientation` of an object at ``T`` (its rank ``rank``; ``bar``: the rank
     its candidates are compared with, ``rank`` or more) among its other ``ranked``
@@ -360,7 +360,7 @@ def _said(
         turn = np.degrees(pose_change(T, U, model.symmetry, model.center_of_mass)[1])
         if r < bar - DECIDE_MARGIN or turn < np.degrees(DISTINCT_TURN):
             continue
-        if T_fit is not None and closer(segment, model, T_fit, U, tau) is not None:
+        if closer(segment, model, T_fit, U, tau) is not None:
             continue  # the data decided against it
         tied.append(Alternative(U, float(turn), r))
     return Orientation(not tied, rank, tuple(tied))

@@ -37,7 +37,6 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
-import trimesh
 from scipy.spatial import cKDTree
 
 from ssp.errors import PerceptionError
@@ -183,14 +182,11 @@ def _normals(points: np.ndarray, tree: cKDTree, k: int = 12) -> np.ndarray:
 
 
 def _surface(model) -> tuple[np.ndarray, np.ndarray]:
-    """``(points (K, 3), unit normals (K, 3))`` on a model's surface, model frame."""
-    samples = getattr(model, "surface_points", None)
-    normals = getattr(model, "surface_normals", None)
-    if samples is not None and normals is not None:
-        return np.asarray(samples, dtype=float), np.asarray(normals, dtype=float)
-    mesh = getattr(model, "mesh", model)
-    pts, faces = trimesh.sample.sample_surface_even(mesh, 3000, seed=0)
-    return np.asarray(pts, dtype=float), np.asarray(mesh.face_normals[faces], dtype=float)
+    """``(points (K, 3), unit normals (K, 3))`` on an object model's surface, model frame."""
+    return (
+        np.asarray(model.surface_points, dtype=float),
+        np.asarray(model.surface_normals, dtype=float),
+    )
 
 
 def _turned(G: np.ndarray, degrees: float, centre: np.ndarray) -> np.ndarray:
@@ -241,11 +237,10 @@ class CameraTracker:
         self._known: tuple[np.ndarray, np.ndarray] | None = None  # model points, normals
 
     def know(self, objects) -> None:
-        """The objects known static, ``[(model, T_world_obj (4, 4))]`` (an
-        :class:`~ssp.library.model.ObjectModel` with ``surface_points`` and
-        ``surface_normals``, or a trimesh with faces): their whole surfaces join the map as
-        the next frames' reference (a view from another side sees faces no frame before saw).
-        An empty list forgets them."""
+        """The objects known static, ``[(model, T_world_obj (4, 4))]``
+        (:class:`~ssp.library.model.ObjectModel`): their whole surfaces (``surface_points``,
+        ``surface_normals``) join the map as the next frames' reference (a view from another
+        side sees faces no frame before saw). An empty list forgets them."""
         pts, nrm = [], []
         for model, T in objects:
             T = np.asarray(T, dtype=float)
