@@ -96,6 +96,15 @@ def test_simulate_and_table1_commands(tmp_path):
     r = runner.invoke(app, ["simulate", "--out", str(tmp_path / "sim"), *small])
     assert r.exit_code == 0, r.output
     assert (tmp_path / "sim" / "structure" / "test" / "000000" / "scene_gt.json").exists()
+    r = runner.invoke(app, ["simulate", "--out", str(tmp_path / "orbit"), "--camera", "orbit",
+                            *small])  # fmt: skip
+    assert r.exit_code == 0, r.output
+    cams = json.loads(
+        (tmp_path / "orbit" / "structure" / "test" / "000000" / "scene_camera.json").read_text()
+    )
+    assert cams["0"]["cam_t_w2c"] != cams["1"]["cam_t_w2c"]  # each image its own pose
+    r = runner.invoke(app, ["simulate", "--out", str(tmp_path / "x"), "--camera", "drone"])
+    assert r.exit_code != 0 and "--camera must be one of" in r.output
     r = runner.invoke(
         app,
         [

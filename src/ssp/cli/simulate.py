@@ -38,11 +38,20 @@ def simulate(
     stride: int = StrideOption,
     config: Path | None = ConfigOption,
     cache: Path | None = CacheOption,
+    camera: str = typer.Option(
+        "static",
+        "--camera",
+        help="The camera's path: static, orbit, handheld or keyframes (each image's pose in "
+        "scene_camera.json).",
+    ),
 ) -> None:
     """Write synthetic sequences (depth, shaded rgb, masks, ground truth, test targets,
     hypotheses) in BOP layout."""
     from ssp.sim.bop import simulate_to_disk
+    from ssp.sim.camera_path import CAMERA_PATHS
 
+    if camera not in CAMERA_PATHS:
+        raise typer.BadParameter(f"--camera must be one of {', '.join(CAMERA_PATHS)}")
     experiment = check_experiment(experiment)
     lib = experiment_library(experiment, models, config, cache)
     with progress_bar() as progress:
@@ -58,6 +67,7 @@ def simulate(
             frames_per_stage=frames_per_stage,
             stride=stride,
             progress=lambda done, total, path: progress.update(task, completed=done),
+            camera_path=camera,
         )
     for p in paths:
         console.print(f"wrote [bold]{p}[/]")
