@@ -46,9 +46,12 @@ run t1-structure-realistic-baselines results.json $SSP bench table1 --experiment
 run t1-structure-realistic-single results.json $SSP bench table1 --experiment structure --sequences 10 --seed 1000 --noise realistic --methods ssp_single
 run t1-structure-estimated results.json $SSP bench table1 --experiment structure --sequences 10 --seed 1000 --hypotheses estimated --methods ssp,estimator,icp,icp_filter
 run t1-structure-rgb results.json $SSP bench table1 --experiment structure --sequences 10 --seed 1000 --noise rgb
-$SSP models export-builtin bench-out/mug-models --names mug,mallet,drill,sander,wrench
+$SSP models export-builtin bench-out/mug-models --names mug,tin,mallet,drill,sander,wrench
 run t1-isolated-mug results.json $SSP bench table1 --experiment isolated --sequences 10 --seed 1000 --models bench-out/mug-models --hypotheses estimated --methods ssp,ssp_single,estimator,icp_filter
 run t1-isolated-mug-realistic results.json $SSP bench table1 --experiment isolated --sequences 10 --seed 1000 --models bench-out/mug-models --noise realistic --methods ssp,ssp_single,estimator,icp_filter
+run t1-structure-realistic-orbit results.json $SSP bench table1 --experiment structure --sequences 10 --seed 1000 --noise realistic --methods ssp,icp_filter --camera orbit
+run t1-structure-realistic-keyframes results.json $SSP bench table1 --experiment structure --sequences 10 --seed 1000 --noise realistic --methods ssp,icp_filter --camera keyframes
+run camera-bench results.json $SSP bench camera --sequences 2 --seed 1000
 run t1-structure-nomask results.json $SSP bench table1 --experiment structure --sequences 10 --seed 1000 --noise realistic --masks none --methods ssp,ssp_single,estimator,icp_filter
 run tower-realistic-ssp-1000 results.json $SSP bench tower --trials 10 --seed 1000 --noise realistic --methods ssp
 run tower-realistic-single-1000 results.json $SSP bench tower --trials 10 --seed 1000 --noise realistic --methods ssp_single

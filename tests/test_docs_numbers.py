@@ -171,7 +171,7 @@ def test_a_wrong_row_of_an_incomplete_block_is_named(tmp_path):
     differs = [str(p) for p in check(root) if p.kind == "differs"]
     assert len(differs) == 1 and "realistic-conditions-structure" in differs[0]
     readme = root / "README.md"
-    readme.write_text(readme.read_text().replace("0.67 mm / 0.50 deg", "0.69 mm / 0.50 deg"))
+    readme.write_text(readme.read_text().replace("0.66 mm / 0.50 deg", "0.69 mm / 0.50 deg"))
     assert any("readme-paper" in str(p) for p in check(root) if p.kind == "differs")
 
 

@@ -108,6 +108,13 @@ def _sources() -> dict[str, Source]:
         Source("t1-isolated-mug-realistic",
                f"{mug} --noise realistic --methods ssp,ssp_single,estimator,icp_filter"),
     ]  # fmt: skip
+    moving = ("ssp bench table1 --experiment structure --sequences 10 --seed 1000 --noise "
+              "realistic --methods ssp,icp_filter --camera")  # fmt: skip
+    out += [
+        Source("t1-structure-realistic-orbit", f"{moving} orbit"),
+        Source("t1-structure-realistic-keyframes", f"{moving} keyframes"),
+        Source("camera-bench", "ssp bench camera --sequences 2 --seed 1000"),
+    ]
     tower = "ssp bench tower --trials 10"
     for s in SEEDS:
         real = f"{tower} --seed {s} --noise realistic --methods"
