@@ -40,6 +40,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ssp.errors import PerceptionError
+from ssp.perception.estimator import voxel_thin
+from ssp.perception.normals import estimate_normals
 from ssp.perception.table import table_frame
 
 __all__ = [
@@ -173,14 +175,6 @@ def planar_icp(
     return _yaw_pose(th, tx, ty)
 
 
-def _normals(points: np.ndarray, tree: cKDTree, k: int = 12) -> np.ndarray:
-    """Unit normals of ``points`` (M, 3): the least-variance axis of their ``k`` nearest."""
-    _, idx = tree.query(points, k=min(k, len(points)))
-    nb = points[idx] - points[idx].mean(axis=1, keepdims=True)
-    _, v = np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb))
-    return v[:, :, 0]
-
-
 def _surface(model) -> tuple[np.ndarray, np.ndarray]:
     """``(points (K, 3), unit normals (K, 3))`` on an object model's surface, model frame."""
     return (
@@ -199,10 +193,9 @@ def _turned(G: np.ndarray, degrees: float, centre: np.ndarray) -> np.ndarray:
 
 
 def _voxel(points: np.ndarray, size: float) -> np.ndarray:
-    """One point per occupied voxel of ``size`` m (the last given)."""
-    keys = np.floor(points / size).astype(np.int64)
-    _, first = np.unique(keys[::-1], axis=0, return_index=True)
-    return points[::-1][np.sort(first)]
+    """One point per occupied voxel of ``size`` m: the last given (the newest frame's)."""
+    newest_first = points[::-1]
+    return newest_first[voxel_thin(newest_first, size)]
 
 
 def _snap(T: np.ndarray, T_plane: np.ndarray) -> np.ndarray:
@@ -267,7 +260,7 @@ class CameraTracker:
         if len(q) > MAX_POINTS:
             q = q[np.linspace(0, len(q) - 1, MAX_POINTS).astype(int)]
         target = _voxel(np.concatenate(self._map), MAP_VOXEL) if self._map else np.zeros((0, 3))
-        normals = _normals(target, cKDTree(target)) if len(target) >= 3 else np.zeros((0, 3))
+        normals = estimate_normals(target, k=12) if len(target) >= 3 else np.zeros((0, 3))
         if self._known is not None:
             target = np.concatenate([target, self._known[0]])
             normals = np.concatenate([normals, self._known[1]])
