@@ -6,16 +6,11 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from ssp.eval.camera_bench import _scene_error
+from ssp.eval.camera_bench import _cloud, _scene_error
 from ssp.perception.egomotion import CameraNotLocatedError, CameraTracker, planar_icp
 from ssp.sim.generate import generate_sequence
 
 SMALL = dict(stride=1, frames_per_stage=2, stages=2, n_objects=8)
-
-
-def _cloud(seq, i):
-    d = np.asarray(seq.frames[i].depth, dtype=float)
-    return seq.camera.backproject(d).reshape(-1, 3)[d.reshape(-1) > 0]
 
 
 def test_planar_icp_recovers_a_turn_and_shift():

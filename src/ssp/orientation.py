@@ -427,12 +427,6 @@ def alternatives_from_state(entry: Mapping[str, Any]) -> tuple[np.ndarray, ...]:
     )
 
 
-def _points(ctx: FrameContext, oid: str) -> int:
-    """The number of points of object ``oid``'s instance segment."""
-    segment = ctx.segments.get(oid)
-    return 0 if segment is None else len(segment)
-
-
 def _aligned(ctx: FrameContext, oid: str, U: np.ndarray) -> np.ndarray:
     """Candidate ``U`` of object ``oid`` aligned to its segment (point-to-plane ICP, as the
     polish aligns the pose it is compared with): an estimator's alternative is often some

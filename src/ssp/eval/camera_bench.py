@@ -30,6 +30,7 @@ import numpy as np
 from ssp.errors import PerceptionError
 from ssp.io import write_json
 from ssp.io._files import atomic_write_text
+from ssp.perception.depth import cloud_from_depth
 from ssp.perception.egomotion import CameraTracker
 from ssp.perception.table import TableTracker
 from ssp.probability import pose_change
@@ -41,8 +42,8 @@ TRACKERS: tuple[str, ...] = ("table", "egomotion", "egomotion_known")
 
 
 def _cloud(seq, i: int) -> np.ndarray:
-    d = np.asarray(seq.frames[i].depth, dtype=float)
-    return seq.camera.backproject(d).reshape(-1, 3)[d.reshape(-1) > 0]
+    """Frame ``i``'s cloud in its camera's frame (N, 3), m."""
+    return cloud_from_depth(seq.frames[i].depth, seq.camera).points
 
 
 def _scene_error(T_est: np.ndarray, T_true: np.ndarray, gt) -> float:

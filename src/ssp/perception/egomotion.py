@@ -12,23 +12,25 @@ located before (world frame, :data:`MAP_VOXEL` grid, the last :data:`MAP_FRAMES`
 The registration is :func:`planar_icp`: point-to-plane ICP in those three degrees of freedom
 with Tukey weights over coarse-to-fine correspondence distances (:data:`ICP_SCALES`), so
 objects that moved and new ones, which find no surface of the map near them, are what does
-not register. It starts from the constant-velocity prediction of the camera; when too few
-points register there (:data:`MIN_INLIERS`: a hand-held camera's jump, BOP keyframes 10-30
-degrees apart), from every :data:`GLOBAL_YAW_STEP` degrees of turn about the map's centre
-with the centroids matched. A frame whose camera no start registers is refused
-(:class:`CameraNotLocatedError`): it is reported and skipped, never guessed.
+not register. It starts from the constant-velocity prediction of the camera turned by
+:data:`LOCAL_TURNS`; when too few points register there (:data:`MIN_INLIERS`: a hand-held
+camera's jump, BOP keyframes 10-30 degrees apart), from every :data:`GLOBAL_YAW_STEP` degrees
+of turn about the map's centre with the centroids matched, accepted only when unambiguous. A
+frame whose camera no start registers is refused (:class:`CameraNotLocatedError`): it is
+reported and skipped, not guessed.
 
-A static camera keeps its world frame bit for bit (:attr:`CameraFix.how` ``"kept"``) when the
-registration from its last pose moves the points above the table by less than
-:data:`KEEP_SHIFT` on average.
+The last pose is kept bit for bit (:attr:`CameraFix.how` ``"kept"``) when the registration
+from it moves the points above the table by less than :data:`KEEP_SHIFT` on average; a static
+camera is not yet always kept (``ssp bench camera``: 2.1 mm median drift on seeds
+1000-1001, where frames with new objects registered beyond that).
 
 Why not a registration library: small_gicp's GICP (``small_gicp.align``, frame to map, 6
-degrees of freedom) was measured on the simulated orbit (structure, seed 0): the world frame
-drifted to 35 mm and 1.2 deg over 20 frames, then failed; the table's points, most of every
-frame, constrain only the three degrees the plane fixes anyway, and the library's Python
-interface has no robust kernel for the points that moved. The three-parameter ICP here,
-on the same frames and map, stayed within 1 mm at the scene (docs/benchmarks.md, moving
-cameras).
+degrees of freedom) was tried with a one-off script (not kept) on the simulated orbit
+(structure, development seed 0): the world frame drifted to 35 mm and 1.2 deg at the camera
+over 20 frames, then failed; the table's points, most of every frame, constrain only the three
+degrees the plane fixes anyway, and the library's Python interface has no robust kernel for
+the points that moved. The three-parameter ICP here keeps the orbit of seeds 1000-1001 within
+2.1 mm at the scene (``ssp bench camera``; docs/benchmarks.md, moving cameras).
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ssp.errors import PerceptionError
+from ssp.geometry import yaw_pose
 from ssp.perception.estimator import voxel_thin
 from ssp.perception.normals import estimate_normals
 from ssp.perception.table import table_frame
@@ -130,14 +133,6 @@ class CameraFix:
         }
 
 
-def _yaw_pose(theta: float, tx: float, ty: float) -> np.ndarray:
-    c, s = np.cos(theta), np.sin(theta)
-    G = np.eye(4)
-    G[:2, :2] = [[c, -s], [s, c]]
-    G[0, 3], G[1, 3] = tx, ty
-    return G
-
-
 def planar_icp(
     q: np.ndarray,
     tree: cKDTree,
@@ -156,12 +151,12 @@ def planar_icp(
     tx, ty = float(G0[0, 3]), float(G0[1, 3])
     for d in scales:
         for _ in range(iterations):
-            G = _yaw_pose(th, tx, ty)
+            G = yaw_pose(th, (tx, ty, 0.0))
             s = q @ G[:3, :3].T + G[:3, 3]
             dist, idx = tree.query(s, distance_upper_bound=d)
             ok = np.isfinite(dist)
             if np.count_nonzero(ok) < 10:
-                return _yaw_pose(th, tx, ty)
+                return yaw_pose(th, (tx, ty, 0.0))
             n, t, p = normals[idx[ok]], target[idx[ok]], s[ok]
             r = np.einsum("ij,ij->i", n, p - t)
             d_th = np.stack([-(p[:, 1] - ty), p[:, 0] - tx], axis=1)  # d p / d theta (x, y)
@@ -172,7 +167,7 @@ def planar_icp(
             th, tx, ty = th + step[0], tx + step[1], ty + step[2]
             if np.abs(step).max() < 1e-7:
                 break
-    return _yaw_pose(th, tx, ty)
+    return yaw_pose(th, (tx, ty, 0.0))
 
 
 def _surface(model) -> tuple[np.ndarray, np.ndarray]:
@@ -186,7 +181,7 @@ def _surface(model) -> tuple[np.ndarray, np.ndarray]:
 def _turned(G: np.ndarray, degrees: float, centre: np.ndarray) -> np.ndarray:
     """Planar motion ``G`` followed by a turn of ``degrees`` about the vertical through
     ``centre``."""
-    R = _yaw_pose(np.radians(degrees), 0.0, 0.0)
+    R = yaw_pose(np.radians(degrees))
     C = np.eye(4)
     C[:2, 3] = centre[:2]
     return C @ R @ np.linalg.inv(C) @ G
@@ -318,7 +313,7 @@ class CameraTracker:
         c, qc = tree.data.mean(axis=0), q.mean(axis=0)
         found = []
         for deg in np.arange(0.0, 360.0, GLOBAL_YAW_STEP):
-            G0 = _yaw_pose(np.radians(deg), 0.0, 0.0)
+            G0 = yaw_pose(np.radians(deg))
             m = G0[:3, :3] @ qc
             G0[0, 3], G0[1, 3] = c[0] - m[0], c[1] - m[1]
             found.append(self._register(q, tree, normals, G0))

@@ -31,6 +31,7 @@ from __future__ import annotations
 import numpy as np
 
 from ssp.errors import ArgumentError
+from ssp.geometry import yaw_pose
 from ssp.sim.render import look_at
 
 __all__ = [
@@ -85,15 +86,6 @@ def _orbit_eye(target: np.ndarray, distance: float, azimuth: float, elevation: f
     )
 
 
-def _rolled(T: np.ndarray, degrees: float) -> np.ndarray:
-    """``T`` turned ``degrees`` about its own optical (z) axis."""
-    a = np.radians(degrees)
-    R = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
-    out = T.copy()
-    out[:3, :3] = T[:3, :3] @ R
-    return out
-
-
 def camera_path(
     kind: str,
     n_frames: int,
@@ -133,7 +125,7 @@ def camera_path(
         for _ in range(1, n_frames):
             state = HANDHELD_RHO * state + innovation * rng.standard_normal(7)
             T = look_at(eye0 + state[:3], target + state[3:6])
-            out.append(_rolled(T, float(state[6])))
+            out.append(T @ yaw_pose(np.radians(state[6])))  # rolled
         return out
     # keyframes
     sign = 1.0 if rng.random() < 0.5 else -1.0
