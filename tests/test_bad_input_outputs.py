@@ -386,10 +386,16 @@ def test_cli_sigterm_to_many_inputs_with_workers_leaves_each_resumable(lib, long
     stderr = proc.stderr.read().decode()
     assert proc.returncode == 130, stderr
     assert took < 20, took
+    statuses = {p.name: _load(out / p.name / "summary.json")["status"] for p in inputs}
+    # The signal comes once both runs have committed a frame; the first may finish its 16
+    # frames before the second worker has started (a loaded machine): that run ends
+    # "finished", and the later one is interrupted.
+    assert set(statuses.values()) <= {"interrupted", "finished"}, statuses
+    assert "interrupted" in statuses.values(), statuses
     for p in inputs:
         sub = out / p.name
-        assert _load(sub / "summary.json")["status"] == "interrupted", p.name
-        assert _load(sub / "state.json")["next"] < 16
+        if statuses[p.name] == "interrupted":
+            assert _load(sub / "state.json")["next"] < 16
         r = CliRunner().invoke(app, ["run", "--resume", str(sub)])
         assert r.exit_code == 0, r.output
         assert _poses_of(sub, int(p.name)) == _poses_of(reference, int(scene.name))
