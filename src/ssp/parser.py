@@ -140,6 +140,12 @@ class SceneParser:
         """Current scene: ``id -> (class_name, T_world_obj)`` (copies)."""
         return {k: (v.class_name, v.T_world_obj.copy()) for k, v in self._known.items()}
 
+    def forget(self) -> None:
+        """Forget every object but go on counting ids and frames (the world frame was lost:
+        the next frame's objects are new tracks, never a reused id)."""
+        self._known.clear()
+        self._rejected = []
+
     def reset(self) -> None:
         """Forget every object (the next frame starts a new scene)."""
         self._known.clear()

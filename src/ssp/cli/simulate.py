@@ -44,6 +44,13 @@ def simulate(
         help="The camera's path: static, orbit, handheld or keyframes (each image's pose in "
         "scene_camera.json).",
     ),
+    camera_pose: bool = typer.Option(
+        True,
+        "--camera-pose/--no-camera-pose",
+        help="Write each image's camera pose (cam_R_w2c, cam_t_w2c); without, as a published "
+        "test scene of a moving camera: the hypotheses in the camera frame, and ssp run "
+        "locates the camera itself.",
+    ),
 ) -> None:
     """Write synthetic sequences (depth, shaded rgb, masks, ground truth, test targets,
     hypotheses) in BOP layout."""
@@ -68,6 +75,7 @@ def simulate(
             stride=stride,
             progress=lambda done, total, path: progress.update(task, completed=done),
             camera_path=camera,
+            camera_pose=camera_pose,
         )
     for p in paths:
         console.print(f"wrote [bold]{p}[/]")

@@ -76,10 +76,11 @@ def _track(name: str, seq, library) -> list[dict]:
                          "sec": time.perf_counter() - t0})  # fmt: skip
             continue
         sec = time.perf_counter() - t0
-        if ego is not None and name == "egomotion_known":
-            ego.know([(library[c], T_o) for c, T_o in sf.gt.values()])
         if align is None:
-            align = seq.camera_pose(i) @ np.linalg.inv(T)
+            align = seq.camera_pose(i) @ np.linalg.inv(T)  # the tracker's world to the truth's
+        if ego is not None and name == "egomotion_known":  # told in the tracker's world frame
+            to_tracker = np.linalg.inv(align)
+            ego.know([(library[c], to_tracker @ np.asarray(T_o)) for c, T_o in sf.gt.values()])
         T_est, T_true = align @ T, seq.camera_pose(i)
         rows.append({
             "frame": i, "located": True, "how": how, "sec": sec,

@@ -324,7 +324,8 @@ class BopFrame:
             ground-truth masks of a published one, None when there are neither.
         gt: ground truth, instance id -> ``(class, T_cam_obj)`` (camera frame, m); empty
             without ``scene_gt.json``. ``visib_fract``: instance id -> visible fraction.
-        hypotheses: the scene's own hypotheses (``hypotheses.json``, world frame).
+        hypotheses: the scene's own hypotheses (``hypotheses.json``; in the frame
+            :attr:`BopScene.hypotheses_frame` says).
         static_group: the stage of an ssp scene (0 for published scenes).
         warnings: what is suspicious about the frame's files (an 8-bit depth image, a depth
             scale that puts the scene at an implausible distance: said once per scene, on the
@@ -603,10 +604,21 @@ class BopScene:
             )
         return instance, from_gt
 
+    @property
+    def hypotheses_frame(self) -> str:
+        """The frame of ``hypotheses.json``'s poses: ``"camera"`` when its entries give
+        ``cam_R_m2c``/``cam_t_m2c`` (BOP's names; a scene without camera poses), else
+        ``"world"`` (``R``/``t``)."""
+        for entries in self._hypotheses.values():
+            for h in entries:
+                return "camera" if isinstance(h, Mapping) and "cam_R_m2c" in h else "world"
+        return "world"
+
     def _hypothesis(self, h: Mapping[str, Any]) -> Hypothesis:
         T = np.eye(4)
-        T[:3, :3] = np.asarray(h["R"], dtype=float).reshape(3, 3)
-        T[:3, 3] = np.asarray(h["t"], dtype=float) / 1000.0
+        camera = self.hypotheses_frame == "camera"
+        T[:3, :3] = np.asarray(h["cam_R_m2c" if camera else "R"], dtype=float).reshape(3, 3)
+        T[:3, 3] = np.asarray(h["cam_t_m2c" if camera else "t"], dtype=float) / 1000.0
         return Hypothesis(h.get("class") or self.classes[int(h["obj_id"])], T, float(h["score"]))
 
 

@@ -7,7 +7,10 @@ motion becomes the objects'. The table plane fixes three of the six degrees of f
 (tilt and height: :func:`ssp.perception.table.table_frame`); the other three (the turn about
 the table's normal and the position along the table) come from registering the frame's points
 above the table to what is known static: a map of the points above the table in the frames
-located before (world frame, :data:`MAP_VOXEL` grid, the last :data:`MAP_FRAMES` frames).
+located before (world frame, one point per :data:`MAP_VOXEL` voxel: the first frame's that saw
+it, so every frame registers to the oldest views of what it sees and errors do not pile up
+frame to frame as they do against the last frames only: ``ssp bench camera`` hand-held 8.6 ->
+4.4 mm worst at the scene on development seed 1000).
 
 The registration is :func:`planar_icp`: point-to-plane ICP in those three degrees of freedom
 with Tukey weights over coarse-to-fine correspondence distances (:data:`ICP_SCALES`), so
@@ -16,13 +19,16 @@ not register. It starts from the constant-velocity prediction of the camera turn
 :data:`LOCAL_TURNS`; when too few points register there (:data:`MIN_INLIERS`: a hand-held
 camera's jump, BOP keyframes 10-30 degrees apart), from every :data:`GLOBAL_YAW_STEP` degrees
 of turn about the map's centre with the centroids matched, accepted only when unambiguous. A
-frame whose camera no start registers is refused (:class:`CameraNotLocatedError`): it is
-reported and skipped, not guessed.
+frame whose camera no start registers is refused (:class:`CameraNotLocatedError`), not
+guessed (``ssp run`` then starts the world frame again: :mod:`ssp.pipeline.world`).
 
 The last pose is kept bit for bit (:attr:`CameraFix.how` ``"kept"``) when the registration
-from it moves the points above the table by less than :data:`KEEP_SHIFT` on average; a static
-camera is not yet always kept (``ssp bench camera``: 2.1 mm median drift on seeds
-1000-1001, where frames with new objects registered beyond that).
+moves the points above the table by less than :data:`KEEP_SHIFT` on average from where the last
+pose puts them, or when the last pose fits them at least as well (the truncated point-to-plane
+cost the registration minimises, :class:`_Fit`): a static camera keeps one world frame. Of
+the registrations from the starts tried, the lowest cost wins; a tracked solution that
+registers less than :data:`SEARCH_INLIERS` of the points (perhaps a wrong minimum: an object's
+width off) is compared with the global search's.
 
 Why not a registration library: small_gicp's GICP (``small_gicp.align``, frame to map, 6
 degrees of freedom) was tried with a one-off script (not kept) on the simulated orbit
@@ -49,11 +55,12 @@ from ssp.perception.table import table_frame
 
 __all__ = [
     "ABOVE_TABLE",
+    "AGREE_SHIFT",
+    "PREDICTED_SHIFT",
     "GLOBAL_YAW_STEP",
     "LOCAL_TURNS",
     "ICP_SCALES",
     "KEEP_SHIFT",
-    "MAP_FRAMES",
     "MAP_VOXEL",
     "MIN_INLIERS",
     "MIN_INLIER_POINTS",
@@ -67,7 +74,9 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 ABOVE_TABLE = 0.004
-"""Points higher than this above the table plane (m) are registered (the rest is the table)."""
+"""Points higher than this above the table plane (m), and than three robust standard
+deviations of the table's own points (a far table's depth noise), are registered (the rest is
+the table: :func:`_above_table`)."""
 ICP_SCALES = (0.03, 0.01, 0.005)
 """Correspondence distances of the coarse-to-fine ICP, m."""
 INLIER_DISTANCE = 0.003
@@ -84,18 +93,24 @@ GLOBAL_YAW_STEP = 10.0
 """Turn step of the global search, degrees."""
 SEARCH_INLIERS = 0.5
 """Fewest inlier fraction of a global search's solution (more than a tracked one needs)."""
+PREDICTED_SHIFT = 0.01
+"""A tracked solution that registers less than :data:`SEARCH_INLIERS` of the points (new
+objects in view) is taken when it moves them less than this from the prediction on average,
+m; farther (a jump, BOP keyframes: perhaps a wrong minimum) it needs a global search's
+agreement."""
+AGREE_SHIFT = 0.005
+"""A tracked solution that registers few points is confirmed by a global search whose best
+solution moves the points by less than this from it on average, m."""
 SEARCH_MARGIN = 0.15
 """A global solution is ambiguous when another this close in inlier fraction ..."""
 DISTINCT_YAW = 20.0
 """... is turned at least this far from it, degrees."""
 KEEP_SHIFT = 0.002
 """A registration that moves the points above the table by less than this on average (m) from
-where the last pose puts them keeps the last pose exactly (a static camera: the registration's
-own noise is about a millimetre)."""
+where the last pose puts them keeps the last pose exactly (the registration's own noise is
+about a millimetre)."""
 MAP_VOXEL = 0.003
 """Voxel size of the map of points above the table, m."""
-MAP_FRAMES = 5
-"""The map holds the points of the last this many located frames."""
 MAX_POINTS = 6000
 """Points above the table registered per frame (an even subsample)."""
 
@@ -188,9 +203,8 @@ def _turned(G: np.ndarray, degrees: float, centre: np.ndarray) -> np.ndarray:
 
 
 def _voxel(points: np.ndarray, size: float) -> np.ndarray:
-    """One point per occupied voxel of ``size`` m: the last given (the newest frame's)."""
-    newest_first = points[::-1]
-    return newest_first[voxel_thin(newest_first, size)]
+    """One point per occupied voxel of ``size`` m: the first given."""
+    return points[voxel_thin(points, size)]
 
 
 def _snap(T: np.ndarray, T_plane: np.ndarray) -> np.ndarray:
@@ -210,6 +224,62 @@ def _snap(T: np.ndarray, T_plane: np.ndarray) -> np.ndarray:
     return out
 
 
+@dataclass(frozen=True)
+class _Fit:
+    """A planar motion ``G`` (4, 4) of the points above the table and how they register:
+    ``inliers`` (fraction within :data:`INLIER_DISTANCE` of the map's surface), ``rms_mm``
+    (their RMS distance, mm) and ``cost`` (the mean squared point-to-plane distance, each
+    truncated at :data:`INLIER_DISTANCE`, m^2: what the registration minimises, lower is
+    better; a point that finds no surface costs the truncation)."""
+
+    G: np.ndarray
+    inliers: float
+    rms_mm: float
+    cost: float
+
+    @property
+    def yaw(self) -> float:
+        return float(np.arctan2(self.G[1, 0], self.G[0, 0]))
+
+    def tracks(self, n: int) -> bool:
+        """Enough of the ``n`` points register (:data:`MIN_INLIERS`, :data:`MIN_INLIER_POINTS`)."""
+        return self.inliers >= MIN_INLIERS and self.inliers * n >= MIN_INLIER_POINTS
+
+    def refused(self) -> _Fit:
+        """The same motion, not accepted (no inliers)."""
+        return _Fit(self.G, 0.0, self.rms_mm, float("inf"))
+
+
+def _fit(q: np.ndarray, tree: cKDTree, normals: np.ndarray, G: np.ndarray) -> _Fit:
+    """How points ``q`` (N, 3) moved by ``G`` register to the map (:class:`_Fit`)."""
+    s = q @ G[:3, :3].T + G[:3, 3]
+    dist, idx = tree.query(s, distance_upper_bound=ICP_SCALES[-1])
+    ok = np.isfinite(dist)
+    r = np.full(len(q), INLIER_DISTANCE)
+    r[ok] = np.abs(np.einsum("ij,ij->i", normals[idx[ok]], s[ok] - tree.data[idx[ok]]))
+    inl = r < INLIER_DISTANCE
+    rms = float(np.sqrt(np.mean(r[inl] ** 2))) * 1000.0 if inl.any() else float("nan")
+    cost = float(np.mean(np.minimum(r, INLIER_DISTANCE) ** 2))
+    return _Fit(G, float(inl.mean()), rms, cost)
+
+
+def _above_table(z: np.ndarray) -> np.ndarray:
+    """Which heights ``z`` (N,; m above the table plane) are above the table
+    (:data:`ABOVE_TABLE`) and below a metre."""
+    near = z[np.abs(z) < 0.02]
+    cut = ABOVE_TABLE
+    if len(near) >= 100:
+        mid = float(np.median(near))
+        cut = max(cut, mid + 3.0 * 1.4826 * float(np.median(np.abs(near - mid))))
+    return (z > cut) & (z < 1.0)
+
+
+def _shift(q: np.ndarray, G: np.ndarray, H: np.ndarray) -> float:
+    """Mean distance (m) between points ``q`` (N, 3) moved by ``G`` and by ``H`` (4, 4)."""
+    D = G - H
+    return float(np.linalg.norm(q @ D[:3, :3].T + D[:3, 3], axis=1).mean())
+
+
 class CameraTracker:
     """``T_world_cam`` of each frame of a camera with no pose given (module docstring).
 
@@ -221,14 +291,18 @@ class CameraTracker:
         self.table_distance = float(table_distance)
         self.T_world_cam: np.ndarray | None = None
         self._before: np.ndarray | None = None  # the pose before the last
-        self._map: list[np.ndarray] = []  # world points above the table, per located frame
+        self._map = np.zeros((0, 3))  # world points above the table, oldest first
+        self._map_normals = np.zeros((0, 3))  # their unit normals
         self._known: tuple[np.ndarray, np.ndarray] | None = None  # model points, normals
 
     def know(self, objects) -> None:
         """The objects known static, ``[(model, T_world_obj (4, 4))]``
         (:class:`~ssp.library.model.ObjectModel`): their whole surfaces (``surface_points``,
         ``surface_normals``) join the map as the next frames' reference (a view from another
-        side sees faces no frame before saw). An empty list forgets them."""
+        side sees faces no frame before saw), and the registration is refined on them alone
+        when enough points register there. An empty list forgets them. Exact objects make the
+        camera exact (``ssp bench camera``, ``egomotion_known``); objects estimated in the
+        frames before carry those frames' camera errors (:mod:`ssp.pipeline.world`)."""
         pts, nrm = [], []
         for model, T in objects:
             T = np.asarray(T, dtype=float)
@@ -248,14 +322,13 @@ class CameraTracker:
         p = np.asarray(points_cam, dtype=float)
         T_plane, _ = table_frame(p, distance=self.table_distance)
         if self.T_world_cam is None:
-            self._accept(T_plane, p)
+            self.accept(T_plane, p)
             return CameraFix(T_plane, "table")
         q = p @ T_plane[:3, :3].T + T_plane[:3, 3]
-        q = q[(q[:, 2] > ABOVE_TABLE) & (q[:, 2] < 1.0)]
+        q = q[_above_table(q[:, 2])]
         if len(q) > MAX_POINTS:
             q = q[np.linspace(0, len(q) - 1, MAX_POINTS).astype(int)]
-        target = _voxel(np.concatenate(self._map), MAP_VOXEL) if self._map else np.zeros((0, 3))
-        normals = estimate_normals(target, k=12) if len(target) >= 3 else np.zeros((0, 3))
+        target, normals = self._map, self._map_normals
         if self._known is not None:
             target = np.concatenate([target, self._known[0]])
             normals = np.concatenate([normals, self._known[1]])
@@ -268,48 +341,56 @@ class CameraTracker:
         last = self.T_world_cam
         pred = last if self._before is None else last @ np.linalg.inv(self._before) @ last
         G0 = _snap(pred, T_plane) @ np.linalg.inv(T_plane)
+        G_last = last @ np.linalg.inv(T_plane)  # where the last pose puts the points
         c = tree.data.mean(axis=0)
-        G, inl, res = max(
-            (self._register(q, tree, normals, _turned(G0, deg, c)) for deg in LOCAL_TURNS),
-            key=lambda f: f[1],
-        )
+        fit = self._register(q, tree, normals, G0)
+        for deg in LOCAL_TURNS[1:] if not fit.tracks(len(q)) else ():
+            fit = min(fit, self._register(q, tree, normals, _turned(G0, deg, c)),
+                      key=lambda f: f.cost)  # fmt: skip
         how = "tracked"
-        if inl < MIN_INLIERS or inl * len(q) < MIN_INLIER_POINTS:
-            G, inl, res = self._search(q, tree, normals)
-            how = "searched"
-        if inl < MIN_INLIERS:
+        registered = fit.inliers  # from the prediction, for the message
+        near = _shift(q, fit.G, G0) < PREDICTED_SHIFT  # as the camera was moving
+        if not fit.tracks(len(q)) or (fit.inliers < SEARCH_INLIERS and not near):
+            best, unambiguous = self._search(q, tree, normals)  # perhaps a wrong minimum
+            if fit.tracks(len(q)) and _shift(q, best.G, fit.G) < AGREE_SHIFT:
+                pass  # the search confirms the tracked solution
+            elif unambiguous:
+                fit, how = best, "searched"
+            else:
+                fit = fit.refused()
+        if not fit.tracks(len(q)):
             raise CameraNotLocatedError(
                 f"the camera could not be located: from its predicted pose too few of the "
-                f"{len(q)} points above the table register to the map (at least "
-                f"{100 * MIN_INLIERS:.0f} % needed), and no turn of a global search does so "
-                f"unambiguously (at least {100 * SEARCH_INLIERS:.0f} %)"
+                f"{len(q)} points above the table register to the map ({100 * registered:.0f} "
+                f"%, at least {100 * MIN_INLIERS:.0f} % needed, or {100 * SEARCH_INLIERS:.0f} "
+                "% unless a global search agrees), and no turn of a global search does so "
+                "unambiguously"
             )
+        if self._known is not None:  # the known objects' exact surfaces refine it
+            ktree = cKDTree(self._known[0])
+            kn = self._known[1]
+            G_k = planar_icp(q, ktree, kn, fit.G, scales=ICP_SCALES[1:])
+            fit_k = _fit(q, ktree, kn, G_k)
+            if fit_k.inliers * len(q) >= MIN_INLIER_POINTS:
+                tree, normals, fit = ktree, kn, fit_k
+        G = fit.G
+        moved = _shift(q, G, G_last)
+        log.debug("camera registered: points moved %.2f mm on average", 1000 * moved)
         T = G @ T_plane
-        G_last = last @ np.linalg.inv(T_plane)  # where the last pose puts the points
-        moved = np.linalg.norm(q @ (G - G_last)[:3, :3].T + (G - G_last)[:3, 3], axis=1)
-        log.debug("camera registered: points moved %.2f mm on average", 1000 * moved.mean())
-        if float(moved.mean()) < KEEP_SHIFT:
+        if moved < KEEP_SHIFT or _fit(q, tree, normals, G_last).cost <= fit.cost:
             T, how = last, "kept"
-        self._accept(T, p)
-        return CameraFix(T.copy(), how, inl, res, len(q))
+        self.accept(T, p)
+        return CameraFix(T.copy(), how, fit.inliers, fit.rms_mm, len(q))
 
-    def _register(self, q, tree, normals, G0) -> tuple[np.ndarray, float, float]:
-        """``(G, inlier fraction, RMS inlier distance mm)`` of :func:`planar_icp` from ``G0``."""
-        G = planar_icp(q, tree, normals, G0)
-        s = q @ G[:3, :3].T + G[:3, 3]
-        dist, idx = tree.query(s, distance_upper_bound=ICP_SCALES[-1])
-        ok = np.isfinite(dist)
-        d = np.abs(np.einsum("ij,ij->i", normals[idx[ok]], s[ok] - tree.data[idx[ok]]))
-        d = d[d < INLIER_DISTANCE]
-        rms = float(np.sqrt(np.mean(d**2))) * 1000.0 if len(d) else float("nan")
-        return G, len(d) / len(q), rms
+    def _register(self, q, tree, normals, G0) -> _Fit:
+        """:func:`planar_icp` from ``G0`` and how well it registers (:func:`_fit`)."""
+        return _fit(q, tree, normals, planar_icp(q, tree, normals, G0))
 
-    def _search(self, q, tree, normals) -> tuple[np.ndarray, float, float]:
+    def _search(self, q, tree, normals) -> tuple[_Fit, bool]:
         """The best registration from every :data:`GLOBAL_YAW_STEP` turn, centroids matched,
-        when it is unambiguous: at least :data:`SEARCH_INLIERS` register, and no solution
-        turned :data:`DISTINCT_YAW` or more from it comes within :data:`SEARCH_MARGIN` (a
-        scene of a few cubes looks alike from several sides); else its inlier fraction is
-        reported as 0 (not located)."""
+        and whether it is unambiguous: at least :data:`SEARCH_INLIERS` register, and no
+        solution turned :data:`DISTINCT_YAW` or more from it comes within
+        :data:`SEARCH_MARGIN` (a scene of a few cubes looks alike from several sides)."""
         c, qc = tree.data.mean(axis=0), q.mean(axis=0)
         found = []
         for deg in np.arange(0.0, 360.0, GLOBAL_YAW_STEP):
@@ -317,24 +398,26 @@ class CameraTracker:
             m = G0[:3, :3] @ qc
             G0[0, 3], G0[1, 3] = c[0] - m[0], c[1] - m[1]
             found.append(self._register(q, tree, normals, G0))
-        found.sort(key=lambda f: -f[1])
+        found.sort(key=lambda f: -f.inliers)
         best = found[0]
-        yaw = np.arctan2(best[0][1, 0], best[0][0, 0])
         for other in found[1:]:
-            turn = abs(
-                (np.arctan2(other[0][1, 0], other[0][0, 0]) - yaw + np.pi) % (2 * np.pi) - np.pi
-            )
-            if turn >= np.radians(DISTINCT_YAW) and other[1] > best[1] - SEARCH_MARGIN:
+            turn = abs((other.yaw - best.yaw + np.pi) % (2 * np.pi) - np.pi)
+            if turn >= np.radians(DISTINCT_YAW) and other.inliers > best.inliers - SEARCH_MARGIN:
                 log.info("camera search ambiguous: %.2f and %.2f inliers %.0f deg apart",
-                         best[1], other[1], np.degrees(turn))  # fmt: skip
-                return best[0], 0.0, best[2]
-        if best[1] < SEARCH_INLIERS:
-            return best[0], 0.0, best[2]
-        return best
+                         best.inliers, other.inliers, np.degrees(turn))  # fmt: skip
+                return best, False
+        return best, best.inliers >= SEARCH_INLIERS
 
-    def _accept(self, T: np.ndarray, p: np.ndarray) -> None:
-        """Keep ``T`` as the frame's pose and its points above the table in the map."""
+    def accept(self, T: np.ndarray, p: np.ndarray) -> None:
+        """Keep ``T`` (4, 4) as the pose of the frame of camera-frame points ``p`` (N, 3; m)
+        and its points above the table in the map: what :meth:`update` does with a located
+        frame, and a resumed run with the frames it committed before."""
         w = p @ T[:3, :3].T + T[:3, 3]
-        w = w[(w[:, 2] > ABOVE_TABLE) & (w[:, 2] < 1.0)]
-        self._map = ([*self._map, _voxel(w, MAP_VOXEL)] if len(w) else self._map)[-MAP_FRAMES:]
+        w = w[_above_table(w[:, 2])]
+        if len(w) >= 3:
+            w = _voxel(w, MAP_VOXEL)
+            pts = np.concatenate([self._map, w])
+            nrm = np.concatenate([self._map_normals, estimate_normals(w, k=12)])
+            keep = voxel_thin(pts, MAP_VOXEL)  # a voxel's first point: the oldest frame's
+            self._map, self._map_normals = pts[keep], nrm[keep]
         self._before, self.T_world_cam = self.T_world_cam, T.copy()

@@ -111,6 +111,9 @@ class PerceptionResult:
     camera: Camera | None = None
     #: that depth image (H, W), m (0: no return)
     depth: np.ndarray | None = None
+    #: how the camera of a frame without pose was located (the frame JSON's ``camera``:
+    #: :meth:`ssp.pipeline.world.CameraLocator.locate`); None: the pose was given
+    camera_fix: dict | None = None
 
     @property
     def seconds_per_segment(self) -> float | None:

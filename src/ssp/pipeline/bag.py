@@ -28,8 +28,8 @@ from ssp.io.rosbag import (
 )
 from ssp.perception.depth import cloud_from_depth
 from ssp.perception.pipeline import Perception, PerceptionResult
-from ssp.perception.table import TableTracker
-from ssp.pipeline.sources import InputFrame
+from ssp.pipeline.sources import Committed, InputFrame
+from ssp.pipeline.world import CameraLocator
 from ssp.timing import StageTimer
 
 __all__ = ["BagSource", "bag_input_files", "write_run_results_bag"]
@@ -61,24 +61,25 @@ class BagSource:
         self.bag = open_bag(path, options, mode=mode, classes=list(library))
         self.perception = Perception(library, cfg, classes)
         self.topics = self.bag.topics
-        # no camera pose from tf: the table's frame, kept while the camera stays put
-        self.tracker = TableTracker(cfg.perception.table_distance)
+        # no camera pose from tf: the camera located in the first frame's table frame
+        self.locator = CameraLocator(cfg.perception.table_distance)
         self.total = len(self.bag)
         self._said_no_masks = False
 
-    def frames(self, start: int = 0) -> Iterator[InputFrame]:
+    def frames(self, start: int = 0, committed: Committed | None = None) -> Iterator[InputFrame]:
         """The frames from position ``start`` on (:class:`~ssp.pipeline.sources.FrameSource`);
-        the fitted world frame is brought up to ``start`` first."""
+        a camera without pose is located up to ``start`` first, from the ``committed``
+        records of the frames before."""
         files = (str(self.path),)  # the bag (file or ROS 2 folder) is named in a frame's errors
-        if start > 0 and self.tracker.T_world_cam is None:
-            # a resumed run: the world frame the frames before ``start`` kept
+        if start > 0 and not self.locator.started:
             for fs in itertools.islice(self.bag.frames(0), start):
+                rec = committed(f"{fs.index:06d}") if committed else None
+                if rec is None or rec.get("T_world_cam") is None or not rec.get("camera"):
+                    continue  # failed, or its pose came from tf
                 try:
-                    f = fs.load()
-                    if f.T_world_cam is None:
-                        self.tracker.update(self._camera_points(f))
+                    self.locator.replay(self._camera_points(fs.load()), rec)
                 except SSPError:
-                    pass  # that frame failed in the run too, leaving the frame as it was
+                    pass  # unreadable now: the run had it, so it reads the same
         for fs in self.bag.frames(start):
             yield InputFrame(f"{fs.index:06d}", fs.index, files, partial(self._perceive, fs))
 
@@ -92,14 +93,12 @@ class BagSource:
             return cloud_from_depth(f.depth, f.camera).points
         return np.asarray(f.points, dtype=float)
 
-    def _world(self, f, warnings: list[str], timer: StageTimer) -> np.ndarray | None:
+    def _world(self, f, warnings: list[str], timer: StageTimer) -> tuple[np.ndarray, dict | None]:
+        """``(T_world_cam, how it was located)``: tf's (None), else the locator's."""
         if f.T_world_cam is not None:
-            return f.T_world_cam
+            return f.T_world_cam, None
         with timer("world frame"):
-            T_wc, moved = self.tracker.update(self._camera_points(f))
-        if moved:
-            warnings.append("the table plane moved: the world frame was fitted again")
-        return T_wc
+            return self.locator.locate(self._camera_points(f), warnings)
 
     def _no_masks(self, f, warnings: list[str]) -> None:
         """Say once per run (log and the frame's warnings, so the summary) that the bag has no
@@ -131,12 +130,13 @@ class BagSource:
                 + (f" on {topics.hypotheses}" if topics.hypotheses else " (no hypotheses topic)")
                 + " and --hypotheses given"
             )
+        T_wc, camera_fix = self._world(f, warnings, timer)
         if f.kind == "depth":
             result = self.perception.from_depth(
                 f.depth,
                 f.camera,
                 stamp=f.stamp,
-                T_world_cam=self._world(f, warnings, timer),
+                T_world_cam=T_wc,
                 mask=f.labels,
                 hypotheses=hyps,
                 hypotheses_frame=f.hypotheses_frame,
@@ -147,13 +147,14 @@ class BagSource:
                 f.points,
                 frame="camera",
                 stamp=f.stamp,
-                T_world_cam=self._world(f, warnings, timer),
+                T_world_cam=T_wc,
                 labels=f.labels,
                 label_kind="instance",
                 hypotheses=hyps,
                 hypotheses_frame=f.hypotheses_frame,
                 timer=timer,
             )
+        result.camera_fix = camera_fix
         return result, warnings
 
 

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from ssp.config import SSPConfig
-from ssp.errors import ArgumentError, InputError, SSPError
+from ssp.errors import ArgumentError, InputError
 from ssp.geometry import invert
 from ssp.io.bop import DEFAULT_PERIOD, MASK_MODES, BopFrame, mask_source, open_bop
 from ssp.io.detections import (
@@ -27,8 +27,8 @@ from ssp.io.results import ObjectIds
 from ssp.perception.depth import cloud_from_depth, labels_at
 from ssp.perception.pipeline import Perception, PerceptionResult
 from ssp.perception.silhouettes import silhouette_detections
-from ssp.perception.table import TableTracker
-from ssp.pipeline.sources import InputFrame, unknown_class
+from ssp.pipeline.sources import Committed, InputFrame, unknown_class
+from ssp.pipeline.world import CameraLocator
 from ssp.timing import StageTimer
 
 __all__ = ["BOP_FOLDERS", "BopSource", "bop_object_ids", "check_masks"]
@@ -64,8 +64,8 @@ class BopSource:
     :func:`ssp.io.estimators.read_estimates`; looked up by ``(scene_id, im_id)``), else the
     scene's ``hypotheses.json``, else the built-in estimator (``mode``, one of
     :data:`ssp.pipeline.sources.HYPOTHESES_MODES`). The world frame is the scene's
-    ``cam_R_w2c`` when every image has one, else the table plane fitted to the depth
-    (:class:`ssp.perception.table.TableTracker`: kept while the camera stays put).
+    ``cam_R_w2c`` when every image has one, else the first image's table, each image's camera
+    located in it (:class:`ssp.pipeline.world.CameraLocator`).
     ``masks`` is one of :data:`ssp.io.bop.MASK_MODES` or the path of a detector's instance
     masks (a BOP segmentation results file, :mod:`ssp.io.detections`; ``mask_min_score``
     drops its detections scoring below it): each image's detections are its instance labels,
@@ -106,7 +106,9 @@ class BopSource:
         given = estimates is not None or self.scene.has_hypotheses
         if mode == "given" and not given:
             raise InputError(f"{path}: no hypotheses.json and --hypotheses given")
-        self.tracker = None if self.scene.has_world else TableTracker(cfg.perception.table_distance)
+        self.locator = (
+            None if self.scene.has_world else CameraLocator(cfg.perception.table_distance)
+        )
         #: m: how far from a silhouette's rendered depth its pixels may be (the correction's reach)
         self.max_gap = cfg.correction.max_shift
         self.detections: SceneDetections | None = None
@@ -143,18 +145,18 @@ class BopSource:
             return "ground truth (mask_visib)"
         return "the simulated segmentation (instance/), else mask_visib"
 
-    def frames(self, start: int = 0) -> Iterator[InputFrame]:
+    def frames(self, start: int = 0, committed: Committed | None = None) -> Iterator[InputFrame]:
         """The images from position ``start`` on (:class:`~ssp.pipeline.sources.FrameSource`);
-        the fitted world frame is brought up to ``start`` first."""
-        tracker = self.tracker
-        if tracker is not None and start > 0 and tracker.T_world_cam is None:
-            # a resumed run: the world frame the frames before ``start`` kept
-            for k in range(start):
-                try:
-                    f = self.scene.load(k, masks=None)
-                    tracker.update(cloud_from_depth(f.depth, f.camera).points)
-                except SSPError:
-                    pass  # that frame failed in the run too, leaving the frame as it was
+        a camera without pose is located up to ``start`` first, from the ``committed``
+        records of the frames before."""
+        loc = self.locator
+        if loc is not None and start > 0 and not loc.started:
+            for k in range(start):  # a resumed run: the world frame the frames before left
+                rec = committed(f"{self.scene.im_ids[k]:06d}") if committed else None
+                if rec is None or rec.get("T_world_cam") is None:
+                    continue  # that frame failed in the run too, leaving the locator as it was
+                f = self.scene.load(k, masks=None)
+                loc.replay(cloud_from_depth(f.depth, f.camera).points, rec)
         est = self.estimates
         for k in range(start, len(self.scene)):
             im = self.scene.im_ids[k]
@@ -197,7 +199,7 @@ class BopSource:
                 and self.estimates is None
                 and self.scene.has_entry(k)
             ):
-                hyps = list(sf.hypotheses)
+                hyps, hyp_frame = list(sf.hypotheses), self.scene.hypotheses_frame
             for i, h in enumerate(hyps or []):
                 if h.class_name not in self.library:
                     raise InputError(f"hypothesis {i}: {unknown_class(h.class_name, self.library)}")
@@ -209,15 +211,11 @@ class BopSource:
             mask[mask < -1] = -1
         with timer("cloud"):  # the points once: the world frame's fit and the front end's
             cloud = cloud_from_depth(sf.depth, sf.camera)
-        T_wc = sf.T_world_cam
+        T_wc, camera_fix = sf.T_world_cam, None
         if T_wc is None:
+            assert self.locator is not None
             with timer("world frame"):
-                T_wc, moved = self.tracker.update(cloud.points)
-            if moved:
-                warnings.append(
-                    "the table plane moved: the world frame was fitted again (a moving "
-                    "camera needs cam_R_w2c/cam_t_w2c in scene_camera.json)"
-                )
+                T_wc, camera_fix = self.locator.locate(cloud.points, warnings)
         label_classes = None
         if self.detections is not None:
             with timer("masks"):
@@ -259,6 +257,7 @@ class BopSource:
             timer=timer,
         )
         result.camera, result.depth = sf.camera, sf.depth  # for the recording
+        result.camera_fix = camera_fix
         return result, warnings
 
     def _instance_masks(

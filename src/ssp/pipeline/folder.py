@@ -12,7 +12,7 @@ from ssp.errors import InputError
 from ssp.io.folder import SCENE_JSON, FrameFile, open_folder
 from ssp.io.results import ObjectIds
 from ssp.perception.pipeline import Perception, PerceptionResult
-from ssp.pipeline.sources import InputFrame, unknown_class
+from ssp.pipeline.sources import Committed, InputFrame, unknown_class
 from ssp.timing import StageTimer
 
 __all__ = ["FolderSource", "open_folder_source"]
@@ -46,7 +46,7 @@ class FolderSource:
                     raise InputError(f"{scene}: {what}[{label!r}]: {unknown_class(cls, library)}")
         self.total = len(self.folder.frames)
 
-    def frames(self, start: int = 0) -> Iterator[InputFrame]:
+    def frames(self, start: int = 0, committed: Committed | None = None) -> Iterator[InputFrame]:
         """The frames from position ``start`` on (:class:`~ssp.pipeline.sources.FrameSource`)."""
         for ff in self.folder.frames[start:]:
             files = (str(ff.cloud_path),) + (

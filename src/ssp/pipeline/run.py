@@ -55,7 +55,7 @@ import numpy as np
 from ssp.config import SSPConfig
 from ssp.errors import ArgumentError, SSPError
 from ssp.geometry import invert
-from ssp.io._files import atomic_write_text, fsync_dir, to_jsonable
+from ssp.io._files import atomic_write_text, fsync_dir, read_json, to_jsonable
 from ssp.io.results import BopCsvWriter, ObjectIds, bop_csv_name, frame_record, write_json
 from ssp.io.tum import TUM_DIR, write_tum
 from ssp.parser import SceneParser
@@ -76,6 +76,7 @@ from ssp.pipeline.manifest import (
 )
 from ssp.pipeline.sources import HYPOTHESES_MODES, FrameSource, InputFrame
 from ssp.pipeline.summary import RunSummary
+from ssp.pipeline.world import RESTARTED
 
 __all__ = ["KEPT_MIN_SCORE", "REJECTED_SCORE_SCALE", "run"]
 
@@ -350,10 +351,15 @@ def _run_frames(
             doc = {**run_state, "next": n_next, "csv_bytes": csv.sync(), "parser": parser_state}
             write_json(out / STATE_JSON, doc, indent=None)
 
+        def committed(name: str) -> dict[str, Any] | None:
+            """A committed frame's JSON (a resumed source's history)."""
+            p = out / FRAMES_DIR / f"{name}.json"
+            return read_json(p) if p.is_file() and not p.is_symlink() else None
+
         try:
             if not state:
                 commit(0, committed_parser)
-            for n, frame in enumerate(source.frames(start), start=start):
+            for n, frame in enumerate(source.frames(start, committed), start=start):
                 kept: dict[str, Any] = {}
                 frame_json, lines = _run_frame(
                     frame, parser, csv, ids, scene_id, kept, rejected_rows=rejected_rows
@@ -407,6 +413,8 @@ def _run_frame(
     warnings: list[str] = []
     try:
         perceived, warnings = source.perceive()
+        if (perceived.camera_fix or {}).get("how") == RESTARTED:
+            parser.forget()  # its objects are in the world frame the camera lost
         estimate = parser.update(perceived.frame)
         seconds = time.perf_counter() - t0  # the CSV's time: from reading to the estimate
         t_results = time.perf_counter()
@@ -445,6 +453,7 @@ def _run_frame(
                 "timings": perceived.timings,
             },
             "T_world_cam": None if frame.T_world_cam is None else frame.T_world_cam.tolist(),
+            "camera": perceived.camera_fix,
         }
         frame_json = frame_record(estimate, name=source.name, index=source.index, extra=extra)
         # one list of doubts: the input's and the front end's, then the parser's

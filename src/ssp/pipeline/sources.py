@@ -18,7 +18,14 @@ from typing import Protocol, runtime_checkable
 from ssp.io.results import ObjectIds
 from ssp.perception.pipeline import PerceptionResult
 
-__all__ = ["HYPOTHESES_MODES", "FrameSource", "InputFrame", "Perceive", "unknown_class"]
+__all__ = [
+    "HYPOTHESES_MODES",
+    "Committed",
+    "FrameSource",
+    "InputFrame",
+    "Perceive",
+    "unknown_class",
+]
 
 #: ``auto``: the input's hypotheses when it has them, else the built-in estimator;
 #: ``given``: only the input's (a frame without is an error); ``estimated``: always estimate.
@@ -49,6 +56,10 @@ class InputFrame:
         return f"{f}: {message}"
 
 
+#: A resumed run's committed frame JSON by frame name (None: the frame has none).
+Committed = Callable[[str], "Mapping | None"]
+
+
 @runtime_checkable
 class FrameSource(Protocol):
     """An opened run input: the frames of a folder of clouds, a BOP scene, a bag, ...
@@ -68,10 +79,11 @@ class FrameSource(Protocol):
     kind: str
     total: int
 
-    def frames(self, start: int = 0) -> Iterator[InputFrame]:
+    def frames(self, start: int = 0, committed: Committed | None = None) -> Iterator[InputFrame]:
         """The frames from position ``start`` on, in order. A source whose frames depend on
-        the frames before them (a world frame fitted once and kept) brings that state up to
-        ``start`` first, as an uninterrupted run would have left it (a resumed run)."""
+        the frames before them (a camera located frame after frame) brings that state up to
+        ``start`` first, as an uninterrupted run left it: from the ``committed`` frame
+        records of a resumed run."""
         ...
 
     def object_ids(self) -> ObjectIds:

@@ -131,8 +131,11 @@ def _rgb(frame: SimFrame, camera, obj_id: Mapping[str, int]) -> np.ndarray:
     return shade(frame.depth, frame.instance, camera, colors)
 
 
-def write_bop(seq: SimSequence, out_dir, scene_id: int = 1) -> Path:
+def write_bop(seq: SimSequence, out_dir, scene_id: int = 1, camera_pose: bool = True) -> Path:
     """Write ``seq`` as a BOP scene folder ``out_dir`` (created; files overwritten).
+    ``camera_pose=False``: as a published test scene of a moving camera, without
+    ``cam_R_w2c``/``cam_t_w2c``, the hypotheses in the camera frame (``cam_R_m2c``,
+    ``cam_t_m2c``).
 
     Returns the folder path.
     """
@@ -159,9 +162,10 @@ def write_bop(seq: SimSequence, out_dir, scene_id: int = 1) -> Path:
         scene_camera[im] = {
             "cam_K": [cam.fx, 0.0, cam.cx, 0.0, cam.fy, cam.cy, 0.0, 0.0, 1.0],
             "depth_scale": DEPTH_SCALE,
-            "cam_R_w2c": T_cw[:3, :3].reshape(-1).tolist(),
-            "cam_t_w2c": (T_cw[:3, 3] * 1000.0).tolist(),
         }
+        if camera_pose:
+            scene_camera[im]["cam_R_w2c"] = T_cw[:3, :3].reshape(-1).tolist()
+            scene_camera[im]["cam_t_w2c"] = (T_cw[:3, 3] * 1000.0).tolist()
         gts, infos = [], []
         inst = np.asarray(f.instance)
         for k, (iid, (cls, T)) in enumerate(f.gt.items()):
@@ -192,16 +196,18 @@ def write_bop(seq: SimSequence, out_dir, scene_id: int = 1) -> Path:
             )
         scene_gt[im] = gts
         scene_info[im] = infos
-        hyps[im] = [
-            {
+        T_fw = np.eye(4) if camera_pose else T_cw  # the hypotheses' frame from the world
+        keys = ("R", "t") if camera_pose else ("cam_R_m2c", "cam_t_m2c")
+        hyps[im] = []
+        for h in f.hypotheses:
+            T_fo = T_fw @ np.asarray(h.T_world_obj, float)
+            hyps[im].append({
                 "class": h.class_name,
                 "obj_id": obj_id[h.class_name],
                 "score": float(h.score),
-                "R": np.asarray(h.T_world_obj, float)[:3, :3].reshape(-1).tolist(),
-                "t": (np.asarray(h.T_world_obj, float)[:3, 3] * 1000.0).tolist(),
-            }
-            for h in f.hypotheses
-        ]
+                keys[0]: T_fo[:3, :3].reshape(-1).tolist(),
+                keys[1]: (T_fo[:3, 3] * 1000.0).tolist(),
+            })  # fmt: skip
         if sources is not None:
             hyps_gt[im] = list(sources[f.index]) if f.index < len(sources) else []
         depth = np.asarray(f.depth, dtype=float)
@@ -416,6 +422,7 @@ def simulate_to_disk(
     hypotheses: HypothesisNoise | None = None,
     library: Mapping | None = None,
     progress: Progress | None = None,
+    camera_pose: bool = True,
     **generate_kwargs,
 ) -> list[Path]:
     """Generate ``sequences`` sequences (seeds ``seed, seed + 1, ...``) and write each as a
@@ -432,6 +439,7 @@ def simulate_to_disk(
             :func:`ssp.sim.generate.generate_sequence`.
         library: an already loaded library (overrides ``models_dir``).
         progress: ``progress(done, total, path)`` after each sequence.
+        camera_pose: write the camera poses (:func:`write_bop`).
 
     Returns:
         The scene folders ``out_dir/<experiment>/test/<i:06d>``, in order. Sequences are
@@ -463,7 +471,7 @@ def simulate_to_disk(
             **generate_kwargs,
         )
         seq.info["generate_seconds"] = round(time.perf_counter() - t0, 3)
-        p = write_bop(seq, root / SPLIT / f"{i:06d}", scene_id=i)
+        p = write_bop(seq, root / SPLIT / f"{i:06d}", scene_id=i, camera_pose=camera_pose)
         if classes is None:  # the dataset's files, once: every scene shares the library
             classes = [c for _, c in sorted(load_json(p / "models.json")["obj_ids"].items(),
                                             key=lambda kv: int(kv[0]))]  # fmt: skip
