@@ -115,3 +115,28 @@ def test_reported_moves_count_only_objects_that_did_not_move():
     r.update({"a": ("cube", T), "b": ("cube", moved)}, {"a": "perturbed", "b": "perturbed"})
     r.update({"a": ("cube", T), "b": ("cube", moved)}, {"a": "static"})
     assert (r.static, r.moved) == (2, 1)  # a twice (once perturbed); b moved, then unmatched
+
+
+def test_table1_locates_the_camera_when_its_pose_is_not_given(lib):
+    """``ssp bench table1 --camera-pose estimated``: the methods see each frame in the world
+    frame ssp locates (the camera's error is in their results); a static camera's frames
+    keep one world frame and give the results of the pose given."""
+    from ssp.eval.table1 import SequenceSpec, merge_table1, run_table1_parts
+
+    small = dict(stages=2, frames_per_stage=3, stride=2)
+    specs = [SequenceSpec("structure", 2, camera="orbit", locate=True, **small)]
+    result = merge_table1(run_table1_parts(specs, lib, methods=("ssp",), vsd=False), ["ssp"])
+    cam = result["camera"]
+    assert cam["frames"] == result["frames"] == len(cam["rows"])
+    assert cam["restarts"] == 0 and cam["how"]["table"] == 1
+    assert cam["error_mm_max"] < 3.0
+    assert result["methods"]["ssp"]["bop"]["AR"] > 0.8
+
+    def ssp_ar(locate: bool) -> tuple[float, dict]:
+        spec = SequenceSpec("structure", 2, locate=locate, **small)
+        r = merge_table1(run_table1_parts([spec], lib, methods=("ssp",), vsd=False), ["ssp"])
+        return r["methods"]["ssp"]["bop"]["AR"], r.get("camera", {})
+
+    (given, none), (located, static) = ssp_ar(False), ssp_ar(True)
+    assert not none and set(static["how"]) == {"table", "kept"} and static["error_mm_max"] < 1e-9
+    assert abs(located - given) < 0.01

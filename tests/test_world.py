@@ -60,7 +60,8 @@ def test_a_scene_without_camera_poses_is_written_as_published(orbit):
     assert open_bop(bare).hypotheses_frame == "camera"
     assert open_bop(posed).hypotheses_frame == "world"
     # the same hypotheses, in the camera frame
-    b, p = open_bop(bare).load(4, depth=False, masks=None), open_bop(posed).load(4, depth=False, masks=None)
+    b = open_bop(bare).load(4, depth=False, masks=None)
+    p = open_bop(posed).load(4, depth=False, masks=None)
     T_cw = np.linalg.inv(p.T_world_cam)
     for hb, hp in zip(b.hypotheses, p.hypotheses, strict=True):
         np.testing.assert_allclose(hb.T_world_obj, T_cw @ hp.T_world_obj, atol=1e-9)
@@ -85,7 +86,9 @@ def test_an_orbiting_camera_is_followed_not_taken_for_moving_objects(orbit, orbi
     for f in frames:
         for o in f["objects"]:
             where.setdefault(o["id"], []).append(np.asarray(o["T_world_obj"])[:3, 3])
-    spread = [np.linalg.norm(np.array(v) - np.median(v, axis=0), axis=1).max() for v in where.values()]
+    spread = [
+        np.linalg.norm(np.array(v) - np.median(v, axis=0), axis=1).max() for v in where.values()
+    ]
     assert max(spread) < 0.01, spread
 
 

@@ -107,6 +107,28 @@ class Frame:
         """Whether the frame has instance masks: labels, each one object's segment."""
         return self.labels is not None and self.label_kind == "instance"
 
+    def moved_by(self, T_new_world: np.ndarray) -> Frame:
+        """This frame expressed in another world frame: points, segments, hypotheses, the
+        camera pose and ``moved`` poses moved by ``T_new_world`` (4, 4; the new world from
+        this one's), labels and stamps as they are."""
+        M = np.asarray(T_new_world, dtype=float)
+
+        def pts(p):
+            return np.asarray(p, dtype=float) @ M[:3, :3].T + M[:3, 3]
+
+        return replace(
+            self,
+            points=pts(self.points),
+            hypotheses=[replace(h, T_world_obj=M @ h.T_world_obj) for h in self.hypotheses],
+            segments=None
+            if self.segments is None
+            else {k: pts(v) for k, v in self.segments.items()},
+            T_world_cam=None if self.T_world_cam is None else M @ self.T_world_cam,
+            moved=None
+            if self.moved is None
+            else {k: None if T is None else M @ T for k, T in self.moved.items()},
+        )
+
     def validate(self, library: Mapping[str, Any]) -> Frame:
         """Return a cleaned copy of this frame, or raise :class:`FrameError`.
 

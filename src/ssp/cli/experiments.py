@@ -159,6 +159,15 @@ def bench_table1(
             "(docs/benchmarks.md, moving cameras)."
         ),
     ),
+    camera_pose: str = typer.Option(
+        "given",
+        "--camera-pose",
+        help=(
+            "given: each frame's camera pose is given to the methods; estimated: not given, "
+            "located by ssp as ssp run does for a scene without cam_R_w2c (its error is in "
+            "every method's results)."
+        ),
+    ),
     methods: str | None = typer.Option(
         None, help="Comma-separated methods to compare (default: ssp and all six baselines)."
     ),
@@ -173,6 +182,8 @@ def bench_table1(
     from ssp.eval.table1 import DEFAULT_METHODS, table1_report, write_table1
 
     _check_table1_options(hypotheses, noise, masks, camera)
+    if camera_pose not in ("given", "estimated"):
+        raise typer.BadParameter("--camera-pose must be 'given' or 'estimated'")
     names = _methods(methods) if methods else list(DEFAULT_METHODS)
     experiment = check_experiment(experiment)
     parallel = get_parallel(executor, workers, ray_address)
@@ -181,7 +192,8 @@ def bench_table1(
     command = {"experiment": experiment, "sequences": sequences, "seed": seed,
                "models": None if models is None else str(models), "stages": stages,
                "frames_per_stage": frames_per_stage, "stride": stride, "hypotheses": hypotheses,
-               "noise": noise, "masks": masks, "camera": camera, "methods": names,
+               "noise": noise, "masks": masks, "camera": camera,
+               "camera_pose": camera_pose, "methods": names,
                "vsd": vsd}  # fmt: skip
     parts = _table1_parts(command, lib, cfg, parallel)
     result = table1_report(parts, names, hypotheses=hypotheses, noise=noise, command=command)
@@ -226,6 +238,7 @@ def _table1_parts(command: dict, lib, cfg, parallel) -> list:
             rgb=command["noise"] == "rgb",
             masks=command.get("masks", "instance") == "instance",
             camera=command.get("camera", "static"),
+            locate=command.get("camera_pose", "given") == "estimated",
         )
         for i in range(sequences)
     ]

@@ -301,7 +301,9 @@ class SequenceSpec:
     ``estimated``, its hypotheses replaced by the perception front end's
     (:func:`ssp.eval.estimated.estimate_sequence`; ``masks`` False: on the cloud's clusters, as
     ``ssp run --masks none`` does it); ``camera``: the camera's path
-    (:data:`ssp.sim.camera_path.CAMERA_PATHS`)."""
+    (:data:`ssp.sim.camera_path.CAMERA_PATHS`); ``locate``: its pose is not given, each
+    frame's camera is located as ``ssp run`` does it (:class:`ssp.pipeline.world.CameraLocator`)
+    and the methods see the frames in that world frame (:func:`_located`)."""
 
     experiment: str
     seed: int
@@ -313,6 +315,7 @@ class SequenceSpec:
     rgb: bool = False
     masks: bool = True
     camera: str = "static"
+    locate: bool = False
 
     def build(self, library, config: SSPConfig) -> tuple[SimSequence, list[dict]]:
         """The sequence and the estimator's records (empty unless ``estimated``)."""
@@ -367,6 +370,7 @@ class SequencePart:
     tails: dict[str, _Tails]
     info: dict = field(default_factory=dict)
     estimator_records: list[dict] = field(default_factory=list)
+    camera: list[dict] = field(default_factory=list)
 
 
 def _bare(frame: Frame, config: SSPConfig) -> Frame:
@@ -540,6 +544,7 @@ def _sequence_part(
     ``masks`` as for :func:`run_table1`)."""
     s, seq = item
     estimator_records: list[dict] = []
+    located = _Located(config) if isinstance(seq, SequenceSpec) and seq.locate else _Given()
     if isinstance(seq, SequenceSpec):
         seq, estimator_records = seq.build(library, config)
     physics = PhysicsCheck(library, config)
@@ -571,6 +576,7 @@ def _sequence_part(
         if progress is not None:
             progress(f"sequence {s + 1}/{n}, frame {i + 1}/{len(seq)}")
         frame = seq.frame(i) if masks else _bare(seq.frame(i, labels=False), config)
+        frame = located.frame(seq, i, frame, runners.values())
         errs, outliers = hypothesis_errors(
             sf.gt, sf.hypotheses, library, gate, None if sources is None else sources[i]
         )
@@ -587,6 +593,7 @@ def _sequence_part(
             t0 = time.perf_counter()
             dets = runner.update(frame)
             wall = time.perf_counter() - t0
+            dets = located.output(dets)
             if on_output is not None:
                 on_output(s, i, m, dets)
             if on_estimate is not None and m == "ssp":
@@ -669,7 +676,63 @@ def _sequence_part(
         tails=tails,
         info=info,
         estimator_records=estimator_records,
+        camera=located.rows,
     )
+
+
+class _Given:
+    """A sequence's frames with their camera poses given: as they are."""
+
+    def __init__(self) -> None:
+        self.rows: list[dict] = []
+
+    def frame(self, seq: SimSequence, i: int, frame: Frame, runners) -> Frame:
+        return frame
+
+    def output(self, dets: list[Detection]) -> list[Detection]:
+        return dets
+
+
+class _Located:
+    """A sequence's frames as ``ssp run`` sees a camera with no pose given (a
+    :class:`SequenceSpec` with ``locate``): each frame's camera located in the first frame's
+    table frame (:class:`ssp.pipeline.world.CameraLocator`, from the frame's depth), the frame
+    moved into that world frame; the methods' outputs come back to the truth's world frame by
+    :attr:`align`, the one transform that makes the first located frame's camera the true one
+    (a camera error moves a method's objects). A camera not located restarts the world frame:
+    the methods forget their objects (the ssp parser keeps counting ids) and :attr:`align` is
+    set again. :attr:`rows`: per frame, how the camera was found and its error at the
+    objects (the largest displacement of the true objects' centres, mm)."""
+
+    def __init__(self, config: SSPConfig) -> None:
+        from ssp.pipeline.world import CameraLocator
+
+        self.locator = CameraLocator(config.perception.table_distance)
+        self.align = np.eye(4)
+        self.rows: list[dict] = []
+
+    def frame(self, seq: SimSequence, i: int, frame: Frame, runners) -> Frame:
+        from ssp.perception.depth import cloud_from_depth
+        from ssp.pipeline.world import RESTARTED
+
+        sf = seq.frames[i]
+        T_true = np.asarray(seq.camera_pose(i), dtype=float)
+        T_est, fix = self.locator.locate(cloud_from_depth(sf.depth, seq.camera).points, [])
+        if not self.rows or fix["how"] == RESTARTED:
+            if self.rows:
+                for runner in runners:
+                    parser = getattr(runner, "parser", None)
+                    parser.forget() if parser is not None else runner.reset()
+            self.align = T_true @ np.linalg.inv(T_est)
+        D = self.align @ T_est @ np.linalg.inv(T_true)  # true world -> where the run puts it
+        c = np.array([np.asarray(T, dtype=float)[:3, 3] for _, T in sf.gt.values()])
+        err = np.linalg.norm(c @ D[:3, :3].T + D[:3, 3] - c, axis=1).max() if len(c) else 0.0
+        self.rows.append({"frame": sf.index, "how": fix["how"], "error_mm": 1000.0 * float(err)})
+        return frame.moved_by(T_est @ np.linalg.inv(T_true))
+
+    def output(self, dets: list[Detection]) -> list[Detection]:
+        """A method's detections in the truth's world frame."""
+        return [d._replace(T_world_obj=self.align @ d.T_world_obj) for d in dets]
 
 
 def merge_table1(
@@ -749,6 +812,30 @@ def merge_table1(
         "methods": out_methods,
         "match_gate_mm": 1000.0 * gate,
         "records": records,
+        **_camera_summary(parts),
+    }
+
+
+def _camera_summary(parts: Sequence[SequencePart]) -> dict:
+    """``{"camera": ...}`` when the camera was located (:class:`_Located`): frames, how each
+    was found, restarts, and the error at the objects (mm: median, p95, max); else empty."""
+    rows = [r for p in parts for r in p.camera]
+    if not rows:
+        return {}
+    err = np.array([r["error_mm"] for r in rows])
+    hows: dict[str, int] = {}
+    for r in rows:
+        hows[r["how"]] = hows.get(r["how"], 0) + 1
+    return {
+        "camera": {
+            "frames": len(rows),
+            "how": hows,
+            "restarts": hows.get("restarted", 0),
+            "error_mm_median": float(np.median(err)),
+            "error_mm_p95": float(np.percentile(err, 95)),
+            "error_mm_max": float(err.max()),
+            "rows": [{"sequence": p.index, **r} for p in parts for r in p.camera],
+        }
     }
 
 
@@ -813,6 +900,17 @@ def _markdown(result: dict) -> str:
         "|---|---|---|---|---|---|---|---|",
     ]
     n = result["induced_noise"]
+    if "camera" in result:
+        cam = result["camera"]
+        lines[2:2] = [
+            f"Camera pose not given: located by ssp (`--camera-pose estimated`) in "
+            f"{cam['frames'] - cam['restarts']} of {cam['frames']} frames "
+            f"({', '.join(f'{k} {v}' for k, v in sorted(cam['how'].items()))}; a restart "
+            "forgets the scene); its error at the objects median / p95 / max "
+            f"{cam['error_mm_median']:.2f} / {cam['error_mm_p95']:.2f} / "
+            f"{cam['error_mm_max']:.2f} mm, in every method's errors below.",
+            "",
+        ]
     if result.get("hypotheses") == "estimated":
         lines[2:2] = [
             "Hypotheses: estimated by the perception front end (`ssp.perception`) on the "

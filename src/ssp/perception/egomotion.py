@@ -64,7 +64,9 @@ __all__ = [
     "MAP_VOXEL",
     "MIN_INLIERS",
     "MIN_INLIER_POINTS",
+    "NEAR_MIN_INLIERS",
     "SEARCH_INLIERS",
+    "SIDE_TILT_DEG",
     "CameraFix",
     "CameraNotLocatedError",
     "CameraTracker",
@@ -86,6 +88,9 @@ MIN_INLIERS = 0.3
 prediction (new objects, which the map does not hold yet, do not register)."""
 MIN_INLIER_POINTS = 100
 """... and fewest inlier points."""
+NEAR_MIN_INLIERS = 0.15
+"""Fewest inlier fraction of a solution within :data:`PREDICTED_SHIFT` of the predicted pose
+(new objects stacked on the old ones hide most of what the map holds)."""
 LOCAL_TURNS = (0.0, -4.0, 4.0, -8.0, 8.0)
 """Turns about the map's centre (degrees) added to the prediction, each a start of the
 tracking ICP (the best registering wins): a camera that speeds up or turns."""
@@ -109,6 +114,8 @@ KEEP_SHIFT = 0.002
 """A registration that moves the points above the table by less than this on average (m) from
 where the last pose puts them keeps the last pose exactly (the registration's own noise is
 about a millimetre)."""
+SIDE_TILT_DEG = 45.0
+"""Registered points' normals lean from the vertical by more than this, degrees."""
 MAP_VOXEL = 0.003
 """Voxel size of the map of points above the table, m."""
 MAX_POINTS = 6000
@@ -241,9 +248,10 @@ class _Fit:
     def yaw(self) -> float:
         return float(np.arctan2(self.G[1, 0], self.G[0, 0]))
 
-    def tracks(self, n: int) -> bool:
-        """Enough of the ``n`` points register (:data:`MIN_INLIERS`, :data:`MIN_INLIER_POINTS`)."""
-        return self.inliers >= MIN_INLIERS and self.inliers * n >= MIN_INLIER_POINTS
+    def tracks(self, n: int, floor: float = MIN_INLIERS) -> bool:
+        """Enough of the ``n`` points register: a fraction ``floor`` and
+        :data:`MIN_INLIER_POINTS`."""
+        return self.inliers >= floor and self.inliers * n >= MIN_INLIER_POINTS
 
     def refused(self) -> _Fit:
         """The same motion, not accepted (no inliers)."""
@@ -261,6 +269,19 @@ def _fit(q: np.ndarray, tree: cKDTree, normals: np.ndarray, G: np.ndarray) -> _F
     rms = float(np.sqrt(np.mean(r[inl] ** 2))) * 1000.0 if inl.any() else float("nan")
     cost = float(np.mean(np.minimum(r, INLIER_DISTANCE) ** 2))
     return _Fit(G, float(inl.mean()), rms, cost)
+
+
+def _sides(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(points, unit normals)`` of the surfaces that fix a planar motion: ``points`` (N, 3;
+    table frame, m) thinned to one per :data:`MAP_VOXEL` voxel, those whose normal leans from
+    the vertical by more than :data:`SIDE_TILT_DEG` (a top face registers wherever it slides:
+    it would count as registered at any wrong place)."""
+    if len(points) < 3:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    p = _voxel(points, MAP_VOXEL)
+    n = estimate_normals(p, k=12)
+    side = np.abs(n[:, 2]) < np.cos(np.radians(SIDE_TILT_DEG))
+    return p[side], n[side]
 
 
 def _above_table(z: np.ndarray) -> np.ndarray:
@@ -325,7 +346,7 @@ class CameraTracker:
             self.accept(T_plane, p)
             return CameraFix(T_plane, "table")
         q = p @ T_plane[:3, :3].T + T_plane[:3, 3]
-        q = q[_above_table(q[:, 2])]
+        q, _ = _sides(q[_above_table(q[:, 2])])
         if len(q) > MAX_POINTS:
             q = q[np.linspace(0, len(q) - 1, MAX_POINTS).astype(int)]
         target, normals = self._map, self._map_normals
@@ -343,28 +364,35 @@ class CameraTracker:
         G0 = _snap(pred, T_plane) @ np.linalg.inv(T_plane)
         G_last = last @ np.linalg.inv(T_plane)  # where the last pose puts the points
         c = tree.data.mean(axis=0)
+        # the prediction refined at the fine scales first (points of new objects within the
+        # coarse distance of the map's surfaces drag the coarse registration off); then the
+        # coarse-to-fine registration from it and from it turned
         fit = self._register(q, tree, normals, G0)
+        G_still = _snap(last, T_plane) @ np.linalg.inv(T_plane)  # the camera as it was
+        if self._before is not None and not fit.tracks(len(q)):
+            fit = min(fit, self._register(q, tree, normals, G_still), key=lambda f: f.cost)
         for deg in LOCAL_TURNS[1:] if not fit.tracks(len(q)) else ():
             fit = min(fit, self._register(q, tree, normals, _turned(G0, deg, c)),
                       key=lambda f: f.cost)  # fmt: skip
-        how = "tracked"
+        how, n = "tracked", len(q)
         registered = fit.inliers  # from the prediction, for the message
-        near = _shift(q, fit.G, G0) < PREDICTED_SHIFT  # as the camera was moving
-        if not fit.tracks(len(q)) or (fit.inliers < SEARCH_INLIERS and not near):
+        near = min(_shift(q, fit.G, G0), _shift(q, fit.G, G_still)) < PREDICTED_SHIFT
+        floor = NEAR_MIN_INLIERS if near else MIN_INLIERS
+        if not fit.tracks(n, floor) or (fit.inliers < SEARCH_INLIERS and not near):
             best, unambiguous = self._search(q, tree, normals)  # perhaps a wrong minimum
-            if fit.tracks(len(q)) and _shift(q, best.G, fit.G) < AGREE_SHIFT:
+            if fit.tracks(n, floor) and _shift(q, best.G, fit.G) < AGREE_SHIFT:
                 pass  # the search confirms the tracked solution
             elif unambiguous:
                 fit, how = best, "searched"
             else:
                 fit = fit.refused()
-        if not fit.tracks(len(q)):
+        if not fit.tracks(n, floor):
             raise CameraNotLocatedError(
-                f"the camera could not be located: from its predicted pose too few of the "
-                f"{len(q)} points above the table register to the map ({100 * registered:.0f} "
-                f"%, at least {100 * MIN_INLIERS:.0f} % needed, or {100 * SEARCH_INLIERS:.0f} "
-                "% unless a global search agrees), and no turn of a global search does so "
-                "unambiguously"
+                f"the camera could not be located: from its predicted pose {100 * registered:.0f} "
+                f"% of the {n} points above the table register to the map (at least "
+                f"{100 * NEAR_MIN_INLIERS:.0f} % needed near the predicted pose, "
+                f"{100 * MIN_INLIERS:.0f} % farther, {100 * SEARCH_INLIERS:.0f} % unless a "
+                "global search agrees), and no turn of a global search does so unambiguously"
             )
         if self._known is not None:  # the known objects' exact surfaces refine it
             ktree = cKDTree(self._known[0])
@@ -382,9 +410,9 @@ class CameraTracker:
         self.accept(T, p)
         return CameraFix(T.copy(), how, fit.inliers, fit.rms_mm, len(q))
 
-    def _register(self, q, tree, normals, G0) -> _Fit:
+    def _register(self, q, tree, normals, G0, scales=ICP_SCALES) -> _Fit:
         """:func:`planar_icp` from ``G0`` and how well it registers (:func:`_fit`)."""
-        return _fit(q, tree, normals, planar_icp(q, tree, normals, G0))
+        return _fit(q, tree, normals, planar_icp(q, tree, normals, G0, scales))
 
     def _search(self, q, tree, normals) -> tuple[_Fit, bool]:
         """The best registration from every :data:`GLOBAL_YAW_STEP` turn, centroids matched,
@@ -413,11 +441,10 @@ class CameraTracker:
         and its points above the table in the map: what :meth:`update` does with a located
         frame, and a resumed run with the frames it committed before."""
         w = p @ T[:3, :3].T + T[:3, 3]
-        w = w[_above_table(w[:, 2])]
-        if len(w) >= 3:
-            w = _voxel(w, MAP_VOXEL)
+        w, n = _sides(w[_above_table(w[:, 2])])
+        if len(w):
             pts = np.concatenate([self._map, w])
-            nrm = np.concatenate([self._map_normals, estimate_normals(w, k=12)])
+            nrm = np.concatenate([self._map_normals, n])
             keep = voxel_thin(pts, MAP_VOXEL)  # a voxel's first point: the oldest frame's
             self._map, self._map_normals = pts[keep], nrm[keep]
         self._before, self.T_world_cam = self.T_world_cam, T.copy()
