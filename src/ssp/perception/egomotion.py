@@ -9,34 +9,34 @@ the table's normal and the position along the table) come from registering the f
 above the table to what is known static: a map of the points above the table in the frames
 located before (world frame, one point per :data:`MAP_VOXEL` voxel: the first frame's that saw
 it, so every frame registers to the oldest views of what it sees and errors do not pile up
-frame to frame as they do against the last frames only: ``ssp bench camera`` hand-held 8.6 ->
-4.4 mm worst at the scene on development seed 1000).
+frame to frame as they did against the last five frames only).
 
 The registration is :func:`planar_icp`: point-to-plane ICP in those three degrees of freedom
-with Tukey weights over coarse-to-fine correspondence distances (:data:`ICP_SCALES`), so
-objects that moved and new ones, which find no surface of the map near them, are what does
-not register. It starts from the constant-velocity prediction of the camera turned by
-:data:`LOCAL_TURNS`; when too few points register there (:data:`MIN_INLIERS`: a hand-held
-camera's jump, BOP keyframes 10-30 degrees apart), from every :data:`GLOBAL_YAW_STEP` degrees
-of turn about the map's centre with the centroids matched, accepted only when unambiguous. A
-frame whose camera no start registers is refused (:class:`CameraNotLocatedError`), not
-guessed (``ssp run`` then starts the world frame again: :mod:`ssp.pipeline.world`).
+with Tukey weights over coarse-to-fine correspondence distances (:data:`ICP_SCALES`), of the
+points whose surface is not horizontal (:func:`_sides`: a top face registers wherever it
+slides), so objects that moved and new ones, which find no surface of the map near them, are
+what does not register. It starts from the constant-velocity prediction of the camera, then
+from the last pose (a hand-held camera's shake), then from the prediction turned by
+:data:`LOCAL_TURNS`; a solution far from those starts (a jump, BOP keyframes 10-30 degrees
+apart) or registering few points needs the agreement of a global search from every
+:data:`GLOBAL_YAW_STEP` degrees of turn about the map's centre with the centroids matched, or
+that search's unambiguous solution. A frame whose camera is not located so is refused
+(:class:`CameraNotLocatedError`), not guessed (``ssp run`` then starts the world frame again:
+:mod:`ssp.pipeline.world`).
 
 The last pose is kept bit for bit (:attr:`CameraFix.how` ``"kept"``) when the registration
 moves the points above the table by less than :data:`KEEP_SHIFT` on average from where the last
 pose puts them, or when the last pose fits them at least as well (the truncated point-to-plane
 cost the registration minimises, :class:`_Fit`): a static camera keeps one world frame. Of
-the registrations from the starts tried, the lowest cost wins; a tracked solution that
-registers less than :data:`SEARCH_INLIERS` of the points (perhaps a wrong minimum: an object's
-width off) is compared with the global search's.
+the registrations from the starts tried, the lowest cost wins.
 
 Why not a registration library: small_gicp's GICP (``small_gicp.align``, frame to map, 6
 degrees of freedom) was tried with a one-off script (not kept) on the simulated orbit
 (structure, development seed 0): the world frame drifted to 35 mm and 1.2 deg at the camera
 over 20 frames, then failed; the table's points, most of every frame, constrain only the three
 degrees the plane fixes anyway, and the library's Python interface has no robust kernel for
-the points that moved. The three-parameter ICP here keeps the orbit of seeds 1000-1001 within
-2.1 mm at the scene (``ssp bench camera``; docs/benchmarks.md, moving cameras).
+the points that moved. The three-parameter ICP here: ``ssp bench camera`` (docs/benchmarks.md,
+moving cameras).
 """
 
 from __future__ import annotations
@@ -66,6 +66,7 @@ __all__ = [
     "MIN_INLIER_POINTS",
     "NEAR_MIN_INLIERS",
     "SEARCH_INLIERS",
+    "SEARCH_POINTS",
     "SIDE_TILT_DEG",
     "CameraFix",
     "CameraNotLocatedError",
@@ -96,6 +97,9 @@ LOCAL_TURNS = (0.0, -4.0, 4.0, -8.0, 8.0)
 tracking ICP (the best registering wins): a camera that speeds up or turns."""
 GLOBAL_YAW_STEP = 10.0
 """Turn step of the global search, degrees."""
+SEARCH_POINTS = 1500
+"""Points (an even subsample) the global search registers from each turn; its best solution
+is then refined with all of them."""
 SEARCH_INLIERS = 0.5
 """Fewest inlier fraction of a global search's solution (more than a tracked one needs)."""
 PREDICTED_SHIFT = 0.01
@@ -415,24 +419,29 @@ class CameraTracker:
         return _fit(q, tree, normals, planar_icp(q, tree, normals, G0, scales))
 
     def _search(self, q, tree, normals) -> tuple[_Fit, bool]:
-        """The best registration from every :data:`GLOBAL_YAW_STEP` turn, centroids matched,
+        """The best registration from every :data:`GLOBAL_YAW_STEP` turn, centroids matched
+        (:data:`SEARCH_POINTS` of the points; the best refined with all),
         and whether it is unambiguous: at least :data:`SEARCH_INLIERS` register, and no
         solution turned :data:`DISTINCT_YAW` or more from it comes within
         :data:`SEARCH_MARGIN` (a scene of a few cubes looks alike from several sides)."""
         c, qc = tree.data.mean(axis=0), q.mean(axis=0)
+        few = q[np.linspace(0, len(q) - 1, min(len(q), SEARCH_POINTS)).astype(int)]
         found = []
         for deg in np.arange(0.0, 360.0, GLOBAL_YAW_STEP):
             G0 = yaw_pose(np.radians(deg))
             m = G0[:3, :3] @ qc
             G0[0, 3], G0[1, 3] = c[0] - m[0], c[1] - m[1]
-            found.append(self._register(q, tree, normals, G0))
+            found.append(self._register(few, tree, normals, G0))
         found.sort(key=lambda f: -f.inliers)
-        best = found[0]
+        best = self._register(q, tree, normals, found[0].G, ICP_SCALES[-2:])  # all the points
         for other in found[1:]:
-            turn = abs((other.yaw - best.yaw + np.pi) % (2 * np.pi) - np.pi)
-            if turn >= np.radians(DISTINCT_YAW) and other.inliers > best.inliers - SEARCH_MARGIN:
+            turn = abs((other.yaw - found[0].yaw + np.pi) % (2 * np.pi) - np.pi)
+            if (
+                turn >= np.radians(DISTINCT_YAW)
+                and other.inliers > found[0].inliers - SEARCH_MARGIN
+            ):
                 log.info("camera search ambiguous: %.2f and %.2f inliers %.0f deg apart",
-                         best.inliers, other.inliers, np.degrees(turn))  # fmt: skip
+                         found[0].inliers, other.inliers, np.degrees(turn))  # fmt: skip
                 return best, False
         return best, best.inliers >= SEARCH_INLIERS
 

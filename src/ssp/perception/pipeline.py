@@ -91,8 +91,8 @@ class PerceptionResult:
             removed (flying pixels, stray pieces) and the hypotheses it found, or why none.
         timings: exclusive wall seconds per stage, in the order they ran, and ``total``
             (from the :class:`~ssp.timing.StageTimer`'s start: the frame's source starts it
-            before reading): the source's (``read``: files and decoding, ``world frame``: the
-            table fit of a camera without pose, ``masks``: detections to labels, ``cloud``:
+            before reading): the source's (``read``: files and decoding, ``world frame``:
+            locating a camera without pose, ``masks``: detections to labels, ``cloud``:
             depth to points), then ``checks`` (input validation), ``table``, ``segmentation``,
             ``cleaning``, ``normals``, ``hypotheses`` (the estimator; both summed over the
             segments), ``estimation`` (the estimator's rest: forking, waiting for the other
