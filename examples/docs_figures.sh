@@ -51,7 +51,12 @@ run t1-isolated-mug results.json $SSP bench table1 --experiment isolated --seque
 run t1-isolated-mug-realistic results.json $SSP bench table1 --experiment isolated --sequences 10 --seed 1000 --models bench-out/mug-models --noise realistic --methods ssp,ssp_single,estimator,icp_filter
 run t1-structure-realistic-orbit results.json $SSP bench table1 --experiment structure --sequences 10 --seed 1000 --noise realistic --methods ssp,icp_filter --camera orbit
 run t1-structure-realistic-keyframes results.json $SSP bench table1 --experiment structure --sequences 10 --seed 1000 --noise realistic --methods ssp,icp_filter --camera keyframes
+run t1-structure-realistic-orbit-located results.json $SSP bench table1 --experiment structure --sequences 10 --seed 1000 --noise realistic --methods ssp,icp_filter --camera orbit --camera-pose estimated
+run t1-structure-realistic-keyframes-located results.json $SSP bench table1 --experiment structure --sequences 10 --seed 1000 --noise realistic --methods ssp,icp_filter --camera keyframes --camera-pose estimated
+run t1-isolated-realistic-orbit results.json $SSP bench table1 --experiment isolated --sequences 10 --seed 1000 --noise realistic --methods ssp,icp_filter --camera orbit
+run t1-isolated-realistic-orbit-located results.json $SSP bench table1 --experiment isolated --sequences 10 --seed 1000 --noise realistic --methods ssp,icp_filter --camera orbit --camera-pose estimated
 run camera-bench results.json $SSP bench camera --sequences 2 --seed 1000
+run camera-bench-2000 results.json $SSP bench camera --sequences 3 --seed 2000
 run t1-structure-nomask results.json $SSP bench table1 --experiment structure --sequences 10 --seed 1000 --noise realistic --masks none --methods ssp,ssp_single,estimator,icp_filter
 run tower-realistic-ssp-1000 results.json $SSP bench tower --trials 10 --seed 1000 --noise realistic --methods ssp
 run tower-realistic-single-1000 results.json $SSP bench tower --trials 10 --seed 1000 --noise realistic --methods ssp_single

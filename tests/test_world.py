@@ -139,3 +139,28 @@ def test_a_camera_not_located_starts_the_world_frame_again(lib, orbit, monkeypat
     before = {o["id"] for o in frames[2]["objects"]}
     assert not before & {o["id"] for o in lost["objects"]}  # new tracks, none carried over
     assert {f["camera"]["how"] for f in frames[4:]} <= {"tracked", "searched", "kept"}
+
+
+def test_a_given_camera_pose_is_checked_against_the_static_scene(lib, orbit, tmp_path):
+    """A given pose that the static points contradict (2 cm off in one image) or that does not
+    put the table at z = 0 is said in that frame's warnings; it is used all the same."""
+    import shutil
+
+    scene = tmp_path / "scene"
+    shutil.copytree(orbit[1], scene)
+    cams = json.loads((scene / "scene_camera.json").read_text())
+    cams["5"]["cam_t_w2c"][0] += 20.0  # mm: the world 2 cm off in the camera's x
+    cams["6"]["cam_t_w2c"][2] += 30.0  # 3 cm farther: the table 3 cm from z = 0 (and off)
+    (scene / "scene_camera.json").write_text(json.dumps(cams))
+    out = tmp_path / "out"
+    run(scene, lib, out)
+    frames = _frames(out)
+    said = {
+        f["name"]: [w for w in f["warnings"] if "given camera pose" in w] for f in frames
+    }
+    assert all(f["camera"]["how"] == "given" for f in frames)
+    assert any("disagrees with the static scene" in w for w in said["000005"]), said["000005"]
+    assert frames[5]["camera"]["shift_mm"] > 10.0
+    assert any("from z = 0" in w for w in said["000006"]), said["000006"]
+    assert not [n for n, w in said.items() if w and n not in ("000005", "000006")], said
+    assert frames[5]["T_world_cam"] != frames[4]["T_world_cam"]  # used as given

@@ -110,10 +110,17 @@ def _sources() -> dict[str, Source]:
     ]  # fmt: skip
     moving = ("ssp bench table1 --experiment structure --sequences 10 --seed 1000 --noise "
               "realistic --methods ssp,icp_filter --camera")  # fmt: skip
+    tools = moving.replace("--experiment structure", "--experiment isolated")
+    located = "--camera-pose estimated"
     out += [
         Source("t1-structure-realistic-orbit", f"{moving} orbit"),
         Source("t1-structure-realistic-keyframes", f"{moving} keyframes"),
+        Source("t1-structure-realistic-orbit-located", f"{moving} orbit {located}"),
+        Source("t1-structure-realistic-keyframes-located", f"{moving} keyframes {located}"),
+        Source("t1-isolated-realistic-orbit", f"{tools} orbit"),
+        Source("t1-isolated-realistic-orbit-located", f"{tools} orbit {located}"),
         Source("camera-bench", "ssp bench camera --sequences 2 --seed 1000"),
+        Source("camera-bench-2000", "ssp bench camera --sequences 3 --seed 2000"),
     ]
     tower = "ssp bench tower --trials 10"
     for s in SEEDS:

@@ -288,6 +288,18 @@ def _sides(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return p[side], n[side]
 
 
+def _registered(p: np.ndarray, T_plane: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(points, unit normals)`` of camera-frame ``p`` (N, 3) a frame registers by: in the
+    table's frame ``T_plane`` (4, 4, from the camera), above the table, on side surfaces
+    (:func:`_sides`), at most :data:`MAX_POINTS` (an even subsample)."""
+    q = p @ T_plane[:3, :3].T + T_plane[:3, 3]
+    q, n = _sides(q[_above_table(q[:, 2])])
+    if len(q) > MAX_POINTS:
+        keep = np.linspace(0, len(q) - 1, MAX_POINTS).astype(int)
+        q, n = q[keep], n[keep]
+    return q, n
+
+
 def _above_table(z: np.ndarray) -> np.ndarray:
     """Which heights ``z`` (N,; m above the table plane) are above the table
     (:data:`ABOVE_TABLE`) and below a metre."""
@@ -347,12 +359,9 @@ class CameraTracker:
         p = np.asarray(points_cam, dtype=float)
         T_plane, _ = table_frame(p, distance=self.table_distance)
         if self.T_world_cam is None:
-            self.accept(T_plane, p)
+            self._add(T_plane, T_plane, *_registered(p, T_plane))
             return CameraFix(T_plane, "table")
-        q = p @ T_plane[:3, :3].T + T_plane[:3, 3]
-        q, _ = _sides(q[_above_table(q[:, 2])])
-        if len(q) > MAX_POINTS:
-            q = q[np.linspace(0, len(q) - 1, MAX_POINTS).astype(int)]
+        q, q_normals = _registered(p, T_plane)
         target, normals = self._map, self._map_normals
         if self._known is not None:
             target = np.concatenate([target, self._known[0]])
@@ -411,8 +420,39 @@ class CameraTracker:
         T = G @ T_plane
         if moved < KEEP_SHIFT or _fit(q, tree, normals, G_last).cost <= fit.cost:
             T, how = last, "kept"
-        self.accept(T, p)
+        self._add(T, T_plane, q, q_normals)
         return CameraFix(T.copy(), how, fit.inliers, fit.rms_mm, len(q))
+
+    def check(self, points_cam: np.ndarray, T_world_cam: np.ndarray) -> dict:
+        """How a given camera pose ``T_world_cam`` (4, 4; its world z up with the table at
+        z = 0) agrees with the frame's points ``points_cam`` (N, 3; camera frame, m) and the
+        frames given before: ``tilt_deg`` and ``height_mm`` (between the given world's z = 0
+        and the table plane fitted here), ``shift_mm`` (how far a registration of the points
+        above the table to the map of the frames before moves them from where the given pose
+        puts them, on average; None without a map or enough points to register) and
+        ``inliers`` (registered there). The frame then joins the map at the given pose.
+
+        Raises:
+            TableNotFoundError: no table in the frame (the tracker is unchanged).
+        """
+        p = np.asarray(points_cam, dtype=float)
+        T = np.asarray(T_world_cam, dtype=float)
+        T_plane, _ = table_frame(p, distance=self.table_distance)
+        tilt = float(np.degrees(np.arccos(np.clip(T[2, :3] @ T_plane[2, :3], -1.0, 1.0))))
+        out = {"how": "given", "tilt_deg": round(tilt, 3),
+               "height_mm": round(1000.0 * float(T[2, 3] - T_plane[2, 3]), 2),
+               "shift_mm": None, "inliers": None}  # fmt: skip
+        q, q_normals = _registered(p, T_plane)
+        if len(self._map) >= 10 and len(q) >= MIN_INLIER_POINTS:
+            tree = cKDTree(self._map)
+            G_given = _snap(T, T_plane) @ np.linalg.inv(T_plane)
+            G = planar_icp(q, tree, self._map_normals, G_given, scales=ICP_SCALES[1:])
+            fit = _fit(q, tree, self._map_normals, G)
+            if fit.tracks(len(q), NEAR_MIN_INLIERS):
+                out["shift_mm"] = round(1000.0 * _shift(q, G, G_given), 2)
+                out["inliers"] = round(fit.inliers, 4)
+        self._add(T, T_plane, q, q_normals)
+        return out
 
     def _register(self, q, tree, normals, G0, scales=ICP_SCALES) -> _Fit:
         """:func:`planar_icp` from ``G0`` and how well it registers (:func:`_fit`)."""
@@ -447,13 +487,25 @@ class CameraTracker:
 
     def accept(self, T: np.ndarray, p: np.ndarray) -> None:
         """Keep ``T`` (4, 4) as the pose of the frame of camera-frame points ``p`` (N, 3; m)
-        and its points above the table in the map: what :meth:`update` does with a located
-        frame, and a resumed run with the frames it committed before."""
-        w = p @ T[:3, :3].T + T[:3, 3]
-        w, n = _sides(w[_above_table(w[:, 2])])
-        if len(w):
-            pts = np.concatenate([self._map, w])
-            nrm = np.concatenate([self._map_normals, n])
-            keep = voxel_thin(pts, MAP_VOXEL)  # a voxel's first point: the oldest frame's
+        and its registered points in the map, as :meth:`update` does with a located frame: a
+        resumed run's frames committed before.
+
+        Raises:
+            TableNotFoundError: no table in the frame.
+        """
+        p = np.asarray(p, dtype=float)
+        T_plane, _ = table_frame(p, distance=self.table_distance)
+        T = np.asarray(T, dtype=float)
+        self._add(T, T_plane, *_registered(p, T_plane))
+
+    def _add(self, T: np.ndarray, T_plane: np.ndarray, q: np.ndarray, normals: np.ndarray) -> None:
+        """Keep ``T`` as the frame's camera pose and its registered points ``q`` (N, 3; in the
+        frame's table frame ``T_plane``) with their ``normals`` in the map (world frame); a
+        voxel keeps its first point, the oldest frame's."""
+        M = T @ np.linalg.inv(T_plane)  # the world from the frame's table frame
+        if len(q):
+            pts = np.concatenate([self._map, q @ M[:3, :3].T + M[:3, 3]])
+            nrm = np.concatenate([self._map_normals, normals @ M[:3, :3].T])
+            keep = voxel_thin(pts, MAP_VOXEL)
             self._map, self._map_normals = pts[keep], nrm[keep]
         self._before, self.T_world_cam = self.T_world_cam, T.copy()

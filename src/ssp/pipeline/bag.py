@@ -74,8 +74,8 @@ class BagSource:
         if start > 0 and not self.locator.started:
             for fs in itertools.islice(self.bag.frames(0), start):
                 rec = committed(f"{fs.index:06d}") if committed else None
-                if rec is None or rec.get("T_world_cam") is None or not rec.get("camera"):
-                    continue  # failed, or its pose came from tf
+                if rec is None or rec.get("T_world_cam") is None:
+                    continue  # that frame failed in the run too
                 try:
                     self.locator.replay(self._camera_points(fs.load()), rec)
                 except SSPError:
@@ -94,10 +94,11 @@ class BagSource:
         return np.asarray(f.points, dtype=float)
 
     def _world(self, f, warnings: list[str], timer: StageTimer) -> tuple[np.ndarray, dict | None]:
-        """``(T_world_cam, how it was located)``: tf's (None), else the locator's."""
-        if f.T_world_cam is not None:
-            return f.T_world_cam, None
+        """``(T_world_cam, how it was found)``: tf's (checked), else the locator's."""
         with timer("world frame"):
+            if f.T_world_cam is not None:
+                return f.T_world_cam, self.locator.check(self._camera_points(f), f.T_world_cam,
+                                                         warnings)  # fmt: skip
             return self.locator.locate(self._camera_points(f), warnings)
 
     def _no_masks(self, f, warnings: list[str]) -> None:

@@ -64,8 +64,9 @@ class BopSource:
     :func:`ssp.io.estimators.read_estimates`; looked up by ``(scene_id, im_id)``), else the
     scene's ``hypotheses.json``, else the built-in estimator (``mode``, one of
     :data:`ssp.pipeline.sources.HYPOTHESES_MODES`). The world frame is the scene's
-    ``cam_R_w2c`` when every image has one, else the first image's table, each image's camera
-    located in it (:class:`ssp.pipeline.world.CameraLocator`).
+    ``cam_R_w2c`` when every image has one (checked against the data:
+    :meth:`ssp.pipeline.world.CameraLocator.check`), else the first image's table, each image's
+    camera located in it (:class:`ssp.pipeline.world.CameraLocator`).
     ``masks`` is one of :data:`ssp.io.bop.MASK_MODES` or the path of a detector's instance
     masks (a BOP segmentation results file, :mod:`ssp.io.detections`; ``mask_min_score``
     drops its detections scoring below it): each image's detections are its instance labels,
@@ -106,9 +107,7 @@ class BopSource:
         given = estimates is not None or self.scene.has_hypotheses
         if mode == "given" and not given:
             raise InputError(f"{path}: no hypotheses.json and --hypotheses given")
-        self.locator = (
-            None if self.scene.has_world else CameraLocator(cfg.perception.table_distance)
-        )
+        self.locator = CameraLocator(cfg.perception.table_distance)  # locates or checks
         #: m: how far from a silhouette's rendered depth its pixels may be (the correction's reach)
         self.max_gap = cfg.correction.max_shift
         self.detections: SceneDetections | None = None
@@ -150,7 +149,7 @@ class BopSource:
         a camera without pose is located up to ``start`` first, from the ``committed``
         records of the frames before."""
         loc = self.locator
-        if loc is not None and start > 0 and not loc.started:
+        if start > 0 and not loc.started:
             for k in range(start):  # a resumed run: the world frame the frames before left
                 rec = committed(f"{self.scene.im_ids[k]:06d}") if committed else None
                 if rec is None or rec.get("T_world_cam") is None:
@@ -211,11 +210,12 @@ class BopSource:
             mask[mask < -1] = -1
         with timer("cloud"):  # the points once: the world frame's fit and the front end's
             cloud = cloud_from_depth(sf.depth, sf.camera)
-        T_wc, camera_fix = sf.T_world_cam, None
-        if T_wc is None:
-            assert self.locator is not None
-            with timer("world frame"):
+        T_wc = sf.T_world_cam
+        with timer("world frame"):
+            if T_wc is None:
                 T_wc, camera_fix = self.locator.locate(cloud.points, warnings)
+            else:
+                camera_fix = self.locator.check(cloud.points, T_wc, warnings)
         label_classes = None
         if self.detections is not None:
             with timer("masks"):

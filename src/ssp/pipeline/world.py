@@ -29,14 +29,23 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from ssp.errors import PerceptionError
 from ssp.perception.egomotion import CameraNotLocatedError, CameraTracker
 
-__all__ = ["RESTARTED", "CameraLocator"]
+__all__ = ["GIVEN_HEIGHT", "GIVEN_SHIFT", "GIVEN_TILT_DEG", "RESTARTED", "CameraLocator"]
 
 log = logging.getLogger(__name__)
 
 RESTARTED = "restarted"
 """``camera.how`` of a frame whose camera was not located: the world frame starts again."""
+GIVEN_TILT_DEG = 2.0
+"""A given camera pose whose world z leans from the table's normal by more than this
+(degrees) ..."""
+GIVEN_HEIGHT = 0.01
+"""... or puts the table farther than this from z = 0 (m) ..."""
+GIVEN_SHIFT = 0.005
+"""... or whose frame's static points register farther than this (m, on average) from where
+it puts them, relative to the frames given before, is said in the frame's warnings."""
 
 
 class CameraLocator:
@@ -78,6 +87,40 @@ class CameraLocator:
             )
             log.warning("%s", warnings[-1])
             return fix.T_world_cam, {**fix.as_dict(), "how": RESTARTED}
+
+    def check(self, points_cam: np.ndarray, T_world_cam: np.ndarray, warnings: list[str]) -> dict:
+        """How a given camera pose agrees with the frame's data
+        (:meth:`ssp.perception.egomotion.CameraTracker.check`; the frame JSON's ``camera``,
+        ``how`` ``"given"``): a pose that does not put the table at z = 0 with z up, or that
+        the static points of the frames given before contradict, is said in ``warnings``
+        (:data:`GIVEN_TILT_DEG`, :data:`GIVEN_HEIGHT`, :data:`GIVEN_SHIFT`); it is used all
+        the same (ssp does not overrule a given pose).
+
+        A frame without a table is not checked (``tilt_deg`` None).
+        """
+        try:
+            out = self.tracker.check(points_cam, T_world_cam)
+        except PerceptionError as exc:  # no table to check by: the pose is used unchecked
+            log.debug("given camera pose not checked: %s", exc)
+            return {"how": "given", "tilt_deg": None, "height_mm": None, "shift_mm": None,
+                    "inliers": None}  # fmt: skip
+        said = len(warnings)
+        if out["tilt_deg"] > GIVEN_TILT_DEG or abs(out["height_mm"]) > 1000 * GIVEN_HEIGHT:
+            warnings.append(
+                f"the given camera pose puts the table {out['height_mm']:.0f} mm from z = 0 and "
+                f"its normal {out['tilt_deg']:.1f} deg from z: ssp's world is z up with the "
+                "table top at z = 0 (physics pulls along -z)"
+            )
+        if out["shift_mm"] is not None and out["shift_mm"] > 1000 * GIVEN_SHIFT:
+            warnings.append(
+                f"the given camera pose disagrees with the static scene: the points above the "
+                f"table register {out['shift_mm']:.1f} mm (on average) from where it puts "
+                "them, relative to the frames before (a wrong extrinsic or stamp, or most of "
+                "the scene moved)"
+            )
+        for w in warnings[said:]:
+            log.warning("%s", w)
+        return out
 
     def replay(self, points_cam: np.ndarray, record: Mapping) -> None:
         """A committed frame of a resumed run: its frame JSON ``record`` (``T_world_cam`` and
