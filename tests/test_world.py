@@ -155,9 +155,7 @@ def test_a_given_camera_pose_is_checked_against_the_static_scene(lib, orbit, tmp
     out = tmp_path / "out"
     run(scene, lib, out)
     frames = _frames(out)
-    said = {
-        f["name"]: [w for w in f["warnings"] if "given camera pose" in w] for f in frames
-    }
+    said = {f["name"]: [w for w in f["warnings"] if "given camera pose" in w] for f in frames}
     assert all(f["camera"]["how"] == "given" for f in frames)
     assert any("disagrees with the static scene" in w for w in said["000005"]), said["000005"]
     assert frames[5]["camera"]["shift_mm"] > 10.0
