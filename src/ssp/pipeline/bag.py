@@ -79,7 +79,7 @@ class BagSource:
                 try:
                     self.locator.replay(self._camera_points(fs.load()), rec)
                 except SSPError:
-                    pass  # unreadable now: the run had it, so it reads the same
+                    pass  # unreadable now, though the run read it: left out of the map
         for fs in self.bag.frames(start):
             yield InputFrame(f"{fs.index:06d}", fs.index, files, partial(self._perceive, fs))
 

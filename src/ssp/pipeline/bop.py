@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from ssp.config import SSPConfig
-from ssp.errors import ArgumentError, InputError
+from ssp.errors import ArgumentError, InputError, SSPError
 from ssp.geometry import invert
 from ssp.io.bop import DEFAULT_PERIOD, MASK_MODES, BopFrame, mask_source, open_bop
 from ssp.io.detections import (
@@ -154,7 +154,10 @@ class BopSource:
                 rec = committed(f"{self.scene.im_ids[k]:06d}") if committed else None
                 if rec is None or rec.get("T_world_cam") is None:
                     continue  # that frame failed in the run too, leaving the locator as it was
-                f = self.scene.load(k, masks=None)
+                try:
+                    f = self.scene.load(k, masks=None)
+                except SSPError:
+                    continue  # unreadable now, though the run read it: left out of the map
                 loc.replay(cloud_from_depth(f.depth, f.camera).points, rec)
         est = self.estimates
         for k in range(start, len(self.scene)):

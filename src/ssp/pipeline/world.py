@@ -132,4 +132,7 @@ class CameraLocator:
         if camera.get("how") == RESTARTED:
             self.tracker = CameraTracker(self.table_distance)
             self.restarts += 1
-        self.tracker.accept(np.asarray(T, dtype=float), np.asarray(points_cam, dtype=float))
+        try:
+            self.tracker.accept(np.asarray(T, dtype=float), np.asarray(points_cam, dtype=float))
+        except PerceptionError:
+            pass  # a given pose on a frame without a table: the run did not map it either
