@@ -90,11 +90,11 @@ prediction (new objects, which the map does not hold yet, do not register)."""
 MIN_INLIER_POINTS = 100
 """... and fewest inlier points."""
 NEAR_MIN_INLIERS = 0.15
-"""Fewest inlier fraction of a solution within :data:`PREDICTED_SHIFT` of the predicted pose
-(new objects stacked on the old ones hide most of what the map holds)."""
+"""Fewest inlier fraction of a solution within :data:`PREDICTED_SHIFT` of the prediction or
+the last pose (new objects stacked on the old ones hide most of what the map holds)."""
 LOCAL_TURNS = (0.0, -4.0, 4.0, -8.0, 8.0)
 """Turns about the map's centre (degrees) added to the prediction, each a start of the
-tracking ICP (the best registering wins): a camera that speeds up or turns."""
+tracking ICP (the lowest cost wins): a camera that speeds up or turns."""
 GLOBAL_YAW_STEP = 10.0
 """Turn step of the global search, degrees."""
 SEARCH_POINTS = 1500
@@ -104,9 +104,9 @@ SEARCH_INLIERS = 0.5
 """Fewest inlier fraction of a global search's solution (more than a tracked one needs)."""
 PREDICTED_SHIFT = 0.01
 """A tracked solution that registers less than :data:`SEARCH_INLIERS` of the points (new
-objects in view) is taken when it moves them less than this from the prediction on average,
-m; farther (a jump, BOP keyframes: perhaps a wrong minimum) it needs a global search's
-agreement."""
+objects in view) is taken when it moves them less than this from the prediction or the last
+pose on average, m; farther (a jump, BOP keyframes: perhaps a wrong minimum) it needs a global
+search's agreement."""
 AGREE_SHIFT = 0.005
 """A tracked solution that registers few points is confirmed by a global search whose best
 solution moves the points by less than this from it on average, m."""
