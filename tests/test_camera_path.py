@@ -123,17 +123,18 @@ def test_table1_locates_the_camera_when_its_pose_is_not_given(lib):
     keep one world frame and give the results of the pose given."""
     from ssp.eval.table1 import SequenceSpec, merge_table1, run_table1_parts
 
-    small = dict(stages=2, frames_per_stage=3, stride=2)
-    specs = [SequenceSpec("structure", 2, camera="orbit", locate=True, **small)]
+    small = dict(stages=2, frames_per_stage=4, stride=2)
+    specs = [SequenceSpec("structure", 7, camera="orbit", locate=True, **small)]
     result = merge_table1(run_table1_parts(specs, lib, methods=("ssp",), vsd=False), ["ssp"])
     cam = result["camera"]
     assert cam["frames"] == result["frames"] == len(cam["rows"])
-    assert cam["restarts"] == 0 and cam["how"]["table"] == 1
-    assert cam["error_mm_max"] < 3.0
+    assert cam["how"]["table"] == 1 and cam["restarts"] == cam["how"].get("restarted", 0)
+    assert cam["how"].get("tracked", 0) >= cam["frames"] // 2
+    assert cam["error_mm_max"] < 5.0  # located right (a wrong turn: centimetres), or restarted
     assert result["methods"]["ssp"]["bop"]["AR"] > 0.8
 
     def ssp_ar(locate: bool) -> tuple[float, dict]:
-        spec = SequenceSpec("structure", 2, locate=locate, **small)
+        spec = SequenceSpec("structure", 7, locate=locate, **small)
         r = merge_table1(run_table1_parts([spec], lib, methods=("ssp",), vsd=False), ["ssp"])
         return r["methods"]["ssp"]["bop"]["AR"], r.get("camera", {})
 

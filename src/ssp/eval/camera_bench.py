@@ -8,7 +8,10 @@ Simulated sequences (:func:`ssp.sim.generate.generate_sequence`) along each came
     kept while the plane stays, fitted again when it moves (the camera's motion becomes the
     objects').
 ``egomotion``
-    :class:`ssp.perception.egomotion.CameraTracker` on the map of the frames before.
+    :class:`ssp.perception.egomotion.CameraTracker` on the map of the frames before, as
+    ``ssp run`` uses it (no global search).
+``egomotion_search``
+    the same with the global search over turns when a frame does not track.
 ``egomotion_known``
     the same, also told the previous frame's objects (``CameraTracker.know``) as the parser's
     kept objects would tell it; here the true ones: the bound of what that feedback can give.
@@ -38,7 +41,7 @@ from ssp.probability import pose_change
 __all__ = ["TRACKERS", "bench_camera", "write_camera_report"]
 
 #: The trackers compared (module docstring).
-TRACKERS: tuple[str, ...] = ("table", "egomotion", "egomotion_known")
+TRACKERS: tuple[str, ...] = ("table", "egomotion", "egomotion_search", "egomotion_known")
 
 
 def _cloud(seq, i: int) -> np.ndarray:
@@ -57,7 +60,7 @@ def _scene_error(T_est: np.ndarray, T_true: np.ndarray, gt) -> float:
 def _track(name: str, seq, library) -> list[dict]:
     """Per frame of ``seq``: the tracker ``name``'s error, or that it refused the frame."""
     table = TableTracker(0.006) if name == "table" else None
-    ego = CameraTracker() if name != "table" else None
+    ego = CameraTracker(search=name == "egomotion_search") if name != "table" else None
     align = None
     rows = []
     for i, sf in enumerate(seq.frames):

@@ -322,10 +322,14 @@ class CameraTracker:
 
     Args:
         table_distance: the table fit's inlier distance, m.
+        search: run the global search when the frame does not track from the prediction or
+            the last pose (``ssp run`` does not: on the realistic stream's BOP-style keyframes
+            it accepted wrong turns, docs/benchmarks.md, moving cameras).
     """
 
-    def __init__(self, table_distance: float = 0.006) -> None:
+    def __init__(self, table_distance: float = 0.006, search: bool = True) -> None:
         self.table_distance = float(table_distance)
+        self.search = bool(search)
         self.T_world_cam: np.ndarray | None = None
         self._before: np.ndarray | None = None  # the pose before the last
         self._map = np.zeros((0, 3))  # world points above the table, oldest first
@@ -382,9 +386,10 @@ class CameraTracker:
         # coarse-to-fine registration from it and from it turned
         fit = self._register(q, tree, normals, G0)
         G_still = _snap(last, T_plane) @ np.linalg.inv(T_plane)  # the camera as it was
-        if self._before is not None and not fit.tracks(len(q)):
+        # fewer than half registered: perhaps a wrong minimum; the other starts too
+        if self._before is not None and fit.inliers < SEARCH_INLIERS:
             fit = min(fit, self._register(q, tree, normals, G_still), key=lambda f: f.cost)
-        for deg in LOCAL_TURNS[1:] if not fit.tracks(len(q)) else ():
+        for deg in LOCAL_TURNS[1:] if fit.inliers < SEARCH_INLIERS else ():
             fit = min(fit, self._register(q, tree, normals, _turned(G0, deg, c)),
                       key=lambda f: f.cost)  # fmt: skip
         how, n = "tracked", len(q)
@@ -392,7 +397,9 @@ class CameraTracker:
         near = min(_shift(q, fit.G, G0), _shift(q, fit.G, G_still)) < PREDICTED_SHIFT
         floor = NEAR_MIN_INLIERS if near else MIN_INLIERS
         if not fit.tracks(n, floor) or (fit.inliers < SEARCH_INLIERS and not near):
-            best, unambiguous = self._search(q, tree, normals)  # perhaps a wrong minimum
+            best, unambiguous = (
+                self._search(q, tree, normals) if self.search else (fit.refused(), False)
+            )  # perhaps a wrong minimum
             if fit.tracks(n, floor) and _shift(q, best.G, fit.G) < AGREE_SHIFT:
                 pass  # the search confirms the tracked solution
             elif unambiguous:
@@ -405,7 +412,8 @@ class CameraTracker:
                 f"% of the {n} points above the table register to the map (at least "
                 f"{100 * NEAR_MIN_INLIERS:.0f} % needed near the predicted pose, "
                 f"{100 * MIN_INLIERS:.0f} % farther, {100 * SEARCH_INLIERS:.0f} % unless a "
-                "global search agrees), and no turn of a global search does so unambiguously"
+                "global search agrees)"
+                + (", and no turn of a global search does so unambiguously" if self.search else "")
             )
         if self._known is not None:  # the known objects' exact surfaces refine it
             ktree = cKDTree(self._known[0])

@@ -57,7 +57,7 @@ class CameraLocator:
 
     def __init__(self, table_distance: float) -> None:
         self.table_distance = float(table_distance)
-        self.tracker = CameraTracker(self.table_distance)
+        self.tracker = CameraTracker(self.table_distance, search=False)
         self.restarts = 0
 
     @property
@@ -77,7 +77,7 @@ class CameraLocator:
             fix = self.tracker.update(points_cam)
             return fix.T_world_cam, {"how": fix.how, **fix.as_dict()}
         except CameraNotLocatedError as exc:
-            tracker = CameraTracker(self.table_distance)
+            tracker = CameraTracker(self.table_distance, search=False)
             fix = tracker.update(points_cam)  # the table's frame; raises when there is none
             self.tracker, self.restarts = tracker, self.restarts + 1
             warnings.append(
@@ -130,7 +130,7 @@ class CameraLocator:
         if record.get("status") == "failed" or T is None:
             return
         if camera.get("how") == RESTARTED:
-            self.tracker = CameraTracker(self.table_distance)
+            self.tracker = CameraTracker(self.table_distance, search=False)
             self.restarts += 1
         try:
             self.tracker.accept(np.asarray(T, dtype=float), np.asarray(points_cam, dtype=float))
