@@ -140,19 +140,13 @@ class SceneParser:
         """Current scene: ``id -> (class_name, T_world_obj)`` (copies)."""
         return {k: (v.class_name, v.T_world_obj.copy()) for k, v in self._known.items()}
 
-    def forget(self) -> None:
-        """Forget every object but go on counting ids and frames (the world frame was lost:
-        the next frame's objects are new tracks, never a reused id)."""
+    def reset(self, keep_ids: bool = False) -> None:
+        """Forget every object; ids and frames count from 0 unless ``keep_ids`` (world lost)."""
         self._known.clear()
         self._rejected = []
-
-    def reset(self) -> None:
-        """Forget every object (the next frame starts a new scene)."""
-        self._known.clear()
-        self._rejected = []
-        self._counters.clear()
-        self._frame_index = 0
-        self._last_stamp = None
+        if not keep_ids:
+            self._counters.clear()
+            self._frame_index, self._last_stamp = 0, None
 
     # -------------------------------------------------------------- state
     def state(self) -> dict[str, Any]:

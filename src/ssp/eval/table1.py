@@ -722,7 +722,7 @@ class _Located:
             if self.rows:
                 for runner in runners:
                     parser = getattr(runner, "parser", None)
-                    parser.forget() if parser is not None else runner.reset()
+                    parser.reset(keep_ids=True) if parser is not None else runner.reset()
             self.align = T_true @ np.linalg.inv(T_est)
         D = self.align @ T_est @ np.linalg.inv(T_true)  # true world -> where the run puts it
         c = np.array([np.asarray(T, dtype=float)[:3, 3] for _, T in sf.gt.values()])

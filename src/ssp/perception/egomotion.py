@@ -508,6 +508,15 @@ class CameraTracker:
                 return best, False
         return best, best.inliers >= SEARCH_INLIERS
 
+    def checked(self, T: np.ndarray, p: np.ndarray, check: dict) -> None:
+        """A resumed run's frame whose given pose ``T`` was checked (``check``: what
+        :meth:`check` returned, from the frame's record): as :meth:`check` left the tracker."""
+        T = np.asarray(T, dtype=float)
+        if self._checked is not None and np.array_equal(T, self.T_world_cam):
+            return
+        self.accept(T, p)
+        self._checked = dict(check)
+
     def accept(self, T: np.ndarray, p: np.ndarray) -> None:
         """Keep ``T`` (4, 4) as the pose of the frame of camera-frame points ``p`` (N, 3; m)
         and its registered points in the map, as :meth:`update` does with a located frame: a

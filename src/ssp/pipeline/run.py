@@ -414,7 +414,7 @@ def _run_frame(
     try:
         perceived, warnings = source.perceive()
         if (perceived.camera_fix or {}).get("how") == RESTARTED:
-            parser.forget()  # its objects are in the world frame the camera lost
+            parser.reset(keep_ids=True)  # its objects are in the world frame the camera lost
         estimate = parser.update(perceived.frame)
         seconds = time.perf_counter() - t0  # the CSV's time: from reading to the estimate
         t_results = time.perf_counter()

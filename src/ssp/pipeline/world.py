@@ -16,8 +16,8 @@ next.
 A frame whose camera cannot be located is not guessed: the world frame starts again from its
 table (``camera.how`` ``"restarted"``, a warning of the frame), and the parser forgets the
 scene (its objects were placed in the old frame; :func:`ssp.pipeline.run.run` calls
-:meth:`ssp.parser.SceneParser.forget`): the frame's objects are new tracks with new ids, and
-nothing the old frame held is reported moved. A resumed run brings the locator to where the
+:meth:`ssp.parser.SceneParser.reset` with ``keep_ids``): the frame's objects are new tracks
+with new ids, and nothing the old frame held is reported moved. A resumed run brings the locator to where the
 uninterrupted run left it from the committed frames' records (:meth:`CameraLocator.replay`):
 their camera poses, exactly as written.
 """
@@ -133,6 +133,9 @@ class CameraLocator:
             self.tracker = CameraTracker(self.table_distance, search=False)
             self.restarts += 1
         try:
-            self.tracker.accept(np.asarray(T, dtype=float), np.asarray(points_cam, dtype=float))
+            if camera.get("how") == "given":
+                self.tracker.checked(T, points_cam, camera)
+            else:
+                self.tracker.accept(np.asarray(T, dtype=float), np.asarray(points_cam, dtype=float))
         except PerceptionError:
             pass  # a given pose on a frame without a table: the run did not map it either
