@@ -17,9 +17,9 @@ A frame whose camera cannot be located is not guessed: the world frame starts ag
 table (``camera.how`` ``"restarted"``, a warning of the frame), and the parser forgets the
 scene (its objects were placed in the old frame; :func:`ssp.pipeline.run.run` calls
 :meth:`ssp.parser.SceneParser.reset` with ``keep_ids``): the frame's objects are new tracks
-with new ids, and nothing the old frame held is reported moved. A resumed run brings the locator to where the
-uninterrupted run left it from the committed frames' records (:meth:`CameraLocator.replay`):
-their camera poses, exactly as written.
+with new ids, and nothing the old frame held is reported moved. A resumed run brings the
+locator to where the uninterrupted run left it from the committed frames' records
+(:meth:`CameraLocator.replay`): their camera poses, exactly as written.
 """
 
 from __future__ import annotations
