@@ -138,7 +138,7 @@ def test_a_camera_not_located_starts_the_world_frame_again(lib, orbit, monkeypat
     assert lost["objects"] and {o["mode"] for o in lost["objects"]} == {"added"}
     before = {o["id"] for o in frames[2]["objects"]}
     assert not before & {o["id"] for o in lost["objects"]}  # new tracks, none carried over
-    assert {f["camera"]["how"] for f in frames[4:]} <= {"tracked", "searched", "kept"}
+    assert "tracked" in {f["camera"]["how"] for f in frames[4:]}  # it goes on in the new world
 
 
 def test_a_given_camera_pose_is_checked_against_the_static_scene(lib, orbit, tmp_path):

@@ -92,7 +92,9 @@ MIN_INLIER_POINTS = 100
 """... and fewest inlier points."""
 NEAR_MIN_INLIERS = 0.15
 """Fewest inlier fraction of a solution within :data:`PREDICTED_SHIFT` of the prediction or
-the last pose (new objects stacked on the old ones hide most of what the map holds)."""
+the last pose while the camera is tracked (the two frames before located, the last from the
+one before it: a prediction worth the name), as when new objects stacked on the old ones hide
+most of what the map holds."""
 LOCAL_TURNS = (0.0, -4.0, 4.0, -8.0, 8.0)
 """Turns about the map's centre (degrees) added to the prediction, each a start of the
 tracking ICP (the lowest cost wins): a camera that speeds up or turns."""
@@ -346,6 +348,7 @@ class CameraTracker:
         self._map_normals = np.zeros((0, 3))  # their unit normals
         self._known: tuple[np.ndarray, np.ndarray] | None = None  # model points, normals
         self._checked: dict | None = None  # the last given pose's check
+        self._tracking = False  # the last frame was located from the one before
 
     def know(self, objects) -> None:
         """The objects known static, ``[(model, T_world_obj (4, 4))]``
@@ -388,6 +391,7 @@ class CameraTracker:
             )
         tree = cKDTree(target)
         last = self.T_world_cam
+        tracking, self._tracking = self._tracking, False  # until this frame is located
         pred = last if self._before is None else last @ np.linalg.inv(self._before) @ last
         G0 = _snap(pred, T_plane) @ np.linalg.inv(T_plane)
         G_last = last @ np.linalg.inv(T_plane)  # where the last pose puts the points
@@ -405,18 +409,24 @@ class CameraTracker:
                       key=lambda f: f.cost)  # fmt: skip
         how, n = "tracked", len(q)
         registered = fit.inliers  # from the prediction, for the message
-        near = min(_shift(q, fit.G, G0), _shift(q, fit.G, G_still)) < PREDICTED_SHIFT
+        # near a start that means something: the camera tracked over the frames just before
+        near = (
+            tracking
+            and self._before is not None
+            and min(_shift(q, fit.G, G0), _shift(q, fit.G, G_still)) < PREDICTED_SHIFT
+        )
         floor = NEAR_MIN_INLIERS if near else MIN_INLIERS
         if not fit.tracks(n, floor) or (fit.inliers < SEARCH_INLIERS and not near):
-            best, unambiguous = (
-                self._search(q, tree, normals) if self.search else (fit.refused(), False)
-            )  # perhaps a wrong minimum
-            if fit.tracks(n, floor) and _shift(q, best.G, fit.G) < AGREE_SHIFT:
-                pass  # the search confirms the tracked solution
-            elif unambiguous:
-                fit, how = best, "searched"
-            else:
+            if not self.search:  # perhaps a wrong minimum, and nothing to confirm it
                 fit = fit.refused()
+            else:
+                best, unambiguous = self._search(q, tree, normals)
+                if fit.tracks(n, floor) and _shift(q, best.G, fit.G) < AGREE_SHIFT:
+                    pass  # the search confirms the tracked solution
+                elif unambiguous:
+                    fit, how = best, "searched"
+                else:
+                    fit = fit.refused()
         if not fit.tracks(n, floor):
             raise CameraNotLocatedError(
                 f"the camera could not be located: from its predicted pose {100 * registered:.0f} "
@@ -440,6 +450,7 @@ class CameraTracker:
         if moved < KEEP_SHIFT or _fit(q, tree, normals, G_last).cost <= fit.cost:
             T, how = last, "kept"
         self._add(T, T_plane, q, q_normals)
+        self._tracking = True
         return CameraFix(T.copy(), how, fit.inliers, fit.rms_mm, len(q))
 
     def check(self, points_cam: np.ndarray, T_world_cam: np.ndarray) -> dict:
