@@ -15,12 +15,14 @@ The registration is :func:`planar_icp`: point-to-plane ICP in those three degree
 with Tukey weights over coarse-to-fine correspondence distances (:data:`ICP_SCALES`), of the
 points whose surface is not horizontal (:func:`_sides`: a top face registers wherever it
 slides), so objects that moved and new ones, which find no surface of the map near them, are
-what does not register. It starts from the constant-velocity prediction of the camera, then
-from the last pose (a hand-held camera's shake), then from the prediction turned by
-:data:`LOCAL_TURNS`; a solution far from those starts (a jump, BOP keyframes 10-30 degrees
-apart) or registering few points needs the agreement of a global search from every
-:data:`GLOBAL_YAW_STEP` degrees of turn about the map's centre with the centroids matched, or
-that search's unambiguous solution. A frame whose camera is not located so is refused
+what does not register. It starts from the constant-velocity prediction of the camera; when
+under half of the points register, also from the last pose (a hand-held camera's shake) and
+from the prediction turned by :data:`LOCAL_TURNS`. A fit is accepted when half of the points
+register, or, while the camera is tracked, :data:`NEAR_MIN_INLIERS` within
+:data:`PREDICTED_SHIFT` of a start; with ``search`` (not in ``ssp run``: it accepted wrong
+turns of BOP-style keyframes), a global search from every :data:`GLOBAL_YAW_STEP` degrees of
+turn about the map's centre with the centroids matched may confirm a weaker fit or find an
+unambiguous one. A frame whose camera is not located so is refused
 (:class:`CameraNotLocatedError`), not guessed (``ssp run`` then starts the world frame again:
 :mod:`ssp.pipeline.world`).
 

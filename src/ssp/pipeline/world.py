@@ -10,8 +10,8 @@ The parser's objects are not a registration target here, though the tracker can 
 (:meth:`~ssp.perception.egomotion.CameraTracker.know`): measured on a simulated orbit without
 camera poses (structure, seed 5, 320 x 240), registering to them as well made the camera's
 error at the objects 6.8 mm (median; 11.8 mm with them refining the result) against 1.2 mm
-for the points alone: objects estimated in a frame carry that frame's camera error into the
-next.
+for the points alone (an earlier version of the tracker): objects estimated in a frame carry
+that frame's camera error into the next.
 
 A frame whose camera cannot be located is not guessed: the world frame starts again from its
 table (``camera.how`` ``"restarted"``, a warning of the frame), and the parser forgets the
