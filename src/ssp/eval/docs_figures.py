@@ -824,8 +824,9 @@ def write(root: Path) -> list[str]:
 
 def collect(work: Path, root: Path) -> list[Path]:
     """Copy ``work/<source>/<file>`` of every source present into ``root/docs/results``,
-    without the per-object records of a Table I run (``records``, ``estimator_records``);
-    the files written."""
+    without the per-object and per-frame records (a Table I run's ``records``,
+    ``estimator_records`` and ``camera.rows``, a camera bench's ``rows`` per path and
+    tracker); the files written."""
     written = []
     for s in SOURCES.values():
         src = work / s.name / s.file
@@ -834,6 +835,11 @@ def collect(work: Path, root: Path) -> list[Path]:
         data = json.loads(src.read_text(encoding="utf-8"))
         for key in ("records", "estimator_records"):
             data.pop(key, None)
+        if isinstance(data.get("camera"), dict):
+            data["camera"].pop("rows", None)
+        for trackers in (data.get("paths") or {}).values():
+            for summary in trackers.values():
+                summary.pop("rows", None)
         dest = root / RESULTS / s.name / s.file
         dest.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(dest, json.dumps(data, indent=1) + "\n")

@@ -49,7 +49,8 @@ it puts them, relative to the frames given before, is said in the frame's warnin
 
 
 class CameraLocator:
-    """``T_world_cam`` of the frames of a camera with no pose given (module docstring).
+    """``T_world_cam`` of the frames of a camera with no pose given (:meth:`locate`; module
+    docstring), or the check of a given one (:meth:`check`).
 
     Args:
         table_distance: the table fit's inlier distance, m.
