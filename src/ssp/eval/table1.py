@@ -722,7 +722,10 @@ class _Located:
             if self.rows:
                 for runner in runners:
                     parser = getattr(runner, "parser", None)
-                    parser.reset(keep_ids=True) if parser is not None else runner.reset()
+                    if parser is not None:
+                        parser.reset(keep_ids=True)  # ssp: new tracks, ids go on counting
+                    else:
+                        runner.reset()
             self.align = T_true @ np.linalg.inv(T_est)
         D = self.align @ T_est @ np.linalg.inv(T_true)  # true world -> where the run puts it
         c = np.array([np.asarray(T, dtype=float)[:3, 3] for _, T in sf.gt.values()])

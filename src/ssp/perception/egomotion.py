@@ -58,16 +58,16 @@ from ssp.perception.table import table_frame
 __all__ = [
     "ABOVE_TABLE",
     "AGREE_SHIFT",
-    "PREDICTED_SHIFT",
-    "GLOBAL_YAW_STEP",
-    "LOCAL_TURNS",
     "CLOUD_POINTS",
+    "GLOBAL_YAW_STEP",
     "ICP_SCALES",
     "KEEP_SHIFT",
+    "LOCAL_TURNS",
     "MAP_VOXEL",
     "MIN_INLIERS",
     "MIN_INLIER_POINTS",
     "NEAR_MIN_INLIERS",
+    "PREDICTED_SHIFT",
     "SEARCH_INLIERS",
     "SEARCH_POINTS",
     "SIDE_TILT_DEG",
@@ -221,11 +221,6 @@ def _turned(G: np.ndarray, degrees: float, centre: np.ndarray) -> np.ndarray:
     return C @ R @ np.linalg.inv(C) @ G
 
 
-def _voxel(points: np.ndarray, size: float) -> np.ndarray:
-    """One point per occupied voxel of ``size`` m: the first given."""
-    return points[voxel_thin(points, size)]
-
-
 def _snap(T: np.ndarray, T_plane: np.ndarray) -> np.ndarray:
     """``T`` (world from camera) turned by the least rotation that gives it ``T_plane``'s up
     direction, at ``T_plane``'s height: the plane's tilt and height, ``T``'s turn and place."""
@@ -290,7 +285,7 @@ def _sides(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     it would count as registered at any wrong place)."""
     if len(points) < 3:
         return np.zeros((0, 3)), np.zeros((0, 3))
-    p = _voxel(points, MAP_VOXEL)
+    p = points[voxel_thin(points, MAP_VOXEL)]
     n = estimate_normals(p, k=12)
     side = np.abs(n[:, 2]) < np.cos(np.radians(SIDE_TILT_DEG))
     return p[side], n[side]
@@ -398,10 +393,7 @@ class CameraTracker:
         G0 = _snap(pred, T_plane) @ np.linalg.inv(T_plane)
         G_last = last @ np.linalg.inv(T_plane)  # where the last pose puts the points
         c = tree.data.mean(axis=0)
-        # the prediction refined at the fine scales first (points of new objects within the
-        # coarse distance of the map's surfaces drag the coarse registration off); then the
-        # coarse-to-fine registration from it and from it turned
-        fit = self._register(q, tree, normals, G0)
+        fit = self._register(q, tree, normals, G0)  # from the constant-velocity prediction
         G_still = _snap(last, T_plane) @ np.linalg.inv(T_plane)  # the camera as it was
         # fewer than half registered: perhaps a wrong minimum; the other starts too
         if self._before is not None and fit.inliers < SEARCH_INLIERS:
@@ -410,13 +402,9 @@ class CameraTracker:
             fit = min(fit, self._register(q, tree, normals, _turned(G0, deg, c)),
                       key=lambda f: f.cost)  # fmt: skip
         how, n = "tracked", len(q)
-        registered = fit.inliers  # from the prediction, for the message
+        registered = fit.inliers  # the best start's, for the message
         # near a start that means something: the camera tracked over the frames just before
-        near = (
-            tracking
-            and self._before is not None
-            and min(_shift(q, fit.G, G0), _shift(q, fit.G, G_still)) < PREDICTED_SHIFT
-        )
+        near = tracking and min(_shift(q, fit.G, G0), _shift(q, fit.G, G_still)) < PREDICTED_SHIFT
         floor = NEAR_MIN_INLIERS if near else MIN_INLIERS
         if not fit.tracks(n, floor) or (fit.inliers < SEARCH_INLIERS and not near):
             if not self.search:  # perhaps a wrong minimum, and nothing to confirm it
@@ -431,7 +419,7 @@ class CameraTracker:
                     fit = fit.refused()
         if not fit.tracks(n, floor):
             raise CameraNotLocatedError(
-                f"the camera could not be located: from its predicted pose {100 * registered:.0f} "
+                f"the camera could not be located: from the starts tried {100 * registered:.0f} "
                 f"% of the {n} points above the table register to the map (at least "
                 f"{100 * NEAR_MIN_INLIERS:.0f} % needed near the predicted pose, "
                 f"{100 * MIN_INLIERS:.0f} % farther, {100 * SEARCH_INLIERS:.0f} % unless a "
@@ -487,7 +475,7 @@ class CameraTracker:
                 out["shift_mm"] = round(1000.0 * _shift(q, G, G_given), 2)
                 out["inliers"] = round(fit.inliers, 4)
         self._add(T, T_plane, q, q_normals)
-        self._checked = out
+        self._checked, self._tracking = out, False  # given, not tracked
         return out
 
     def _register(self, q, tree, normals, G0, scales=ICP_SCALES) -> _Fit:
@@ -530,10 +518,11 @@ class CameraTracker:
         self.accept(T, p)
         self._checked = dict(check)
 
-    def accept(self, T: np.ndarray, p: np.ndarray) -> None:
+    def accept(self, T: np.ndarray, p: np.ndarray, tracked: bool = False) -> None:
         """Keep ``T`` (4, 4) as the pose of the frame of camera-frame points ``p`` (N, 3; m)
         and its registered points in the map, as :meth:`update` does with a located frame: a
-        resumed run's frames committed before.
+        resumed run's frames committed before (``tracked``: located from the frame before,
+        not the first or a restart).
 
         Raises:
             TableNotFoundError: no table in the frame.
@@ -542,6 +531,7 @@ class CameraTracker:
         T_plane, _ = table_frame(_thinned(p), distance=self.table_distance)
         T = np.asarray(T, dtype=float)
         self._add(T, T_plane, *_registered(p, T_plane))
+        self._tracking = tracked
 
     def _add(self, T: np.ndarray, T_plane: np.ndarray, q: np.ndarray, normals: np.ndarray) -> None:
         """Keep ``T`` as the frame's camera pose and its registered points ``q`` (N, 3; in the

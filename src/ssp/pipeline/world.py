@@ -7,11 +7,9 @@ table plane, then a registration of the points above the table to those of the f
 before). The frame JSON's ``camera`` says how (:meth:`ssp.perception.egomotion.CameraFix.as_dict`).
 
 The parser's objects are not a registration target here, though the tracker can take them
-(:meth:`~ssp.perception.egomotion.CameraTracker.know`): measured on a simulated orbit without
-camera poses (structure, seed 5, 320 x 240), registering to them as well made the camera's
-error at the objects 6.8 mm (median; 11.8 mm with them refining the result) against 1.2 mm
-for the points alone (an earlier version of the tracker): objects estimated in a frame carry
-that frame's camera error into the next.
+(:meth:`~ssp.perception.egomotion.CameraTracker.know`): objects estimated in a frame carry
+that frame's camera error into the next (on a development orbit, with an earlier version of
+the tracker, registering to them made the camera's error several times the points' alone).
 
 A frame whose camera cannot be located is not guessed: the world frame starts again from its
 table (``camera.how`` ``"restarted"``, a warning of the frame), and the parser forgets the
@@ -59,7 +57,6 @@ class CameraLocator:
     def __init__(self, table_distance: float) -> None:
         self.table_distance = float(table_distance)
         self.tracker = CameraTracker(self.table_distance, search=False)
-        self.restarts = 0
 
     @property
     def started(self) -> bool:
@@ -76,11 +73,11 @@ class CameraLocator:
         """
         try:
             fix = self.tracker.update(points_cam)
-            return fix.T_world_cam, {"how": fix.how, **fix.as_dict()}
+            return fix.T_world_cam, fix.as_dict()
         except CameraNotLocatedError as exc:
             tracker = CameraTracker(self.table_distance, search=False)
             fix = tracker.update(points_cam)  # the table's frame; raises when there is none
-            self.tracker, self.restarts = tracker, self.restarts + 1
+            self.tracker = tracker
             warnings.append(
                 f"camera not located ({exc}): the world frame starts again from this frame's "
                 "table and the objects before are forgotten (a moving camera's pose can be "
@@ -132,11 +129,12 @@ class CameraLocator:
             return
         if camera.get("how") == RESTARTED:
             self.tracker = CameraTracker(self.table_distance, search=False)
-            self.restarts += 1
         try:
             if camera.get("how") == "given":
                 self.tracker.checked(T, points_cam, camera)
             else:
-                self.tracker.accept(np.asarray(T, dtype=float), np.asarray(points_cam, dtype=float))
+                tracked = camera.get("how") in ("tracked", "kept", "searched")
+                self.tracker.accept(np.asarray(T, dtype=float), np.asarray(points_cam, dtype=float),
+                                    tracked)  # fmt: skip
         except PerceptionError:
             pass  # a given pose on a frame without a table: the run did not map it either
