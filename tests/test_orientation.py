@@ -23,11 +23,17 @@ from ssp.orientation import (
     CLOSER_GAIN,
     CLOSER_RADII,
     DECIDE_MARGIN,
+    SAME_VIEW_POINTS,
+    SAME_VIEW_SHIFT,
+    Ranking,
     closer,
     decides,
     distinct_orientations,
     orientation_rank,
+    orientations_from_state,
+    orientations_state,
     residual_costs,
+    same_view,
 )
 from ssp.parser import SceneParser
 from ssp.probability import pose_change
@@ -61,10 +67,10 @@ def _standing(model, yaw_deg: float) -> np.ndarray:
     return make_pose(R, np.array([0.0, 0.0, -float(model.mesh.bounds[0][2])]))
 
 
-def _frame(lib, gt, hyps, seed=0, stamp=0.0):
+def _frame(lib, gt, hyps, seed=0, stamp=0.0, camera=CAMERA):
     """The rendered frame of ``gt`` (one object: instance label 0) with ``hyps`` from its
     instance segment."""
-    f = synthetic_frame(lib, gt, T_world_cam=CAMERA, rng=seed, k=1, stamp=stamp)
+    f = synthetic_frame(lib, gt, T_world_cam=camera, rng=seed, k=1, stamp=stamp)
     return replace(f, hypotheses=[replace(h, segment=0) for h in hyps])
 
 
@@ -210,3 +216,58 @@ def test_a_remembered_alternative_decides_when_the_data_do(lib, monkeypatch):
     o = kept.orientation
     assert np.degrees(dr) < 10 and o.turned_deg == 0 and not o.decided  # the body's yaw: ICP
     assert any(abs(a.turn_deg - 180) < 10 and a.rank > o.rank for a in o.alternatives)
+
+
+def test_same_view_needs_the_camera_the_segment_and_only_ruled_out_candidates(lib):
+    mug = lib["mug"]
+    wrong = _standing(mug, 45.0)
+    r = Ranking(CAMERA, 1000, (wrong,))
+    assert same_view(r, CAMERA, 1000, [_standing(mug, 50.0)], mug)  # a copy of the ruled out
+    assert not same_view(r, CAMERA, 1000, [_standing(mug, 50.0), _standing(mug, 135.0)], mug)
+    moved = CAMERA.copy()
+    moved[0, 3] += 2 * SAME_VIEW_SHIFT
+    assert not same_view(r, moved, 1000, [wrong], mug)
+    turned = look_at([-0.45, -0.55, 0.6], [0.0, 0.02, 0.03])  # the same place, turned ~2 deg
+    assert not same_view(r, turned, 1000, [wrong], mug)
+    grown = int(1000 * (1 + 2 * SAME_VIEW_POINTS))  # an occluder moved: more of it seen
+    assert not same_view(r, CAMERA, grown, [wrong], mug)
+    assert same_view(r, CAMERA, 1010, [wrong], mug)
+    assert not same_view(None, CAMERA, 1000, [wrong], mug)
+    assert not same_view(r, None, 1000, [wrong], mug)
+    alternatives, back = orientations_from_state({"id": "mug_0", **orientations_state((), r)})
+    assert alternatives == () and back is not None and back.points == 1000
+    assert np.array_equal(back.T_world_cam, CAMERA) and np.array_equal(back.ruled_out[0], wrong)
+
+
+def test_the_same_view_repeats_a_decided_verdict_and_a_new_one_ranks_again(lib):
+    """The camera sees the handle; the estimator proposes the true yaw and the one hiding the
+    handle: decided for the true one. The next frames see the mug unchanged from the same
+    camera with the same proposals: the verdict is repeated without ranking them again (the
+    state remembers it, a resumed parser too); a new proposal, or a moved camera, ranks again."""
+    mug = lib["mug"]
+    true, wrong = _standing(mug, 225.0), _standing(mug, 45.0)
+    gt = {"mug_0": ("mug", true)}
+    hyps = [Hypothesis("mug", true, 0.9), Hypothesis("mug", wrong, 0.5)]
+    parser = SceneParser.from_state(lib, _state("mug", true), SSPConfig())
+    (first,) = parser.update(_frame(lib, gt, hyps, stamp=1.0)).objects
+    assert first.orientation.decided and not first.orientation.repeated
+    state = parser.state()
+    assert state["objects"][0]["ranking"]["points"] > 0
+    resumed = SceneParser.from_state(lib, state, SSPConfig())
+    assert resumed.state() == state
+    for p in (parser, resumed):
+        (again,) = p.update(_frame(lib, gt, hyps, seed=1, stamp=2.0)).objects
+        assert again.orientation.decided and again.orientation.repeated
+        assert again.to_dict()["orientation"]["repeated"] is True
+        _, dr = pose_change(true, again.T_world_obj, mug.symmetry, mug.center_of_mass)
+        assert np.degrees(dr) < 5
+    assert resumed.state() == parser.state()
+    new = [*hyps, Hypothesis("mug", _standing(mug, 135.0), 0.4)]
+    (ranked,) = parser.update(_frame(lib, gt, new, seed=2, stamp=3.0)).objects
+    assert ranked.orientation.decided and not ranked.orientation.repeated
+    # ... and remembered: the three proposals are ruled out from this view now
+    (third,) = parser.update(_frame(lib, gt, new, seed=3, stamp=4.0)).objects
+    assert third.orientation.repeated
+    moved = look_at([-0.40, -0.58, 0.6], [0.0, 0.0, 0.03])
+    (seen,) = parser.update(_frame(lib, gt, new, seed=4, stamp=5.0, camera=moved)).objects
+    assert seen.orientation.decided and not seen.orientation.repeated

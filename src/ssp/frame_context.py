@@ -25,7 +25,7 @@ if TYPE_CHECKING:  # annotations only: the stage modules import this module, not
     from ssp.estimate import ObjectEstimate, Rejected, SceneEstimate
     from ssp.library.library import ObjectLibrary
     from ssp.library.model import ObjectModel
-    from ssp.orientation import Orientation
+    from ssp.orientation import Orientation, Ranking
     from ssp.physics import World
     from ssp.retention import Triage
     from ssp.scene import Frame, Hypothesis
@@ -57,6 +57,9 @@ class Known:
     #: the orientations its data allowed as well as ``T_world_obj`` (poses, 4x4, m;
     #: :mod:`ssp.orientation`): the candidates a later view may decide between
     alternatives: tuple[np.ndarray, ...] = ()
+    #: its decided orientation ranking and the view it was ranked from (None: none decided
+    #: yet; :func:`ssp.orientation.same_view`)
+    ranking: Ranking | None = None
 
 
 @dataclass(frozen=True)
@@ -199,6 +202,8 @@ class FrameContext:
     # ---- orientations (ssp.orientation.decide_orientations)
     #: object with an instance segment -> whether its orientation is decided, and the tied ones
     orientations: dict[str, Orientation] = _dict()
+    #: object -> its decided ranking, remembered (``Known.ranking``)
+    rankings: dict[str, Ranking] = _dict()
     # ---- final verdicts (ssp.verification.judge_final)
     warnings: list[str] = field(default_factory=list)
     #: kept object -> why (verified, or unverified but holding others up)

@@ -37,6 +37,14 @@ orientations with the data of its instance segment:
   more than the margin is dropped (the data decided against it). The pose stays while the
   evidence is tied.
 
+**The same view decides the same** (:class:`Ranking`, :func:`same_view`): an object whose
+orientation was decided, seen again unchanged (``FrameContext.static``) from the same camera
+pose with about as many segment points, whose candidates are all copies of those its data
+ruled out then, keeps that verdict (``Orientation.repeated``) without aligning and ranking
+them again: the same data up to sensor noise, which can only flip a verdict by chance. A new
+orientation, a moved object or camera, or a segment that gained or lost
+:data:`SAME_VIEW_POINTS` of its points (an occluder moved) ranks them again.
+
 Only with instance masks (``Frame.instance_masks``): without them an object's points are a
 cluster's, which need not all be its own, and ``explained`` would count its neighbours.
 """
@@ -66,18 +74,24 @@ __all__ = [
     "DECIDE_Z",
     "CLOSER_GAIN",
     "CLOSER_RADII",
+    "MAX_RULED_OUT",
     "MIN_CLOSER_POINTS",
     "DISTINCT_TURN",
+    "SAME_VIEW_POINTS",
+    "SAME_VIEW_SHIFT",
+    "SAME_VIEW_TURN",
     "Alternative",
     "Orientation",
-    "alternatives_from_state",
-    "alternatives_state",
+    "Ranking",
     "closer",
     "decide_orientations",
     "decides",
     "distinct_orientations",
     "orientation_rank",
+    "orientations_from_state",
+    "orientations_state",
     "residual_costs",
+    "same_view",
 ]
 
 log = logging.getLogger(__name__)
@@ -105,6 +119,19 @@ CLOSER_GAIN = 0.005
 
 #: Fewer segment points than this never decide by distance.
 MIN_CLOSER_POINTS = 30
+
+#: A camera moved less than this (m) and turned less than :data:`SAME_VIEW_TURN` (rad) since
+#: an object's orientations were ranked sees it from the same view (:func:`same_view`): a
+#: static camera's pose is the same every frame, given or located.
+SAME_VIEW_SHIFT = 0.001
+SAME_VIEW_TURN = float(np.radians(0.5))
+
+#: ... and an instance segment whose point count changed by less than this fraction (of the
+#: count then) shows the same part of the object (a handle coming into view adds more).
+SAME_VIEW_POINTS = 0.05
+
+#: A :class:`Ranking` remembers at most this many ruled-out orientations.
+MAX_RULED_OUT = 16
 
 
 @dataclass(frozen=True)
@@ -137,12 +164,15 @@ class Orientation:
             :data:`DECIDE_MARGIN`). rank: the output pose's :func:`orientation_rank`.
         alternatives: the tied orientations, best first. turned_deg: how far this frame's data
             turned the object from its pose after the search (0: not turned).
+        repeated: decided in an earlier frame from the same view, its candidates not ranked
+            again (:func:`same_view`).
     """
 
     decided: bool
     rank: float
     alternatives: tuple[Alternative, ...] = ()
     turned_deg: float = 0.0
+    repeated: bool = False
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -150,7 +180,53 @@ class Orientation:
             "rank": round(self.rank, 4),
             "alternatives": [a.as_dict() for a in self.alternatives],
             "turned_deg": round(self.turned_deg, 2),
+            "repeated": self.repeated,
         }
+
+
+@dataclass(frozen=True)
+class Ranking:
+    """An object's decided orientation ranking, remembered for the next frames
+    (``Known.ranking``; :func:`same_view`).
+
+    Attributes:
+        T_world_cam: (4, 4) the camera pose it was ranked from, m. points: its instance
+            segment's points then. ruled_out: the candidate orientations (poses, 4x4, m, as
+            proposed) its data ruled out then.
+    """
+
+    T_world_cam: np.ndarray
+    points: int
+    ruled_out: tuple[np.ndarray, ...] = ()
+
+
+def same_view(
+    ranking: Ranking | None, T_world_cam: np.ndarray | None, points: int,
+    candidates: list[np.ndarray] | None = None, model: ObjectModel | None = None,
+) -> bool:  # fmt: skip
+    """Whether ``ranking`` was made from this view: the camera ``T_world_cam`` within
+    :data:`SAME_VIEW_SHIFT` / :data:`SAME_VIEW_TURN` of the one it was ranked from and the
+    instance segment's ``points`` within :data:`SAME_VIEW_POINTS` of its count then; with
+    ``candidates`` (this frame's distinct ones, 4x4, of ``model``), also whether each lies
+    within :data:`DISTINCT_TURN` of an orientation it ruled out (symmetry-aware): then it
+    decides them again."""
+    if ranking is None or T_world_cam is None or ranking.points <= 0:
+        return False
+    shift, turn = pose_change(ranking.T_world_cam, T_world_cam)
+    if shift >= SAME_VIEW_SHIFT or turn >= SAME_VIEW_TURN:
+        return False
+    if abs(points - ranking.points) >= SAME_VIEW_POINTS * ranking.points:
+        return False
+    if candidates is None or model is None:
+        return True
+    return all(_copy_of(U, ranking.ruled_out, model) for U in candidates)
+
+
+def _copy_of(U: np.ndarray, poses: tuple[np.ndarray, ...], model: ObjectModel) -> bool:
+    """Whether pose ``U`` is turned less than :data:`DISTINCT_TURN` from one of ``poses``."""
+    return any(
+        pose_change(V, U, model.symmetry, model.center_of_mass)[1] < DISTINCT_TURN for V in poses
+    )
 
 
 def orientation_rank(ev: Evidence) -> float:
@@ -213,14 +289,17 @@ def distinct_orientations(
 def decide_orientations(ctx: FrameContext) -> None:
     """Stage *orientations* (module docstring): each object with an instance segment turned
     to a distinct candidate orientation its data rank higher, or told undecided between the
-    tied ones.
+    tied ones; an unchanged object seen from the same view keeps its decided verdict
+    (:func:`same_view`).
 
-    Sets ``orientations``; updates ``score`` and ``evidence`` (the turned objects').
+    Sets ``orientations`` and ``rankings``; updates ``score`` and ``evidence`` (the turned
+    objects').
     """
     if not ctx.frame.instance_masks:
         return
     cfg, sim = ctx.config, ctx.sim
     world, score = sim.world, ctx.scene_score
+    cam = ctx.frame.T_world_cam
     # id -> (pose, turn deg, the settle's check, what to say if it stays there)
     turns: dict[str, tuple[np.ndarray, float, Any, Orientation]] = {}
     for oid in world.ids:
@@ -236,6 +315,18 @@ def decide_orientations(ctx: FrameContext) -> None:
         rank = bar = orientation_rank(ev)
         bar_ev = ev
         distinct = distinct_orientations(T, candidates, model)
+        segment = ctx.segments.get(oid)
+        points = 0 if segment is None else len(segment)
+        proposed = tuple(U for U, _ in distinct)
+        if (
+            distinct
+            and known is not None
+            and oid in ctx.static
+            and same_view(known.ranking, cam, points, list(proposed), model)
+        ):
+            ctx.orientations[oid] = Orientation(True, rank, repeated=True)
+            ctx.rankings[oid] = known.ranking
+            continue
         T_fit = T  # the pose as the candidates are compared with it
         if distinct:
             # what a candidate must beat: the pose aligned as the candidates are (a candidate
@@ -248,12 +339,12 @@ def decide_orientations(ctx: FrameContext) -> None:
             distinct = distinct_orientations(T, aligned, model)  # ICP may bring one back to T
         if not distinct:
             ctx.orientations[oid] = Orientation(True, rank)
+            _remember(ctx, oid, cam, points, proposed)
             continue
         ranked = [
             (orientation_rank(e), U, e) for U, _ in distinct for e in [_judged(ctx, oid, label, U)]
         ]
         ranked.sort(key=lambda r: -r[0])
-        segment = ctx.segments.get(oid)
         tau = CLOSER_RADII * cfg.data.inlier_radius
         chosen = _decided(ranked, bar, bar_ev, segment, model, T_fit, tau, cfg)
         if chosen is not None:
@@ -271,8 +362,33 @@ def decide_orientations(ctx: FrameContext) -> None:
             T, rank = best, best_rank
             T_fit, bar = best, rank
         ctx.orientations[oid] = _said(ranked, T, rank, model, bar, segment, T_fit, tau)
+        if chosen is None and ctx.orientations[oid].decided:
+            _remember(ctx, oid, cam, points, proposed)
     if turns:
         _turn(ctx, turns)
+
+
+def _remember(
+    ctx: FrameContext, oid: str, cam: np.ndarray | None, points: int,
+    ruled_out: tuple[np.ndarray, ...],
+) -> None:  # fmt: skip
+    """Remember object ``oid``'s decided ranking (:class:`Ranking`) from camera ``cam`` on a
+    segment of ``points`` points, ``ruled_out`` its distinct candidates: added to those it
+    ruled out from the same view before (:func:`same_view`; an estimator proposes a few of
+    the orientations a view allows each frame, not always the same), at most
+    :data:`MAX_RULED_OUT`; nothing without a camera or points."""
+    if cam is None or points <= 0:
+        return
+    known = ctx.known.get(oid)
+    before = None if known is None else known.ranking
+    if oid in ctx.static and same_view(before, cam, points):
+        assert before is not None
+        model = ctx.models[oid]
+        new = [U for U in ruled_out if not _copy_of(U, before.ruled_out, model)]
+        merged = (*before.ruled_out, *new)[:MAX_RULED_OUT]
+        ctx.rankings[oid] = Ranking(before.T_world_cam, before.points, merged)
+    else:
+        ctx.rankings[oid] = Ranking(np.asarray(cam, dtype=float), points, ruled_out)
 
 
 def _decided(ranked, bar, bar_ev, segment, model, T_fit, tau, cfg) -> tuple[int, bool] | None:
@@ -410,21 +526,49 @@ def _turn(ctx: FrameContext, turns: dict[str, tuple[np.ndarray, float, Any, Orie
             ctx.evidence[oid] = _judged(ctx, oid, ctx.owner.get(oid), world.get_pose(oid))
 
 
-def alternatives_state(alternatives: tuple[np.ndarray, ...]) -> dict[str, Any]:
-    """A scene state object's ``alternatives`` entry (none when it has none)."""
-    return {"alternatives": [U.tolist() for U in alternatives]} if alternatives else {}
+def orientations_state(
+    alternatives: tuple[np.ndarray, ...], ranking: Ranking | None
+) -> dict[str, Any]:
+    """A scene state object's ``alternatives`` and ``ranking`` entries (none when it has
+    none)."""
+    out: dict[str, Any] = {}
+    if alternatives:
+        out["alternatives"] = [U.tolist() for U in alternatives]
+    if ranking is not None:
+        out["ranking"] = {
+            "T_world_cam": np.asarray(ranking.T_world_cam).tolist(),
+            "points": int(ranking.points),
+            "ruled_out": [U.tolist() for U in ranking.ruled_out],
+        }
+    return out
 
 
-def alternatives_from_state(entry: Mapping[str, Any]) -> tuple[np.ndarray, ...]:
-    """The remembered alternatives of a scene state object ``entry`` (none in older states).
+def orientations_from_state(
+    entry: Mapping[str, Any],
+) -> tuple[tuple[np.ndarray, ...], Ranking | None]:
+    """The remembered alternatives and :class:`Ranking` of a scene state object ``entry``
+    (none in older states).
 
     Raises:
-        InvalidPoseError: one is not a rigid pose.
+        InvalidPoseError: a pose that is not rigid.
     """
-    return tuple(
-        validate_pose(np.asarray(U, dtype=float), f"object {entry['id']!r}: an alternative")
+    what = f"object {entry['id']!r}"
+    alternatives = tuple(
+        validate_pose(np.asarray(U, dtype=float), f"{what}: an alternative")
         for U in entry.get("alternatives", [])
     )
+    r = entry.get("ranking")
+    if r is None:
+        return alternatives, None
+    ranking = Ranking(
+        validate_pose(np.asarray(r["T_world_cam"], dtype=float), f"{what}: its ranking's camera"),
+        int(r["points"]),
+        tuple(
+            validate_pose(np.asarray(U, dtype=float), f"{what}: a ruled-out orientation")
+            for U in r["ruled_out"]
+        ),
+    )
+    return alternatives, ranking
 
 
 def _aligned(ctx: FrameContext, oid: str, U: np.ndarray) -> np.ndarray:

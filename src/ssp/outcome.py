@@ -21,7 +21,7 @@ import numpy as np
 from ssp.correction import correction_note, correction_of
 from ssp.estimate import ObjectEstimate, SceneEstimate, SupportEdge
 from ssp.frame_context import Known
-from ssp.orientation import Orientation
+from ssp.orientation import Orientation, Ranking
 from ssp.retention import TriageState
 from ssp.scene import TransitionMode
 from ssp.search import CandidateSource
@@ -90,6 +90,7 @@ def transition_modes(ctx: FrameContext) -> None:
             model.name, T, ephemeral, float(score.fit[i]), held=oid in ctx.fallbacks,
             doubt=ctx.doubts.get(oid),
             alternatives=_alternatives(ctx, out_id, orientation),
+            ranking=_ranking(ctx, oid, out_id, orientation),
         )  # fmt: skip
 
 
@@ -102,6 +103,17 @@ def _alternatives(
         return tuple(a.T_world_obj for a in orientation.alternatives)
     known = ctx.known.get(out_id)
     return () if known is None else known.alternatives
+
+
+def _ranking(
+    ctx: FrameContext, oid: str, out_id: str, orientation: Orientation | None
+) -> Ranking | None:
+    """The decided ranking the next frame remembers for ``out_id``: this frame's, or, when
+    this frame did not look, the one it remembered."""
+    if orientation is not None:
+        return ctx.rankings.get(oid)
+    known = ctx.known.get(out_id)
+    return None if known is None else known.ranking
 
 
 def _with_correction(ctx: FrameContext, oid: str, reason: str) -> str:

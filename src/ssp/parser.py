@@ -67,7 +67,7 @@ from ssp.frame_context import FrameContext, Known, Stage
 from ssp.geometry import validate_pose
 from ssp.library.library import ObjectLibrary
 from ssp.library.model import ObjectInstance
-from ssp.orientation import alternatives_from_state, alternatives_state, decide_orientations
+from ssp.orientation import decide_orientations, orientations_from_state, orientations_state
 from ssp.outcome import report_moved, scene_estimate, transition_modes
 from ssp.physics import World
 from ssp.polish import polish_scene
@@ -166,7 +166,7 @@ class SceneParser:
                     "fit": k.fit,
                     "held": k.held,
                     "doubt": k.doubt,
-                    **alternatives_state(k.alternatives),
+                    **orientations_state(k.alternatives, k.ranking),
                 }
                 for oid, k in sorted(self._known.items())
             ],
@@ -214,7 +214,7 @@ class SceneParser:
                     float(o.get("fit", 0.0)),
                     bool(o.get("held", False)),
                     None if o.get("doubt") is None else str(o["doubt"]),
-                    alternatives_from_state(o),
+                    *orientations_from_state(o),
                 )
             for k, r in enumerate(state.get("rejected", [])):  # none in older states
                 cls_name, T = _state_entry(library, r, f"rejected object {k}")
