@@ -679,6 +679,33 @@ class PerceptionConfig(_Section):
             "frame, Linux only; ssp.lanes); the hypotheses are identical for any number."
         ),
     )
+    reuse_unchanged: bool = Field(
+        True,
+        description=(
+            "An instance segment unchanged since the frame its hypotheses were estimated on "
+            "(the same camera; its points' count, centroid and spread alike) keeps them "
+            "instead of being estimated again (ssp.perception.reuse)."
+        ),
+    )
+    reuse_min_score: float = Field(
+        0.7,
+        ge=0,
+        le=1,
+        description=(
+            "Only hypotheses this confident are kept for an unchanged segment (the best score "
+            "of every object found in it); a less confident estimate is made again each frame, "
+            "where another frame's noise may find the object."
+        ),
+    )
+    reuse_min_coverage: float = Field(
+        0.85,
+        ge=0,
+        le=1,
+        description=(
+            "... and only when each object's best hypothesis explains this fraction of the "
+            "segment's points (verification's bar for a new object, min_explained)."
+        ),
+    )
 
 
 class CorrectionConfig(_Section):

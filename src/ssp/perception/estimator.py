@@ -408,6 +408,13 @@ class SegmentResult:
     candidates: int = 0
     #: Why no (further) object was found, in words ("" when the segment was fully explained).
     stopped: str = ""
+    #: the hypotheses of an earlier frame, kept: the segment is unchanged
+    #: (:mod:`ssp.perception.reuse`)
+    reused: bool = False
+    #: per object found: the fraction of the segment's points its best hypothesis explains
+    #: (within ``inlier_distance``; of its points thinned to 3 mm that the objects found
+    #: before it left)
+    coverage: list[float] = field(default_factory=list)
 
     @property
     def hypotheses(self) -> list[Hypothesis]:
@@ -554,6 +561,7 @@ class HypothesisEstimator:
             found, name = best
             kept = _diverse(found, cfg.hypotheses_per_object, cfg, self.table(name).symmetries)
             result.objects.append([Hypothesis(name, T, score=s) for s, T, _ in kept])
+            result.coverage.append(float(found[0][2]))
             explained = self._explained(self.table(name), found[0][1], pts)
             if (remaining & explained).sum() < cfg.min_segment_points:
                 break

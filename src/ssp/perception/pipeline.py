@@ -38,6 +38,7 @@ from ssp.perception.cleaning import clean_segment
 from ssp.perception.depth import cloud_from_depth
 from ssp.perception.estimator import HypothesisEstimator, SegmentResult
 from ssp.perception.normals import estimate_normals
+from ssp.perception.reuse import SegmentMemory, SegmentShape, confident
 from ssp.perception.segmentation import Segmentation, segment_cloud
 from ssp.perception.table import table_frame
 from ssp.scene import Frame, Hypothesis
@@ -182,6 +183,8 @@ class Perception:
             raise PerceptionError("no candidate classes")
         self.classes = tuple(names)
         self.estimator = HypothesisEstimator(library, cfg, seed=seed)
+        #: the segments of the last frame and their hypotheses (``cfg.reuse_unchanged``)
+        self.memory = SegmentMemory()
 
     def segment_request(
         self,
@@ -209,16 +212,21 @@ class Perception:
             shown = ", ".join(str(int(k)) for k in segmentation.segment_ids) or "none"
             raise InputError(f"label {label!r} is not a segment of the segmentation ({shown})")
         seg = pts[segmentation.labels == label]
-        cls = segmentation.classes.get(label)
         return SegmentRequest(
             label=int(label),
             points=seg,
             normals=estimate_normals(seg, k=self.cfg.normal_neighbours, viewpoint=camera),
-            classes=(cls,) if cls is not None else self.classes,
+            classes=self._classes_of(segmentation, label),
             camera=camera,
             single_object=bool(instance),
             seed=self.estimator.seed + int(label),
         )
+
+    def _classes_of(self, segmentation: Segmentation, label: int) -> tuple[str, ...]:
+        """The candidate classes of segment ``label``: the one its segmentation names, else
+        every candidate class."""
+        cls = segmentation.classes.get(label)
+        return (cls,) if cls is not None else self.classes
 
     # ------------------------------------------------------------------ inputs
     def from_depth(
@@ -412,7 +420,9 @@ class Perception:
     ) -> list[Hypothesis]:
         """The estimator's hypotheses for every segment of ``pts`` (world, m), with their
         results in ``segments`` and what was found in ``verdicts`` (per label); timed as
-        ``normals``, ``hypotheses`` and ``estimation`` (forked lanes: ``lanes``)."""
+        ``normals``, ``hypotheses`` and ``estimation`` (forked lanes: ``lanes``). A segment
+        unchanged since its hypotheses were estimated keeps them (``reuse_unchanged``,
+        :mod:`ssp.perception.reuse`; timed as ``unchanged segments``)."""
         hypotheses: list[Hypothesis] = []
         cam = None if T_world_cam is None else np.asarray(T_world_cam)[:3, 3]
         seg_labels = [int(label) for label in segmentation.segment_ids]
@@ -429,18 +439,25 @@ class Perception:
             with timer("hypotheses"):
                 return request.run(self.estimator)
 
+        kept, shapes = self._recall(pts, segmentation, T_world_cam, instance, timer)
+        todo = [label for label in seg_labels if label not in kept]
         lane_timer = StageTimer()
         with timer("estimation"):
-            if self.cfg.processes > 1 and len(seg_labels) > 1:
+            if self.cfg.processes > 1 and len(todo) > 1:
                 # what estimate() caches is built here, before the fork, so every lane has it
-                named = [segmentation.classes.get(label) for label in seg_labels]
+                named = [segmentation.classes.get(label) for label in todo]
                 self.estimator.prepare(
                     [c for c in named if c is not None]
                     + (list(self.classes) if None in named else [])
                 )
             with ForkLanes(one, self.cfg.processes, lane_timer) as lanes:
-                results = lanes.run(None, seg_labels)
-        for label, res in zip(seg_labels, results, strict=True):
+                estimated = lanes.run(None, todo) if todo else []
+        results = dict(kept)
+        results.update(zip(todo, estimated, strict=True))
+        if self.cfg.reuse_unchanged and instance:
+            self._remember(segmentation, shapes, {k: results[k] for k in todo})
+        for label in seg_labels:
+            res = results[label]
             segments[label] = res
             if instance:  # one object per segment: never grouped with another segment's
                 hypotheses.extend(replace(h, segment=label) for h in res.hypotheses)
@@ -451,12 +468,51 @@ class Perception:
                 if res.objects
                 else f"no hypothesis: {res.stopped}"
             )
+            if res.reused:
+                found += " (kept from an earlier frame: the segment is unchanged)"
             verdicts[label] = "; ".join(v for v in (verdicts.get(label), found) if v)
             if not res.objects:
                 log.info("segment %d: %s", label, verdicts[label])
         if LANES_STAGE in lane_timer.seconds:  # forked: the lanes' CPU seconds, apart
             timer.add(LANES_STAGE, lane_timer.seconds[LANES_STAGE])
         return hypotheses
+
+    def _recall(
+        self, pts: np.ndarray, segmentation: Segmentation, T_world_cam: np.ndarray | None,
+        instance: bool, timer: StageTimer,
+    ) -> tuple[dict[int, SegmentResult], dict[int, SegmentShape]]:  # fmt: skip
+        """The instance segments of ``pts`` unchanged since their hypotheses were estimated,
+        with those (:mod:`ssp.perception.reuse`), and every segment's shape: ``({}, {})`` with
+        ``reuse_unchanged`` off or clusters. Timed as ``unchanged segments``."""
+        kept: dict[int, SegmentResult] = {}
+        shapes: dict[int, SegmentShape] = {}
+        if not self.cfg.reuse_unchanged:
+            return kept, shapes
+        if not instance:  # clusters are no object's (module ssp.perception.reuse)
+            self.memory.forget()
+            return kept, shapes
+        self.memory.begin_frame()
+        with timer("unchanged segments"):
+            for label in (int(k) for k in segmentation.segment_ids):
+                shapes[label] = SegmentShape.of(pts[segmentation.labels == label], T_world_cam)
+                got = self.memory.recall(
+                    label, self._classes_of(segmentation, label), shapes[label]
+                )
+                if got is not None:
+                    kept[label] = got
+        return kept, shapes
+
+    def _remember(
+        self, segmentation: Segmentation, shapes: dict[int, SegmentShape],
+        estimated: dict[int, SegmentResult],
+    ) -> None:  # fmt: skip
+        """Remember this frame's ``estimated`` segments that are :func:`confident` with their
+        ``shapes``; what this frame kept and remembered is the next frame's memory."""
+        for label, res in estimated.items():
+            if confident(res, self.cfg.reuse_min_score, self.cfg.reuse_min_coverage):
+                classes = self._classes_of(segmentation, label)
+                self.memory.remember(label, classes, shapes[label], res)
+        self.memory.end_frame()
 
 
 def _check_choice(name: str, value: object, allowed: tuple) -> None:

@@ -18,7 +18,8 @@ hypotheses replace its estimator) and the scene parser. Outputs in ``out``:
 * ``summary.json``: frames done and failed (with the reason), warnings, objects, times;
 * ``run.json``: what the run reads (input files, models, config, options, the scene id and
   object ids), to check a resume;
-* ``state.json``: the parser's state after the last finished frame, and where to go on;
+* ``state.json``: the parser's state and the front end's segment memory
+  (:mod:`ssp.perception.reuse`) after the last finished frame, and where to go on;
 * ``tum/<object id>.txt``: each object's trajectory in the TUM format (:mod:`ssp.io.tum`),
   written when the run ends (finished or stopped).
 
@@ -37,7 +38,8 @@ through a symbolic link in ``out``; a write that fails (a full disk) raises
 :class:`ssp.errors.OutputError` naming the file, the committed frames kept. A run stopped at
 any point (SIGKILL included) is continued by ``run(..., resume=True)`` (``ssp run --resume
 OUT``): the CSV is cut back to the size recorded at the last commit, frame JSONs of frames not
-committed are deleted, the parser resumes from its saved state, and the results are those of
+committed are deleted, the parser and the front end's segment memory resume from their saved
+state, and the results are those of
 an uninterrupted run (only the wall times differ: :data:`ssp.pipeline.summary.TIMING_KEYS`).
 The output folder's files and checks: :mod:`ssp.pipeline.manifest`.
 """
@@ -332,6 +334,7 @@ def _run_frames(
     start = int(state.get("next", 0))
     if start:
         log.info("%s: resuming at frame %d of %d", out, start, source.total)
+        source.perception.memory.restore(state.get("segments", []))  # none in older states
     run_state = {
         "format": STATE_FORMAT,
         "version": FORMAT_VERSION,
@@ -348,7 +351,8 @@ def _run_frames(
 
         def commit(n_next: int, parser_state: dict[str, Any]) -> None:
             """The frames before ``n_next`` are finished once this atomic write is done."""
-            doc = {**run_state, "next": n_next, "csv_bytes": csv.sync(), "parser": parser_state}
+            doc = {**run_state, "next": n_next, "csv_bytes": csv.sync(), "parser": parser_state,
+                   "segments": source.perception.memory.state()}  # fmt: skip
             write_json(out / STATE_JSON, doc, indent=None)
 
         def committed(name: str) -> dict[str, Any] | None:
@@ -450,6 +454,7 @@ def _run_frame(
             "perception": {
                 "hypotheses": len(frame.hypotheses),
                 "segments": len(perceived.segmentation.segment_ids),
+                "reused": sum(r.reused for r in perceived.segments.values()),
                 "timings": perceived.timings,
             },
             "T_world_cam": None if frame.T_world_cam is None else frame.T_world_cam.tolist(),

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
 from ssp.io.results import ObjectIds
-from ssp.perception.pipeline import PerceptionResult
+from ssp.perception.pipeline import Perception, PerceptionResult
 
 __all__ = [
     "HYPOTHESES_MODES",
@@ -74,10 +74,13 @@ class FrameSource(Protocol):
         kind: the input kind, recorded in ``run.json`` and the summary (``folder``, ``bop``,
             ``bag``).
         total: the number of frames.
+        perception: the front end the frames are perceived with (its segment memory,
+            :mod:`ssp.perception.reuse`, is part of the run's state).
     """
 
     kind: str
     total: int
+    perception: Perception
 
     def frames(self, start: int = 0, committed: Committed | None = None) -> Iterator[InputFrame]:
         """The frames from position ``start`` on, in order. A source whose frames depend on
