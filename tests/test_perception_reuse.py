@@ -59,12 +59,16 @@ def test_the_memory_recalls_a_segment_by_label_classes_and_shape_and_round_trips
     p = _cloud(rng)
     shape = SegmentShape.of(p, CAMERA)
     T = make_pose(np.eye(3), [0.1, 0.0, 0.05])
-    result = SegmentResult([[Hypothesis("cube", T, 0.9)]], 0.04, 120, "", coverage=[0.95])
-    assert confident(result, 0.7, 0.85)
-    assert not confident(replace(result, coverage=[0.8]), 0.7, 0.85)  # 20 % unexplained
-    low = SegmentResult([[Hypothesis("cube", T, 0.6)]], coverage=[0.95])
-    assert not confident(low, 0.7, 0.85)
-    assert not confident(SegmentResult(stopped="no pose explained it"), 0.7, 0.85)
+    result = SegmentResult(
+        [[Hypothesis("cube", T, 0.9)]], 0.04, 120, "", coverage=[0.95], rival=[0.6]
+    )
+    bars = (0.7, 0.85, 0.05)
+    assert confident(result, *bars)
+    assert not confident(replace(result, coverage=[0.8]), *bars)  # 20 % unexplained
+    assert not confident(replace(result, rival=[0.88]), *bars)  # another orientation as good
+    low = SegmentResult([[Hypothesis("cube", T, 0.6)]], coverage=[0.95], rival=[0.0])
+    assert not confident(low, *bars)
+    assert not confident(SegmentResult(stopped="no pose explained it"), *bars)
     m = SegmentMemory()
     m.remember(4, ("cube",), shape, result)
     m.end_frame()

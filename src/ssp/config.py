@@ -706,6 +706,16 @@ class PerceptionConfig(_Section):
             "segment's points (verification's bar for a new object, min_explained)."
         ),
     )
+    reuse_min_margin: float = Field(
+        0.05,
+        ge=0,
+        le=1,
+        description=(
+            "... and only when no other orientation (alternative_deg apart) scored within this "
+            "of the best: a view that allows another orientation nearly as well is estimated "
+            "again each frame (the parser's tie margin)."
+        ),
+    )
 
 
 class CorrectionConfig(_Section):

@@ -415,6 +415,10 @@ class SegmentResult:
     #: (within ``inlier_distance``; of its points thinned to 3 mm that the objects found
     #: before it left)
     coverage: list[float] = field(default_factory=list)
+    #: per object found: the best score of a refined pose whose orientation differs from the
+    #: best one's by over ``alternative_deg`` (symmetry-aware; 0 when none): how nearly the
+    #: view allows another orientation
+    rival: list[float] = field(default_factory=list)
 
     @property
     def hypotheses(self) -> list[Hypothesis]:
@@ -562,6 +566,7 @@ class HypothesisEstimator:
             kept = _diverse(found, cfg.hypotheses_per_object, cfg, self.table(name).symmetries)
             result.objects.append([Hypothesis(name, T, score=s) for s, T, _ in kept])
             result.coverage.append(float(found[0][2]))
+            result.rival.append(_rival(found, cfg, self.table(name).symmetries))
             explained = self._explained(self.table(name), found[0][1], pts)
             if (remaining & explained).sum() < cfg.min_segment_points:
                 break
@@ -779,6 +784,15 @@ def _diverse(found: list, k: int, cfg: PerceptionConfig, sym: np.ndarray) -> lis
     kept += [i for i in range(len(found)) if i not in kept][: max(0, k - len(kept))]
     kept.sort()
     return [(float(found[i][0]), found[i][1], float(found[i][2])) for i in kept]
+
+
+def _rival(found: list, cfg: PerceptionConfig, sym: np.ndarray) -> float:
+    """The best score in ``found`` (``[(score, T, coverage)]``, best first) of a pose turned
+    by over ``alternative_deg`` from the first (symmetry-aware); 0 when there is none."""
+    apart = np.radians(cfg.alternative_deg)
+    R = found[0][1][:3, :3]
+    others = [s for s, T, _ in found[1:] if _rotation_distance(T[:3, :3], R, sym) > apart]
+    return float(max(others, default=0.0))
 
 
 def _same_pose(T: np.ndarray, U: np.ndarray, sym: np.ndarray) -> bool:

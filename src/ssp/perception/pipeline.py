@@ -508,8 +508,9 @@ class Perception:
     ) -> None:  # fmt: skip
         """Remember this frame's ``estimated`` segments that are :func:`confident` with their
         ``shapes``; what this frame kept and remembered is the next frame's memory."""
+        cfg = self.cfg
         for label, res in estimated.items():
-            if confident(res, self.cfg.reuse_min_score, self.cfg.reuse_min_coverage):
+            if confident(res, cfg.reuse_min_score, cfg.reuse_min_coverage, cfg.reuse_min_margin):
                 classes = self._classes_of(segmentation, label)
                 self.memory.remember(label, classes, shapes[label], res)
         self.memory.end_frame()
