@@ -15,20 +15,17 @@ of being estimated again (:attr:`SegmentResult.reused`):
 * the same instance label and candidate classes.
 
 Instance segments only (masks): a cluster of the cloud above the table is no object's, and
-clusters merge and split with the noise (on the tools without masks, development seeds 0-1,
-keeping the few clusters that looked the same changed the results for the worse: 2 more
-missed object-frames, 2 static objects reported moved; the time per cluster did not change).
+clusters merge and split with the noise (keeping the few that looked the same changed the
+tools without masks for the worse on development seeds, and saved no time).
 
-The thresholds are above the noise of a static segment and below a move the parser tells from
-a static object (``temporal.static_translation``, 7.5 mm): on the realistic sensor model
-(``ssp bench frame``'s sequences of development seed 3, both experiments, 360 pairs of
-consecutive frames), 95 % of the static segments changed by at most 2.3 % in count and 4.4 %
-in covariance, their centroids by at most 2.4 mm; moved ones by 4.1 mm and more. The shape
-compared is always the one the hypotheses were estimated on, so a slow drift is estimated
-again once it adds up; a segment not seen in a frame is forgotten. Only a confident estimate
-is kept (:func:`confident`): a doubtful one, or one whose view allows another orientation
-nearly as well, is made again each frame. The hypotheses are proposals: the parser aligns the
-poses it keeps to each frame's points.
+The thresholds sit at the upper end of a static segment's frame-to-frame noise on the
+realistic sensor model (development seed 3 of ``ssp bench frame``'s sequences) and below a
+move the parser tells from a static object (``temporal.static_translation``, 7.5 mm). The
+shape compared is always the one the hypotheses were estimated on, so a slow drift is
+estimated again once it adds up; a segment not seen in a frame is forgotten. Only a confident
+estimate is kept (:func:`confident`): a doubtful one, or one whose view allows another
+orientation nearly as well, is made again each frame. The hypotheses are proposals: the
+parser aligns the poses it keeps to each frame's points.
 
 The memory is part of a run's state (:meth:`SegmentMemory.state`), so a resumed run estimates
 what the uninterrupted one did.
@@ -118,17 +115,11 @@ def confident(
     ``min_margin`` (``perception.reuse_min_score``, ``reuse_min_coverage``,
     ``reuse_min_margin``). A less confident estimate is made again each frame, where another
     frame's noise may let the estimator find the object, or propose the orientation the view
-    hides:
-
-    * kept without the coverage bar, a tin proposed for a mug's segment at 0.72 (the mug 0.71;
-      the parser rejected the tin, which explained 68 % of the segment) stayed for a static
-      stage whose next frames' estimates were right (development seed 3);
-    * kept without the margin, a mug whose handle the view hides kept the yaws of one frame,
-      where new ones let the parser's orientations stage decide (on the view-ambiguous
-      protocol's report seeds the mug's rotation error rose from 50 to 55 deg, and above the
-      estimator's own); on development seeds 0-3, 23 of the 89 mug segments that passed the
-      other bars had a wrong best orientation and none of those with a margin of 0.05; 280 of
-      the other tools' 302 kept it, none wrong.
+    hides (docs/perception.md, "Unchanged segments keep their hypotheses"): kept, a tin
+    proposed for a mug's segment just above the mug stayed for a static stage whose next
+    estimates were right, and a mug whose handle the view hides kept one frame's yaws, which
+    the orientations stage needs new each frame (the view-ambiguous protocol's mug error rose
+    from 50.6 to 54.5 deg without the margin).
     """
     n = len(result.objects)
     if not n or len(result.coverage) != n or len(result.rival) != n:
