@@ -14,7 +14,7 @@ import pytest
 import trimesh
 
 from ssp.config import SSPConfig
-from ssp.geometry import make_pose
+from ssp.geometry import SAME_CAMERA_SHIFT, make_pose
 from ssp.library import ObjectLibrary
 from ssp.library.build import build_model
 from ssp.library.builtin import builtin_spec
@@ -24,7 +24,6 @@ from ssp.orientation import (
     CLOSER_RADII,
     DECIDE_MARGIN,
     SAME_VIEW_POINTS,
-    SAME_VIEW_SHIFT,
     Ranking,
     closer,
     decides,
@@ -225,7 +224,7 @@ def test_same_view_needs_the_camera_the_segment_and_only_ruled_out_candidates(li
     assert same_view(r, CAMERA, 1000, [_standing(mug, 50.0)], mug)  # a copy of the ruled out
     assert not same_view(r, CAMERA, 1000, [_standing(mug, 50.0), _standing(mug, 135.0)], mug)
     moved = CAMERA.copy()
-    moved[0, 3] += 2 * SAME_VIEW_SHIFT
+    moved[0, 3] += 2 * SAME_CAMERA_SHIFT
     assert not same_view(r, moved, 1000, [wrong], mug)
     turned = look_at([-0.45, -0.55, 0.6], [0.0, 0.02, 0.03])  # the same place, turned ~2 deg
     assert not same_view(r, turned, 1000, [wrong], mug)

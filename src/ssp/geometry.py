@@ -97,6 +97,25 @@ def rotation_angle(R: np.ndarray) -> float | np.ndarray:
     return np.arccos(np.clip(c, -1.0, 1.0))
 
 
+#: Two camera poses closer than this (m) and turned less than :data:`SAME_CAMERA_TURN` (rad)
+#: see the scene from the same view (:func:`same_camera_pose`): a static camera's pose is the
+#: same every frame, given or located.
+SAME_CAMERA_SHIFT = 0.001
+SAME_CAMERA_TURN = float(np.radians(0.5))
+
+
+def same_camera_pose(T_a: np.ndarray | None, T_b: np.ndarray | None) -> bool:
+    """Whether camera poses ``T_a`` and ``T_b`` (4x4, m) are one view: their centres within
+    :data:`SAME_CAMERA_SHIFT` and their orientations within :data:`SAME_CAMERA_TURN`; never
+    when either is None."""
+    if T_a is None or T_b is None:
+        return False
+    A, B = np.asarray(T_a, dtype=float), np.asarray(T_b, dtype=float)
+    if np.linalg.norm(A[:3, 3] - B[:3, 3]) >= SAME_CAMERA_SHIFT:
+        return False
+    return bool(rotation_angle(A[:3, :3].T @ B[:3, :3]) < SAME_CAMERA_TURN)
+
+
 def validate_pose(T: np.ndarray, what: str = "pose") -> np.ndarray:
     """Return ``T`` as a clean float64 rigid transform or raise :class:`InvalidPoseError`.
 

@@ -59,7 +59,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ssp.errors import PhysicsError
-from ssp.geometry import validate_pose
+from ssp.geometry import same_camera_pose, validate_pose
 from ssp.library.model import ObjectModel
 from ssp.probability import pose_change
 from ssp.registration import icp_refine
@@ -78,8 +78,6 @@ __all__ = [
     "MIN_CLOSER_POINTS",
     "DISTINCT_TURN",
     "SAME_VIEW_POINTS",
-    "SAME_VIEW_SHIFT",
-    "SAME_VIEW_TURN",
     "Alternative",
     "Orientation",
     "Ranking",
@@ -120,14 +118,9 @@ CLOSER_GAIN = 0.005
 #: Fewer segment points than this never decide by distance.
 MIN_CLOSER_POINTS = 30
 
-#: A camera moved less than this (m) and turned less than :data:`SAME_VIEW_TURN` (rad) since
-#: an object's orientations were ranked sees it from the same view (:func:`same_view`): a
-#: static camera's pose is the same every frame, given or located.
-SAME_VIEW_SHIFT = 0.001
-SAME_VIEW_TURN = float(np.radians(0.5))
-
-#: ... and an instance segment whose point count changed by less than this fraction (of the
-#: count then) shows the same part of the object (a handle coming into view adds more).
+#: An instance segment whose point count changed by less than this fraction (of the count
+#: then), seen from the same camera pose, shows the same part of the object (a handle coming
+#: into view adds more).
 SAME_VIEW_POINTS = 0.05
 
 #: A :class:`Ranking` remembers at most this many ruled-out orientations.
@@ -204,16 +197,15 @@ def same_view(
     ranking: Ranking | None, T_world_cam: np.ndarray | None, points: int,
     candidates: list[np.ndarray] | None = None, model: ObjectModel | None = None,
 ) -> bool:  # fmt: skip
-    """Whether ``ranking`` was made from this view: the camera ``T_world_cam`` within
-    :data:`SAME_VIEW_SHIFT` / :data:`SAME_VIEW_TURN` of the one it was ranked from and the
-    instance segment's ``points`` within :data:`SAME_VIEW_POINTS` of its count then; with
+    """Whether ``ranking`` was made from this view: the camera ``T_world_cam`` the one it was
+    ranked from (:func:`ssp.geometry.same_camera_pose`) and the instance segment's ``points``
+    within :data:`SAME_VIEW_POINTS` of its count then; with
     ``candidates`` (this frame's distinct ones, 4x4, of ``model``), also whether each lies
     within :data:`DISTINCT_TURN` of an orientation it ruled out (symmetry-aware): then it
     decides them again."""
-    if ranking is None or T_world_cam is None or ranking.points <= 0:
+    if ranking is None or ranking.points <= 0:
         return False
-    shift, turn = pose_change(ranking.T_world_cam, T_world_cam)
-    if shift >= SAME_VIEW_SHIFT or turn >= SAME_VIEW_TURN:
+    if not same_camera_pose(ranking.T_world_cam, T_world_cam):
         return False
     if abs(points - ranking.points) >= SAME_VIEW_POINTS * ranking.points:
         return False

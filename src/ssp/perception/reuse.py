@@ -8,8 +8,8 @@ remembers what each segment looked like when its hypotheses were estimated
 its points), and a segment of a later frame that looks the same keeps those hypotheses instead
 of being estimated again (:attr:`SegmentResult.reused`):
 
-* the camera within :data:`SAME_CAMERA_SHIFT` and :data:`SAME_CAMERA_TURN` of the one then (a
-  static camera's pose is the same every frame, given or located);
+* the camera pose the same (:func:`ssp.geometry.same_camera_pose`: within 1 mm and 0.5 deg;
+  a static camera's pose is the same every frame, given or located);
 * its points' count within :data:`SAME_POINTS` of the count then, their centroid within
   :data:`SAME_CENTROID`, their covariance within :data:`SAME_SPREAD` (relative, Frobenius);
 * the same instance label and candidate classes.
@@ -40,14 +40,11 @@ from typing import Any
 import numpy as np
 
 from ssp.errors import SSPError
-from ssp.geometry import validate_pose
+from ssp.geometry import same_camera_pose, validate_pose
 from ssp.perception.estimator import SegmentResult
-from ssp.probability import pose_change
 from ssp.scene import Hypothesis
 
 __all__ = [
-    "SAME_CAMERA_SHIFT",
-    "SAME_CAMERA_TURN",
     "SAME_CENTROID",
     "SAME_POINTS",
     "SAME_SPREAD",
@@ -55,11 +52,6 @@ __all__ = [
     "SegmentShape",
     "confident",
 ]
-
-#: A camera moved less than this (m) and turned less than :data:`SAME_CAMERA_TURN` (rad)
-#: sees a segment from the same view.
-SAME_CAMERA_SHIFT = 0.001
-SAME_CAMERA_TURN = float(np.radians(0.5))
 
 #: A segment's point count within this fraction of the count then ...
 SAME_POINTS = 0.04
@@ -93,10 +85,7 @@ class SegmentShape:
     def same(self, other: SegmentShape) -> bool:
         """Whether ``other`` (this frame's) looks like this one (module docstring); never
         without a camera pose."""
-        if self.T_world_cam is None or other.T_world_cam is None or self.points <= 0:
-            return False
-        shift, turn = pose_change(self.T_world_cam, other.T_world_cam)
-        if shift >= SAME_CAMERA_SHIFT or turn >= SAME_CAMERA_TURN:
+        if self.points <= 0 or not same_camera_pose(self.T_world_cam, other.T_world_cam):
             return False
         if abs(other.points - self.points) > SAME_POINTS * self.points:
             return False
