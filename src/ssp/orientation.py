@@ -81,6 +81,7 @@ __all__ = [
     "Alternative",
     "Orientation",
     "Ranking",
+    "Residuals",
     "closer",
     "decide_orientations",
     "decides",
@@ -337,23 +338,23 @@ def decide_orientations(ctx: FrameContext) -> None:
             (orientation_rank(e), U, e) for U, _ in distinct for e in [_judged(ctx, oid, label, U)]
         ]
         ranked.sort(key=lambda r: -r[0])
-        tau = CLOSER_RADII * cfg.data.inlier_radius
-        chosen = _decided(ranked, bar, bar_ev, segment, model, T_fit, tau, cfg)
+        residuals = Residuals(segment, model, CLOSER_RADII * cfg.data.inlier_radius)
+        chosen = _decided(ranked, bar, bar_ev, residuals, T_fit, cfg)
         if chosen is not None:
             k, by_rank = chosen
             best_rank, best, _ = ranked[k]
             turn = pose_change(T, best, model.symmetry, model.center_of_mass)[1]
-            stay = _said(ranked, T, rank, model, bar, segment, T_fit, tau)
+            stay = _said(ranked, T, rank, model, bar, residuals, T_fit)
             if by_rank:
                 check = _ranks_higher(bar)
             else:
-                check = _fits_closer(bar, segment, model, T_fit, tau)
+                check = _fits_closer(bar, residuals, T_fit)
             turns[oid] = (best, float(np.degrees(turn)), check, stay)
             # the pose it leaves is a candidate now
             ranked = [(bar, T_fit, bar_ev)] + ranked[:k] + ranked[k + 1 :]
             T, rank = best, best_rank
             T_fit, bar = best, rank
-        ctx.orientations[oid] = _said(ranked, T, rank, model, bar, segment, T_fit, tau)
+        ctx.orientations[oid] = _said(ranked, T, rank, model, bar, residuals, T_fit)
         if chosen is None and ctx.orientations[oid].decided:
             _remember(ctx, oid, cam, points, proposed)
     if turns:
@@ -383,20 +384,19 @@ def _remember(
         ctx.rankings[oid] = Ranking(np.asarray(cam, dtype=float), points, ruled_out)
 
 
-def _decided(ranked, bar, bar_ev, segment, model, T_fit, tau, cfg) -> tuple[int, bool] | None:
+def _decided(ranked, bar, bar_ev, residuals, T_fit, cfg) -> tuple[int, bool] | None:
     """The candidate of ``ranked`` the data decide for, as ``(its index, by rank)``, or None:
     the best-ranked one when it :func:`decides` against the pose; else, among those tied with
     the pose (within :data:`DECIDE_MARGIN` of ``bar``), the one whose segment points lie
     closer to its surface by the most (:func:`closer`); either must pass the new-object
     check."""
-    n = 0 if segment is None else len(segment)
-    if decides(ranked[0][2], bar_ev, n):
+    if decides(ranked[0][2], bar_ev, residuals.n):
         return (0, True) if check_new(ranked[0][2], cfg).keep else None
     gains = []
     for k, (r, U, e) in enumerate(ranked):
         if r < bar - DECIDE_MARGIN:
             continue
-        gain = closer(segment, model, U, T_fit, tau)
+        gain = residuals.closer(U, T_fit)
         if gain is not None and check_new(e, cfg).keep:
             gains.append((gain, k))
     return (max(gains)[1], False) if gains else None
@@ -408,14 +408,14 @@ def _ranks_higher(bar: float):
     return lambda T, ev: orientation_rank(ev) > bar + DECIDE_MARGIN
 
 
-def _fits_closer(bar: float, segment, model: ObjectModel, T_old: np.ndarray, tau: float):
+def _fits_closer(bar: float, residuals: Residuals, T_old: np.ndarray):
     """The settle's check of a turn the closeness decided: still tied in rank or better, and
     still :func:`closer` than the pose ``T_old`` it left."""
 
     def check(T: np.ndarray, ev: Evidence) -> bool:
         if orientation_rank(ev) < bar - DECIDE_MARGIN:
             return False
-        return closer(segment, model, T, T_old, tau) is not None
+        return residuals.closer(T, T_old) is not None
 
     return check
 
@@ -442,21 +442,46 @@ def closer(
     same points under both poses); else None. A nearly square tin turned a quarter leaves
     the points of its sides 3 mm off, inside the data term's inlier radius: the ranks tie,
     the distances do not."""
-    if segment is None or len(segment) < MIN_CLOSER_POINTS:
-        return None
-    diff = residual_costs(segment, model, T_old, tau) - residual_costs(segment, model, T_new, tau)
-    gain = float(diff.mean())
-    if gain < CLOSER_GAIN:
-        return None
-    sd = float(diff.std(ddof=1))
-    if sd > 0 and gain / (sd / np.sqrt(len(diff))) < DECIDE_Z:
-        return None
-    return gain
+    return Residuals(segment, model, tau).closer(T_new, T_old)
+
+
+class Residuals:
+    """:func:`residual_costs` of one instance segment ``(K, 3)`` (or None) and its model,
+    ``tau`` m, computed once per pose: the stage compares each candidate with the same pose,
+    both ways (:func:`closer`), and the cost of a pose is a KD-tree query of every segment
+    point (about 5 ms for a real capture's box)."""
+
+    def __init__(self, segment: np.ndarray | None, model: ObjectModel, tau: float) -> None:
+        self.segment, self.model, self.tau = segment, model, float(tau)
+        self.n = 0 if segment is None else len(segment)
+        self._costs: dict[bytes, np.ndarray] = {}
+
+    def costs(self, T_world_obj: np.ndarray) -> np.ndarray:
+        """:func:`residual_costs` of the segment at ``T_world_obj`` (4x4, m), ``(K,)``."""
+        T = np.asarray(T_world_obj, dtype=float)
+        key = T.tobytes()
+        if key not in self._costs:
+            assert self.segment is not None
+            self._costs[key] = residual_costs(self.segment, self.model, T, self.tau)
+        return self._costs[key]
+
+    def closer(self, T_new: np.ndarray, T_old: np.ndarray) -> float | None:
+        """:func:`closer`: the decided gain of ``T_new`` over ``T_old``, or None."""
+        if self.n < MIN_CLOSER_POINTS:
+            return None
+        diff = self.costs(T_old) - self.costs(T_new)
+        gain = float(diff.mean())
+        if gain < CLOSER_GAIN:
+            return None
+        sd = float(diff.std(ddof=1))
+        if sd > 0 and gain / (sd / np.sqrt(len(diff))) < DECIDE_Z:
+            return None
+        return gain
 
 
 def _said(
     ranked: list, T: np.ndarray, rank: float, model: ObjectModel, bar: float,
-    segment: np.ndarray | None, T_fit: np.ndarray, tau: float,
+    residuals: Residuals, T_fit: np.ndarray,
 ) -> Orientation:  # fmt: skip
     """The :class:`Orientation` of an object at ``T`` (its rank ``rank``; ``bar``: the rank
     its candidates are compared with, ``rank`` or more) among its other ``ranked``
@@ -468,7 +493,7 @@ def _said(
         turn = np.degrees(pose_change(T, U, model.symmetry, model.center_of_mass)[1])
         if r < bar - DECIDE_MARGIN or turn < np.degrees(DISTINCT_TURN):
             continue
-        if closer(segment, model, T_fit, U, tau) is not None:
+        if residuals.closer(T_fit, U) is not None:
             continue  # the data decided against it
         tied.append(Alternative(U, float(turn), r))
     return Orientation(not tied, rank, tuple(tied))
