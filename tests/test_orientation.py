@@ -25,6 +25,7 @@ from ssp.orientation import (
     DECIDE_MARGIN,
     SAME_VIEW_POINTS,
     Ranking,
+    Residuals,
     closer,
     decides,
     distinct_orientations,
@@ -126,6 +127,11 @@ def test_closer_tells_a_nearly_square_tin_from_its_quarter_turn():
     assert closer(seg, tin, quarter, T, tau) is None
     assert closer(seg[:10], tin, T, quarter, tau) is None
     assert residual_costs(seg, tin, T, tau).mean() < 0.15  # the surface samples are ~4 mm apart
+    # one object's comparisons share each pose's costs, with the same answers
+    residuals = Residuals(seg, tin, tau)
+    assert residuals.closer(T, quarter) == gain and residuals.closer(quarter, T) is None
+    assert residuals.costs(T.copy()) is residuals.costs(T)
+    np.testing.assert_array_equal(residuals.costs(T), residual_costs(seg, tin, T, tau))
 
 
 def test_a_remembered_wrong_orientation_turns_when_the_data_decide(lib):
