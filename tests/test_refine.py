@@ -49,6 +49,26 @@ def _published(root, dest):
     return dest
 
 
+def test_estimate_perceives_each_image_in_its_own_table_frame(lib, dataset, tmp_path, monkeypatch):
+    """ssp estimate's rows are in the camera frame: images without camera poses are each
+    perceived in their own table's world, no camera located across images (a registration
+    each), and the first image's rows are those of a located run (the same world there)."""
+    from ssp.pipeline.world import CameraLocator
+
+    root, _ = dataset
+    pub = _published(root, tmp_path / "pub")
+    lib_pub = lib_with_bop_names(lib, pub)
+    located = estimate(pub, lib_pub, tmp_path / "located" / "est_structure-test.csv",
+                       masks="gt")  # fmt: skip
+    monkeypatch.setattr(CameraLocator, "locate", lambda *a, **k: pytest.fail("located"))
+    own = estimate(pub, lib_pub, tmp_path / "own" / "est_structure-test.csv", masks="gt")
+    assert own["images"] == located["images"] == 4 and not own["failed"]
+    rows = [read_bop_csv(tmp_path / d / "est_structure-test.csv") for d in ("located", "own")]
+    first = [[(r["obj_id"], r["score"], r["R"].tolist(), r["t"].tolist()) for r in rs
+              if r["im_id"] == 0] for rs in rows]  # fmt: skip
+    assert first[0] and first[0] == first[1]
+
+
 def test_refine_writes_a_bop19_csv_that_beats_the_estimator(lib, dataset, tmp_path):
     root, est = dataset
     assert refined_method(est) == "est-ssp"

@@ -75,6 +75,7 @@ __all__ = [
     "CameraNotLocatedError",
     "CameraTracker",
     "planar_icp",
+    "table_pose",
 ]
 
 log = logging.getLogger(__name__)
@@ -297,6 +298,17 @@ def _thinned(points_cam: np.ndarray) -> np.ndarray:
     return p[:: max(1, -(-len(p) // CLOUD_POINTS))]
 
 
+def table_pose(points_cam: np.ndarray, table_distance: float) -> np.ndarray:
+    """``T_world_cam`` (4, 4) of the frame whose table (fitted on about :data:`CLOUD_POINTS`
+    of the camera-frame points ``points_cam`` (N, 3), m, inliers within ``table_distance``
+    m) is the world's z = 0: a first frame's world, or a frame's own.
+
+    Raises:
+        TableNotFoundError: no table in the frame.
+    """
+    return table_frame(_thinned(points_cam), distance=table_distance)[0]
+
+
 def _registered(p: np.ndarray, T_plane: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(points, unit normals)`` of camera-frame ``p`` (N, 3) a frame registers by: in the
     table's frame ``T_plane`` (4, 4, from the camera), above the table, on side surfaces
@@ -372,7 +384,7 @@ class CameraTracker:
                 map from any start (the tracker is unchanged).
         """
         p = np.asarray(points_cam, dtype=float)
-        T_plane, _ = table_frame(_thinned(p), distance=self.table_distance)
+        T_plane = table_pose(p, self.table_distance)
         if self.T_world_cam is None:
             self._add(T_plane, T_plane, *_registered(p, T_plane))
             return CameraFix(T_plane, "table")
@@ -460,7 +472,7 @@ class CameraTracker:
         if self._checked is not None and np.array_equal(T, self.T_world_cam):
             return dict(self._checked)  # the same pose as the frame before: checked there
         p = np.asarray(points_cam, dtype=float)
-        T_plane, _ = table_frame(_thinned(p), distance=self.table_distance)
+        T_plane = table_pose(p, self.table_distance)
         tilt = float(np.degrees(np.arccos(np.clip(T[2, :3] @ T_plane[2, :3], -1.0, 1.0))))
         out = {"how": "given", "tilt_deg": round(tilt, 3),
                "height_mm": round(1000.0 * float(T[2, 3] - T_plane[2, 3]), 2),
@@ -528,7 +540,7 @@ class CameraTracker:
             TableNotFoundError: no table in the frame.
         """
         p = np.asarray(p, dtype=float)
-        T_plane, _ = table_frame(_thinned(p), distance=self.table_distance)
+        T_plane = table_pose(p, self.table_distance)
         T = np.asarray(T, dtype=float)
         self._add(T, T_plane, *_registered(p, T_plane))
         self._tracking = tracked

@@ -66,7 +66,8 @@ class BopSource:
     :data:`ssp.pipeline.sources.HYPOTHESES_MODES`). The world frame is the scene's
     ``cam_R_w2c`` when every image has one (checked against the data:
     :meth:`ssp.pipeline.world.CameraLocator.check`), else the first image's table, each image's
-    camera located in it (:class:`ssp.pipeline.world.CameraLocator`).
+    camera located in it (:class:`ssp.pipeline.world.CameraLocator`); with ``locate`` False
+    (single-frame work: the estimator alone), each image's own table.
     ``masks`` is one of :data:`ssp.io.bop.MASK_MODES` or the path of a detector's instance
     masks (a BOP segmentation results file, :mod:`ssp.io.detections`; ``mask_min_score``
     drops its detections scoring below it): each image's detections are its instance labels,
@@ -97,8 +98,10 @@ class BopSource:
         masks: str = "auto",
         period: float | None = None,
         mask_min_score: float = 0.0,
+        locate: bool = True,
     ) -> None:
         det_file = check_masks(masks)  # checks ``masks`` before reading
+        self.locate = locate
         self.path, self.library, self.mode = path, library, mode
         self.estimates, self.masks = estimates, masks
         self.scene = open_bop(path, library, period=DEFAULT_PERIOD if period is None else period)
@@ -215,7 +218,9 @@ class BopSource:
             cloud = cloud_from_depth(sf.depth, sf.camera)
         T_wc = sf.T_world_cam
         with timer("world frame"):
-            if T_wc is None:
+            if T_wc is None and not self.locate:
+                T_wc, camera_fix = self.locator.own_table(cloud.points)
+            elif T_wc is None:
                 T_wc, camera_fix = self.locator.locate(cloud.points, warnings)
             else:
                 camera_fix = self.locator.check(cloud.points, T_wc, warnings)

@@ -379,8 +379,11 @@ def estimate(
     report: dict[str, Any] = {"csv": str(path), "images": 0, "rows": 0, "failed": []}
     with BopCsvWriter(path, method) as csv:
         for scene_path in scenes:
-            # the frames exactly as ssp run perceives them (world frame, masks, estimator)
-            source = BopSource(scene_path, library, cfg, classes, "estimated", masks=masks)
+            # the frames as ssp run perceives them (masks, estimator), but each camera without
+            # a given pose in its own table's world: the rows are in the camera frame, so
+            # locating the camera across images (a registration each) would buy nothing
+            source = BopSource(scene_path, library, cfg, classes, "estimated", masks=masks,
+                               locate=False)  # fmt: skip
             ids = source.object_ids()
             scene_id = open_bop(scene_path).scene_id
             for k, frame in enumerate(source.frames(0)):

@@ -28,7 +28,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from ssp.errors import PerceptionError
-from ssp.perception.egomotion import CameraNotLocatedError, CameraTracker
+from ssp.perception.egomotion import CameraFix, CameraNotLocatedError, CameraTracker, table_pose
 
 __all__ = ["GIVEN_HEIGHT", "GIVEN_SHIFT", "GIVEN_TILT_DEG", "RESTARTED", "CameraLocator"]
 
@@ -85,6 +85,18 @@ class CameraLocator:
             )
             log.warning("%s", warnings[-1])
             return fix.T_world_cam, {**fix.as_dict(), "how": RESTARTED}
+
+    def own_table(self, points_cam: np.ndarray) -> tuple[np.ndarray, dict]:
+        """``(T_world_cam, how: "table")`` of a frame in its own world, its table's
+        (:func:`ssp.perception.egomotion.table_pose`), the frames before not used: for
+        single-frame work (the estimator alone), where a located camera costs a registration
+        a frame and buys nothing.
+
+        Raises:
+            TableNotFoundError: no table in the frame.
+        """
+        T = table_pose(points_cam, self.table_distance)
+        return T, CameraFix(T, "table").as_dict()
 
     def check(self, points_cam: np.ndarray, T_world_cam: np.ndarray, warnings: list[str]) -> dict:
         """How a given camera pose agrees with the frame's data
