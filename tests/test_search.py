@@ -169,3 +169,33 @@ def test_layered_search_is_deterministic(lib):
     assert r1.score.total == r2.score.total
     np.testing.assert_array_equal(p1, p2)
     assert [(o, on) for o, _, on in log1] == [(o, on) for o, _, on in log2]
+
+
+def test_a_candidate_starting_where_an_earlier_one_did_is_not_tested_again(lib):
+    """search.same_start_translation / same_start_rotation: of ``a``'s candidates, one 0.5 mm
+    and 0.5 deg from its first guess and one 0.5 mm from the 3 mm candidate start the same
+    windows and are merged (counted, the earlier kept); one 3 mm off is tested; 0 tests all."""
+    from ssp.geometry import yaw_pose
+    from ssp.search import distinct_starts
+
+    world, sim, scorer, timer, log, cands, layers, children, i, truth = _tower_and_a_cube(lib)
+    off = cands["a"][0].T_world_obj
+    near_first = make_pose(t=[0.0005, 0.0, 0.0]) @ truth["a"] @ yaw_pose(np.radians(0.5))
+    near_off = make_pose(t=[0.0, 0.0005, 0.0]) @ off
+    cands["a"] = [Candidate(near_first, "hypothesis", 0.8), *cands["a"],
+                  Candidate(near_off, "previous")]  # fmt: skip
+    result = layered_search(world, sim, scorer, cands, layers, children, timer)
+    tested_a = [T for oid, T, _ in log if oid == "a"]
+    assert len(tested_a) == 2 and result.tested == 6 and result.merged == 2
+    np.testing.assert_array_equal(tested_a[1], off)
+    assert result.chosen["a"] in {"current", "hypothesis"}
+
+    # the rule itself: the earlier of two close starts is kept, in order; 0 keeps every one
+    tests = [Candidate(truth["a"], "current"), Candidate(near_first, "hypothesis"),
+             Candidate(off, "hypothesis"), Candidate(near_off, "previous")]  # fmt: skip
+    kept = distinct_starts(tests, 1e-3, np.radians(1.0))
+    assert [c.source for c in kept] == ["current", "hypothesis"]
+    assert kept[1] is tests[2]
+    turned = Candidate(truth["a"] @ yaw_pose(np.radians(2.0)), "hypothesis")
+    assert len(distinct_starts([tests[0], turned], 1e-3, np.radians(1.0))) == 2
+    assert distinct_starts(tests, 0.0, np.radians(1.0)) == tests

@@ -516,6 +516,17 @@ class SearchConfig(_Section):
         2e-4, gt=0, description="At rest below this rotation per step, rad (0.04 rad/s)."
     )
     hypotheses_per_object: int = Field(5, ge=1, description="k: hypotheses kept per object.")
+    same_start_translation: float = Field(
+        1e-3,
+        ge=0,
+        description=(
+            "A candidate within this (m) and same_start_rotation of one tested before it for "
+            "the same object starts the same window and is not tested again (0: test all)."
+        ),
+    )
+    same_start_rotation: float = Field(
+        math.radians(1.0), ge=0, description="... and within this rotation, rad (1 deg)."
+    )
     reach: float = Field(
         0.02,
         ge=0,

@@ -110,10 +110,16 @@ def same_camera_pose(T_a: np.ndarray | None, T_b: np.ndarray | None) -> bool:
     when either is None."""
     if T_a is None or T_b is None:
         return False
+    return poses_within(T_a, T_b, SAME_CAMERA_SHIFT, SAME_CAMERA_TURN)
+
+
+def poses_within(T_a: np.ndarray, T_b: np.ndarray, shift: float, turn: float) -> bool:
+    """Whether poses ``T_a`` and ``T_b`` (4x4, m) have their origins closer than ``shift`` (m)
+    and their orientations turned less than ``turn`` (rad) from each other."""
     A, B = np.asarray(T_a, dtype=float), np.asarray(T_b, dtype=float)
-    if np.linalg.norm(A[:3, 3] - B[:3, 3]) >= SAME_CAMERA_SHIFT:
+    if np.linalg.norm(A[:3, 3] - B[:3, 3]) >= shift:
         return False
-    return bool(rotation_angle(A[:3, :3].T @ B[:3, :3]) < SAME_CAMERA_TURN)
+    return bool(rotation_angle(A[:3, :3].T @ B[:3, :3]) < turn)
 
 
 def validate_pose(T: np.ndarray, what: str = "pose") -> np.ndarray:
