@@ -19,10 +19,16 @@ what does not register. It starts from the constant-velocity prediction of the c
 under half of the points register, also from the last pose (a hand-held camera's shake) and
 from the prediction turned by :data:`LOCAL_TURNS`. A fit is accepted when half of the points
 register, or, while the camera is tracked, :data:`NEAR_MIN_INLIERS` within
-:data:`PREDICTED_SHIFT` of a start; with ``search`` (not in ``ssp run``: it accepted wrong
-turns of BOP-style keyframes), a global search from every :data:`GLOBAL_YAW_STEP` degrees of
-turn about the map's centre with the centroids matched may confirm a weaker fit or find an
-unambiguous one. A frame whose camera is not located so is refused
+:data:`PREDICTED_SHIFT` of a start, and when it passes the free-space check: the camera at
+that pose sees through at most :data:`~ssp.perception.camera_search.MAX_SEEN_THROUGH` of the
+map's points in its view (:func:`ssp.perception.camera_search.seen_through`; a fit that
+registers half of its points at a wrong place puts the map where the camera sees empty
+space). With ``search`` (as ``ssp run`` locates cameras), a frame not tracked so, or tracked
+far from where the camera was heading (a jump: BOP-style keyframes 10-30 deg apart), is
+searched globally: the starts of a footprint correlation over every turn and shift
+(:func:`ssp.perception.camera_search.correlated_starts`), each registered, those passing the
+free-space check compared (the lowest cost, unless another turned :data:`DISTINCT_YAW` away
+registers about as many points). A frame whose camera is not located so is refused
 (:class:`CameraNotLocatedError`), not guessed (``ssp run`` then starts the world frame again:
 :mod:`ssp.pipeline.world`).
 
@@ -51,15 +57,20 @@ from scipy.spatial import cKDTree
 
 from ssp.errors import PerceptionError
 from ssp.geometry import yaw_pose
+from ssp.perception.camera_search import (
+    MAX_SEEN_THROUGH,
+    correlated_starts,
+    free_space_view,
+    seen_through,
+)
 from ssp.perception.estimator import voxel_thin
 from ssp.perception.normals import estimate_normals
 from ssp.perception.table import table_frame
+from ssp.visibility import CameraView
 
 __all__ = [
     "ABOVE_TABLE",
-    "AGREE_SHIFT",
     "CLOUD_POINTS",
-    "GLOBAL_YAW_STEP",
     "ICP_SCALES",
     "KEEP_SHIFT",
     "LOCAL_TURNS",
@@ -69,7 +80,6 @@ __all__ = [
     "NEAR_MIN_INLIERS",
     "PREDICTED_SHIFT",
     "SEARCH_INLIERS",
-    "SEARCH_POINTS",
     "SIDE_TILT_DEG",
     "CameraFix",
     "CameraNotLocatedError",
@@ -101,21 +111,14 @@ most of what the map holds."""
 LOCAL_TURNS = (0.0, -4.0, 4.0, -8.0, 8.0)
 """Turns about the map's centre (degrees) added to the prediction, each a start of the
 tracking ICP (the lowest cost wins): a camera that speeds up or turns."""
-GLOBAL_YAW_STEP = 10.0
-"""Turn step of the global search, degrees."""
-SEARCH_POINTS = 1500
-"""Points (an even subsample) the global search registers from each turn; its best solution
-is then refined with all of them."""
 SEARCH_INLIERS = 0.5
-"""Fewest inlier fraction of a global search's solution (more than a tracked one needs)."""
+"""Fewest inlier fraction of a tracked solution far from the prediction (else the other
+local starts are tried too, and the solution must lie near a start)."""
 PREDICTED_SHIFT = 0.01
 """A tracked solution that registers less than :data:`SEARCH_INLIERS` of the points (new
 objects in view) is taken when it moves them less than this from the prediction or the last
-pose on average, m; farther (a jump, BOP keyframes: perhaps a wrong minimum) it needs a global
-search's agreement."""
-AGREE_SHIFT = 0.005
-"""A tracked solution that registers few points is confirmed by a global search whose best
-solution moves the points by less than this from it on average, m."""
+pose on average, m; farther (a jump, BOP keyframes: perhaps a wrong minimum) it is refused,
+and with ``search`` it competes with the global search's solution."""
 SEARCH_MARGIN = 0.15
 """A global solution is ambiguous when another this close in inlier fraction ..."""
 DISTINCT_YAW = 20.0
@@ -344,8 +347,7 @@ class CameraTracker:
     Args:
         table_distance: the table fit's inlier distance, m.
         search: run the global search when the frame does not track from the prediction or
-            the last pose (``ssp run`` does not: on the realistic stream's BOP-style keyframes
-            it accepted wrong turns, docs/benchmarks.md, moving cameras).
+            the last pose, or tracks far from it (module docstring; ``ssp run`` does).
     """
 
     def __init__(self, table_distance: float = 0.006, search: bool = True) -> None:
@@ -401,43 +403,46 @@ class CameraTracker:
         tree = cKDTree(target)
         last = self.T_world_cam
         tracking, self._tracking = self._tracking, False  # until this frame is located
-        pred = last if self._before is None else last @ np.linalg.inv(self._before) @ last
-        G0 = _snap(pred, T_plane) @ np.linalg.inv(T_plane)
         G_last = last @ np.linalg.inv(T_plane)  # where the last pose puts the points
-        c = tree.data.mean(axis=0)
-        fit = self._register(q, tree, normals, G0)  # from the constant-velocity prediction
-        G_still = _snap(last, T_plane) @ np.linalg.inv(T_plane)  # the camera as it was
-        # fewer than half registered: perhaps a wrong minimum; the other starts too
-        if self._before is not None and fit.inliers < SEARCH_INLIERS:
-            fit = min(fit, self._register(q, tree, normals, G_still), key=lambda f: f.cost)
-        for deg in LOCAL_TURNS[1:] if fit.inliers < SEARCH_INLIERS else ():
-            fit = min(fit, self._register(q, tree, normals, _turned(G0, deg, c)),
-                      key=lambda f: f.cost)  # fmt: skip
+        fit, near = self._tracked(q, tree, normals, T_plane)
+        near = near and tracking  # a start that means something: tracked just before
         how, n = "tracked", len(q)
         registered = fit.inliers  # the best start's, for the message
-        # near a start that means something: the camera tracked over the frames just before
-        near = tracking and min(_shift(q, fit.G, G0), _shift(q, fit.G, G_still)) < PREDICTED_SHIFT
         floor = NEAR_MIN_INLIERS if near else MIN_INLIERS
-        if not fit.tracks(n, floor) or (fit.inliers < SEARCH_INLIERS and not near):
-            if not self.search:  # perhaps a wrong minimum, and nothing to confirm it
+        views: list[CameraView] = []  # the frame's free-space view, built once when needed
+
+        def clear(f: _Fit) -> float:
+            """The fraction of the map in view that ``f`` makes the camera see through."""
+            if not views:
+                views.append(free_space_view(_thinned(p)))
+            return seen_through(views[0], f.G @ T_plane, self._map, self._map_normals)[0]
+
+        through = None
+        if fit.tracks(n, floor) and (fit.inliers >= SEARCH_INLIERS or near):
+            through = clear(fit)
+            if through > MAX_SEEN_THROUGH:  # registered at a wrong place
+                log.info("camera fit refused: it sees through %.0f %% of the map in view",
+                         100 * through)  # fmt: skip
                 fit = fit.refused()
-            else:
-                best, unambiguous = self._search(q, tree, normals)
-                if fit.tracks(n, floor) and _shift(q, best.G, fit.G) < AGREE_SHIFT:
-                    pass  # the search confirms the tracked solution
-                elif unambiguous:
-                    fit, how = best, "searched"
-                else:
-                    fit = fit.refused()
+        else:
+            fit = fit.refused()
+        # not tracked, or far from where the camera was heading (a jump: perhaps a local
+        # minimum that registers half of the points): the global search, the lower cost wins
+        if self.search and not (near and fit.tracks(n, floor)):
+            found = self._search(q, tree, normals, clear)
+            if found is not None and (not fit.tracks(n, floor) or found.cost < fit.cost):
+                fit, floor, how = found, MIN_INLIERS, "searched"
         if not fit.tracks(n, floor):
             raise CameraNotLocatedError(
                 f"the camera could not be located: from the starts tried {100 * registered:.0f} "
                 f"% of the {n} points above the table register to the map (at least "
                 f"{100 * NEAR_MIN_INLIERS:.0f} % needed near the predicted pose, "
-                f"{100 * MIN_INLIERS:.0f} % farther, {100 * SEARCH_INLIERS:.0f} % unless a "
-                "global search agrees)"
-                + (", and no turn of a global search does so unambiguously" if self.search else "")
-            )
+                f"{100 * SEARCH_INLIERS:.0f} % farther)"
+                + ("" if through is None else f", or the camera would see through "
+                   f"{100 * through:.0f} % of the map in view")
+                + (", and no start of the global search registers unambiguously with the map "
+                   "in view" if self.search else "")
+            )  # fmt: skip
         if self._known is not None:  # the known objects' exact surfaces refine it
             ktree = cKDTree(self._known[0])
             kn = self._known[1]
@@ -490,36 +495,52 @@ class CameraTracker:
         self._checked, self._tracking = out, False  # given, not tracked
         return out
 
+    def _tracked(self, q, tree, normals, T_plane) -> tuple[_Fit, bool]:
+        """The best registration of the points ``q`` from the local starts (module
+        docstring): the constant-velocity prediction; when under half register, also the last
+        pose and the prediction turned by :data:`LOCAL_TURNS`. And whether it lies within
+        :data:`PREDICTED_SHIFT` of the prediction or the last pose."""
+        last = self.T_world_cam
+        assert last is not None
+        pred = last if self._before is None else last @ np.linalg.inv(self._before) @ last
+        G0 = _snap(pred, T_plane) @ np.linalg.inv(T_plane)
+        c = tree.data.mean(axis=0)
+        fit = self._register(q, tree, normals, G0)  # from the constant-velocity prediction
+        G_still = _snap(last, T_plane) @ np.linalg.inv(T_plane)  # the camera as it was
+        # fewer than half registered: perhaps a wrong minimum; the other starts too
+        if self._before is not None and fit.inliers < SEARCH_INLIERS:
+            fit = min(fit, self._register(q, tree, normals, G_still), key=lambda f: f.cost)
+        for deg in LOCAL_TURNS[1:] if fit.inliers < SEARCH_INLIERS else ():
+            fit = min(fit, self._register(q, tree, normals, _turned(G0, deg, c)),
+                      key=lambda f: f.cost)  # fmt: skip
+        near = min(_shift(q, fit.G, G0), _shift(q, fit.G, G_still)) < PREDICTED_SHIFT
+        return fit, near
+
     def _register(self, q, tree, normals, G0, scales=ICP_SCALES) -> _Fit:
         """:func:`planar_icp` from ``G0`` and how well it registers (:func:`_fit`)."""
         return _fit(q, tree, normals, planar_icp(q, tree, normals, G0, scales))
 
-    def _search(self, q, tree, normals) -> tuple[_Fit, bool]:
-        """The best registration from every :data:`GLOBAL_YAW_STEP` turn, centroids matched
-        (:data:`SEARCH_POINTS` of the points; the best refined with all),
-        and whether it is unambiguous: at least :data:`SEARCH_INLIERS` register, and no
-        solution turned :data:`DISTINCT_YAW` or more from it comes within
-        :data:`SEARCH_MARGIN` (a scene of a few cubes looks alike from several sides)."""
-        c, qc = tree.data.mean(axis=0), q.mean(axis=0)
-        few = q[np.linspace(0, len(q) - 1, min(len(q), SEARCH_POINTS)).astype(int)]
-        found = []
-        for deg in np.arange(0.0, 360.0, GLOBAL_YAW_STEP):
-            G0 = yaw_pose(np.radians(deg))
-            m = G0[:3, :3] @ qc
-            G0[0, 3], G0[1, 3] = c[0] - m[0], c[1] - m[1]
-            found.append(self._register(few, tree, normals, G0))
-        found.sort(key=lambda f: -f.inliers)
-        best = self._register(q, tree, normals, found[0].G, ICP_SCALES[-2:])  # all the points
-        for other in found[1:]:
-            turn = abs((other.yaw - found[0].yaw + np.pi) % (2 * np.pi) - np.pi)
-            if (
-                turn >= np.radians(DISTINCT_YAW)
-                and other.inliers > found[0].inliers - SEARCH_MARGIN
-            ):
+    def _search(self, q, tree, normals, clear) -> _Fit | None:
+        """The global search (module docstring): each start of the footprint correlation
+        (:func:`ssp.perception.camera_search.correlated_starts`) registered, those that
+        register :data:`MIN_INLIERS` of the points and make the camera see through at most
+        :data:`~ssp.perception.camera_search.MAX_SEEN_THROUGH` of the map in view
+        (``clear(fit)``) compared: the lowest cost, unless another turned
+        :data:`DISTINCT_YAW` or more from it registers within :data:`SEARCH_MARGIN` of its
+        inliers (a scene of a few cubes looks alike from several sides): then None."""
+        n = len(q)
+        fits = [self._register(q, tree, normals, G0) for G0 in correlated_starts(tree.data, q)]
+        ok = [f for f in fits if f.tracks(n, MIN_INLIERS) and clear(f) <= MAX_SEEN_THROUGH]
+        if not ok:
+            return None
+        best = min(ok, key=lambda f: f.cost)
+        for other in ok:
+            turn = abs((other.yaw - best.yaw + np.pi) % (2 * np.pi) - np.pi)
+            if turn >= np.radians(DISTINCT_YAW) and other.inliers > best.inliers - SEARCH_MARGIN:
                 log.info("camera search ambiguous: %.2f and %.2f inliers %.0f deg apart",
-                         found[0].inliers, other.inliers, np.degrees(turn))  # fmt: skip
-                return best, False
-        return best, best.inliers >= SEARCH_INLIERS
+                         best.inliers, other.inliers, np.degrees(turn))  # fmt: skip
+                return None
+        return best
 
     def checked(self, T: np.ndarray, p: np.ndarray, check: dict) -> None:
         """A resumed run's frame whose given pose ``T`` was checked (``check``: what

@@ -4,7 +4,9 @@ A BOP scene without ``cam_R_w2c`` or a bag without tf gives each frame's cloud i
 frame only. :class:`CameraLocator` puts the frames in one world frame, the table's in the first
 frame, by locating the camera in each (:class:`ssp.perception.egomotion.CameraTracker`: the
 table plane, then a registration of the points above the table to those of the frames
-before). The frame JSON's ``camera`` says how (:meth:`ssp.perception.egomotion.CameraFix.as_dict`).
+before, checked against the free space the new view sees; a jump, as between BOP-style
+keyframes, by the global search). The frame JSON's ``camera`` says how
+(:meth:`ssp.perception.egomotion.CameraFix.as_dict`).
 
 The parser's objects are not a registration target here, though the tracker can take them
 (:meth:`~ssp.perception.egomotion.CameraTracker.know`): objects estimated in a frame carry
@@ -56,7 +58,7 @@ class CameraLocator:
 
     def __init__(self, table_distance: float) -> None:
         self.table_distance = float(table_distance)
-        self.tracker = CameraTracker(self.table_distance, search=False)
+        self.tracker = CameraTracker(self.table_distance, search=True)
 
     @property
     def started(self) -> bool:
@@ -75,7 +77,7 @@ class CameraLocator:
             fix = self.tracker.update(points_cam)
             return fix.T_world_cam, fix.as_dict()
         except CameraNotLocatedError as exc:
-            tracker = CameraTracker(self.table_distance, search=False)
+            tracker = CameraTracker(self.table_distance, search=True)
             fix = tracker.update(points_cam)  # the table's frame; raises when there is none
             self.tracker = tracker
             warnings.append(
@@ -140,7 +142,7 @@ class CameraLocator:
         if record.get("status") == "failed" or T is None:
             return
         if camera.get("how") == RESTARTED:
-            self.tracker = CameraTracker(self.table_distance, search=False)
+            self.tracker = CameraTracker(self.table_distance, search=True)
         try:
             if camera.get("how") == "given":
                 self.tracker.checked(T, points_cam, camera)
