@@ -24,15 +24,13 @@ that pose sees through at most :data:`~ssp.perception.camera_search.MAX_SEEN_THR
 map's points in its view (:func:`ssp.perception.camera_search.seen_through`; a fit that
 registers its points at a wrong place puts the map where the camera sees empty space).
 Objects moved since the map saw them are seen through at the right pose too: a frame after
-such a change may be refused (a restart in ``ssp run``), not located wrongly. Exempting fits
-near the prediction from the check was tried: on the hand-held path of the camera bench's
-seeds 2000-2002 it let a fit 14 mm off through, and the map it polluted later gave a global
-search's turn 213 mm off. With ``search`` (as ``ssp run`` locates cameras), a frame not
-tracked so, or tracked far from where the camera was heading (a jump: BOP-style keyframes
-10-30 deg apart), is searched globally: the starts of a footprint correlation over every
-turn and shift (:func:`ssp.perception.camera_search.correlated_starts`), each registered,
-those passing the free-space check compared (the lowest cost, unless another turned
-:data:`DISTINCT_YAW` away registers about as many points). A frame whose camera is not
+such a change may be refused (a restart in ``ssp run``), not located wrongly. With
+``search`` (as ``ssp run`` locates cameras), a frame not tracked so, or tracked far from
+where the camera was heading (a jump: BOP-style keyframes 10-30 deg apart), is searched
+globally: the starts of a footprint correlation over every turn and shift
+(:func:`ssp.perception.camera_search.correlated_starts`), each registered, those passing the
+free-space check compared (the lowest cost, unless another turned :data:`DISTINCT_YAW` away
+registers about as many points). A frame whose camera is not
 located so is refused
 (:class:`CameraNotLocatedError`), not guessed (``ssp run`` then starts the world frame again:
 :mod:`ssp.pipeline.world`).
@@ -462,8 +460,7 @@ class CameraTracker:
         if moved < KEEP_SHIFT or _fit(q, tree, normals, G_last).cost <= fit.cost:
             T, how = last, "kept"
         self._add(T, T_plane, q, q_normals)
-        # a searched frame jumped: the next frame's prediction from that jump means nothing
-        self._tracking = how != "searched"
+        self._tracking = True
         return CameraFix(T.copy(), how, fit.inliers, fit.rms_mm, len(q))
 
     def check(self, points_cam: np.ndarray, T_world_cam: np.ndarray) -> dict:
@@ -561,7 +558,7 @@ class CameraTracker:
         """Keep ``T`` (4, 4) as the pose of the frame of camera-frame points ``p`` (N, 3; m)
         and its registered points in the map, as :meth:`update` does with a located frame: a
         resumed run's frames committed before (``tracked``: located from the frame before,
-        not the first, a restart or a global search).
+        not the first or a restart).
 
         Raises:
             TableNotFoundError: no table in the frame.

@@ -147,7 +147,7 @@ class CameraLocator:
             if camera.get("how") == "given":
                 self.tracker.checked(T, points_cam, camera)
             else:
-                tracked = camera.get("how") in ("tracked", "kept")  # as update() leaves it
+                tracked = camera.get("how") in ("tracked", "kept", "searched")
                 self.tracker.accept(np.asarray(T, dtype=float), np.asarray(points_cam, dtype=float),
                                     tracked)  # fmt: skip
         except PerceptionError:
