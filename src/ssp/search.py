@@ -316,8 +316,7 @@ def layered_search(
     """
     ids = world.ids
     reach = float(sim.config.search.reach)
-    shift = float(sim.config.search.same_start_translation)
-    turn = float(sim.config.search.same_start_rotation)
+    same = (sim.config.search.same_start_translation, sim.config.search.same_start_rotation)
     parents: dict[int, list[int]] = {}
     for p, kids_of_p in children.items():
         for c in kids_of_p:
@@ -356,15 +355,13 @@ def layered_search(
                 kids = [c for c in children.get(i, ()) if not world.is_enabled(ids[c])]
                 current = Candidate(world.get_pose(oid), CandidateSource.CURRENT)
                 every = [current, *candidates.get(oid, ())]
-                tests = distinct_starts(every, shift, turn)
+                tests = distinct_starts(every, *same)
                 chosen[oid] = _test_candidates(world, i, tests, kids, reach, parents, lanes, failed)
                 tested += len(tests)
                 merged += len(every) - len(tests)
     for i in in_search:
         world.set_enabled(ids[i], True)
     score = _final_settle(world, sim, scorer, timer)
-    if merged:
-        log.debug("search: %d candidates started where an earlier one did: not tested", merged)
     return SearchResult(score=score, chosen=chosen, tested=tested, merged=merged, failed=failed)
 
 
