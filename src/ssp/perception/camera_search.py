@@ -13,7 +13,7 @@ lie centimetres apart, beyond the ICP's reach). Two pieces, each cheap:
   :data:`STARTS` best turns (at least :data:`DISTINCT_STARTS` degrees apart) are the starts of
   the planar ICP. On the structure keyframes of development seeds 0-1 (38 frames), the best
   start converged to the right pose (within 3 mm at the objects) in every frame; the turns with
-  matched centroids in 18.
+  matched centroids in 18 (a development script, not kept).
 * **Free-space check** (:func:`seen_through`): a registration puts the map's points (surfaces
   seen in the frames before) in the new view; at the right pose the camera sees them where
   they are or something in front of them; at a wrong one it sees through many of them (the
