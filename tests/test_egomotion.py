@@ -180,3 +180,20 @@ def test_keyframes_10_to_30_deg_apart_are_located_by_the_global_search(lib):
     searched = _located(seq, CameraTracker(search=True))
     assert len(searched) == len(seq) - 1 and "searched" in {how for how, _ in searched}
     assert max(err for _, err in alone + searched) < 0.003
+
+
+def test_a_static_camera_keeps_its_world_when_objects_are_taken_away(lib):
+    """Half of the objects taken away (the table seen where they stood, as a robot picking
+    them leaves it): the free-space check would see through their old places, but a fit that
+    keeps the camera where it was checks nothing new: the pose is kept, not refused."""
+    seq = generate_sequence("structure", 3, lib, **SMALL)
+    tr = CameraTracker()
+    first = tr.update(_cloud(seq, 0)).T_world_cam
+    p = _cloud(seq, 1)
+    height = p @ first[2, :3] + first[2, 3]
+    above = height > 0.004
+    gone = above & (p[:, 0] > np.median(p[above, 0]))
+    p[gone] *= (-first[2, 3] / (p[gone] @ first[2, :3]))[:, None]  # the table behind them
+    fix = tr.update(p)
+    assert fix.how == "kept"
+    np.testing.assert_array_equal(fix.T_world_cam, first)

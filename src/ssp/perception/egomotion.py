@@ -23,8 +23,10 @@ register, or, while the camera is tracked, :data:`NEAR_MIN_INLIERS` within
 that pose sees through at most :data:`~ssp.perception.camera_search.MAX_SEEN_THROUGH` of the
 map's points in its view (:func:`ssp.perception.camera_search.seen_through`; a fit that
 registers its points at a wrong place puts the map where the camera sees empty space).
-Objects moved since the map saw them are seen through at the right pose too: a frame after
-such a change may be refused (a restart in ``ssp run``), not located wrongly. With
+Objects moved since the map saw them are seen through at the right pose too: a moving
+camera's frame after such a change may be refused (a restart in ``ssp run``), not located
+wrongly; a fit that keeps the camera where it was (:data:`KEEP_SHIFT`) is not checked, so a
+static camera whose objects are taken away keeps its world. With
 ``search`` (as ``ssp run`` locates cameras), a frame not tracked so, or tracked far from
 where the camera was heading (a jump: BOP-style keyframes 10-30 deg apart), is searched
 globally: the starts of a footprint correlation over every turn and shift
@@ -422,8 +424,11 @@ class CameraTracker:
 
         through = None
         if fit.tracks(n, floor) and (fit.inliers >= SEARCH_INLIERS or near):
-            through = clear(fit)
-            if through > MAX_SEEN_THROUGH:  # registered at a wrong place
+            # a fit that leaves the camera where it was keeps a pose located before: nothing
+            # to check (objects taken away are seen through there, and must not restart it)
+            if _shift(q, fit.G, G_last) >= KEEP_SHIFT:
+                through = clear(fit)
+            if through is not None and through > MAX_SEEN_THROUGH:  # at a wrong place
                 log.info("camera fit refused: it sees through %.0f %% of the map in view",
                          100 * through)  # fmt: skip
                 fit = fit.refused()
