@@ -227,9 +227,9 @@ def distinct_starts(tests: Sequence[Candidate], shift: float, turn: float) -> li
     ``same_start_rotation``). A window corrects errors of several millimetres (the
     module's quasi-static stepping), so two starts a millimetre apart end where one of them
     does, and the test of the later one is a second simulation of the same outcome (an
-    estimator's refined proposals often converge to nearly one pose; the realistic stream's
-    development seeds had a quarter of the candidates within 1 mm and 1 deg of an earlier
-    one). The earlier candidate is kept, as the search's ties keep the earlier one."""
+    estimator's refined proposals often converge to nearly one pose, and an unmoved object's
+    previous pose lies near its first guess). The earlier candidate is kept, as the search's
+    ties keep the earlier one."""
     if shift <= 0.0 or turn <= 0.0:
         return list(tests)
     kept: list[Candidate] = []
