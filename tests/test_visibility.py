@@ -339,3 +339,19 @@ def test_a_convex_object_never_hides_itself(eye):
         view = CameraView(render(T, [], noise=0.0), T)
         state = view.classify(np.asarray(pts), nrm, self_spacing=float(np.sqrt(mesh.area / 1000)))
         assert np.count_nonzero(state == vis.SELF_HIDDEN) == 0
+
+
+def test_least_depth_sees_the_edge_of_a_silhouette_and_past_a_floating_point(view, T_cam):
+    """The least depth among the rays around a point: a point on box A's far top edge (its
+    silhouette against the table behind) has the box's own rays around it, so the least
+    depth is not behind it, though its nearest ray may pass beside the box; a point floating
+    above the bare table has only the table around it, behind it."""
+    x = np.linspace(-0.035, 0.035, 15)
+    edge = np.column_stack([x, np.full_like(x, -0.05 + 0.03), np.full_like(x, 0.10)])
+    floating = np.array([[*FREE_SPOT, 0.05]])
+    T_cam_world = np.linalg.inv(T_cam)
+    depth = lambda p: (p @ T_cam_world[:3, :3].T + T_cam_world[:3, 3])[:, 2]  # noqa: E731
+    least = view.least_depth(edge, 8, 2.0)
+    assert np.all(least - depth(edge) < 0.005)
+    assert view.least_depth(floating, 8, 2.0)[0] - depth(floating)[0] > 0.03
+    assert np.isinf(view.least_depth(np.array([[0.0, -2.0, 0.5]]), 8, 2.0)).all()  # behind

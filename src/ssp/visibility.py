@@ -346,6 +346,28 @@ class CameraView:
             facing &= ~self_hidden
         return facing, self_hidden, p_cam
 
+    def least_depth(self, points_world: np.ndarray, k: int, reach: float) -> np.ndarray:
+        """(M,) the least observed depth (m) among the ``k`` observed rays nearest to the ray
+        of each point ``points_world`` (M, 3; m, world frame) within ``reach`` x the angular
+        resolution; ``inf`` where none is (or the point is not in front of the camera). What
+        the camera saw nearest along any ray around a point: a point whose least depth lies
+        behind it was seen through by every ray around it, not only by one at a
+        silhouette's edge."""
+        out = np.full(len(points_world), np.inf)
+        if self._tree is None or not len(points_world):
+            return out
+        p_cam = transform_points(self._T_cam_world, _as_points(points_world, "points_world"))
+        front = p_cam[:, 2] > MIN_DEPTH
+        if not front.any():
+            return out
+        rays = np.ascontiguousarray(p_cam[front, :2] / p_cam[front, 2:3])
+        dist, idx = self._tree.query(rays, k=int(k), distance_upper_bound=reach * self._resolution)
+        dist, idx = dist.reshape(len(rays), -1), idx.reshape(len(rays), -1)
+        found = np.isfinite(dist)
+        depths = np.where(found, self._depths[np.where(found, idx, 0)], np.inf)
+        out[front] = depths.min(axis=1)
+        return out
+
     def _nearest_rays(self, p_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(found, idx)`` per camera-frame point (N, 3) in front of the camera: whether an
         observed point's ray is within the angular resolution of its ray, and that point's
