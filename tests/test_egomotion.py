@@ -227,7 +227,7 @@ def test_a_moving_camera_is_located_where_objects_were_taken_away_and_forgets_th
     tr = CameraTracker()
     first = tr.update(_cloud(seq, 0)).T_world_cam
     align = seq.camera_pose(0) @ np.linalg.inv(first)
-    tr.update(_cloud(seq, 1))
+    second = tr.update(_cloud(seq, 1))
     T_true = np.linalg.inv(align) @ seq.camera_pose(2)
     p = _taken_away(_cloud(seq, 2), T_true, share=0.35)
     before = seen_through(free_space_view(_thinned(p)), T_true, tr._map, tr._map_normals)[0]
@@ -236,3 +236,9 @@ def test_a_moving_camera_is_located_where_objects_were_taken_away_and_forgets_th
     assert _scene_error(align @ fix.T_world_cam, seq.camera_pose(2), seq.frames[2].gt) < 0.003
     after = seen_through(free_space_view(_thinned(p)), T_true, tr._map, tr._map_normals)[0]
     assert before > 0.05 and after < 0.01  # the gone surfaces were in the map, now are not
+    # a resumed run's tracker, given the frames' poses, holds the same map
+    resumed = CameraTracker()
+    resumed.accept(first, _cloud(seq, 0))
+    for f, q in ((second, _cloud(seq, 1)), (fix, p)):
+        resumed.accept(f.T_world_cam, q, True, f.how in ("tracked", "searched"))
+    np.testing.assert_array_equal(resumed._map, tr._map)

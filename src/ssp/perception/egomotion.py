@@ -466,8 +466,8 @@ class CameraTracker:
         T = G @ T_plane
         if moved < KEEP_SHIFT or _fit(q, tree, normals, G_last).cost <= fit.cost:
             T, how = last, "kept"
-        if views:  # the map forgets what the located camera sees through (moved since)
-            self._carve(views[0], T)
+        if how != "kept":  # the map forgets what the moved camera sees through (gone since)
+            self._carve(views[0] if views else free_space_view(_thinned(p)), T)
         self._add(T, T_plane, q, q_normals)
         self._tracking = True
         return CameraFix(T.copy(), how, fit.inliers, fit.rms_mm, len(q))
@@ -577,11 +577,14 @@ class CameraTracker:
         self.accept(T, p)
         self._checked = dict(check)
 
-    def accept(self, T: np.ndarray, p: np.ndarray, tracked: bool = False) -> None:
+    def accept(
+        self, T: np.ndarray, p: np.ndarray, tracked: bool = False, moved: bool = False
+    ) -> None:
         """Keep ``T`` (4, 4) as the pose of the frame of camera-frame points ``p`` (N, 3; m)
         and its registered points in the map, as :meth:`update` does with a located frame: a
         resumed run's frames committed before (``tracked``: located from the frame before,
-        not the first or a restart).
+        not the first or a restart; ``moved``: located at a new pose, ``how`` ``"tracked"``
+        or ``"searched"``, whose view :meth:`update` carved the map with).
 
         Raises:
             TableNotFoundError: no table in the frame.
@@ -589,6 +592,8 @@ class CameraTracker:
         p = np.asarray(p, dtype=float)
         T_plane = table_pose(p, self.table_distance)
         T = np.asarray(T, dtype=float)
+        if moved:
+            self._carve(free_space_view(_thinned(p)), T)
         self._add(T, T_plane, *_registered(p, T_plane))
         self._tracking = tracked
 

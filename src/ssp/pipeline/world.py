@@ -147,8 +147,9 @@ class CameraLocator:
             if camera.get("how") == "given":
                 self.tracker.checked(T, points_cam, camera)
             else:
-                tracked = camera.get("how") in ("tracked", "kept", "searched")
+                how = camera.get("how")
                 self.tracker.accept(np.asarray(T, dtype=float), np.asarray(points_cam, dtype=float),
-                                    tracked)  # fmt: skip
+                                    how in ("tracked", "kept", "searched"),
+                                    how in ("tracked", "searched"))  # fmt: skip
         except PerceptionError:
             pass  # a given pose on a frame without a table: the run did not map it either
