@@ -203,6 +203,36 @@ def test_ssp_stacks_a_short_tower(lib):
     assert len(mm) > 0 and np.mean(mm) < 3.0
 
 
+def test_a_wrist_camera_looks_from_a_new_view_before_each_pick_and_ssp_stacks(lib, monkeypatch):
+    """The wrist camera (eye in hand): each look a new view of the table (turned or tilted by
+    degrees), its frames a few millimetres apart (the arm's shake); the frames the method sees
+    carry those poses, and ssp stacks a short tower from them."""
+    from ssp.probability import pose_change
+
+    looks = [tower.wrist_camera_pose(4, 0, k, 0) for k in range(4)]
+    for a, b in zip(looks, looks[1:], strict=False):
+        assert np.degrees(pose_change(a, b)[1]) > 3.0
+    shaken = tower.wrist_camera_pose(4, 0, 0, 1)
+    dt, dr = pose_change(looks[0], shaken)
+    assert 0.0 < dt < 0.02 and np.degrees(dr) < 1.5
+    seen = []
+    real_frame = tower._Camera.frame
+
+    def frame(self, *args, **kwargs):
+        out = real_frame(self, *args, **kwargs)
+        seen.append(out.T_world_cam.copy())
+        return out
+
+    monkeypatch.setattr(tower._Camera, "frame", frame)
+    tr = tower.run_trial("ssp", 0, 4, lib, SSPConfig(), frames_per_step=2, blocks=3, stride=2,
+                         camera_path="wrist")  # fmt: skip
+    assert tr.stacks == 3, tr.failure
+    np.testing.assert_allclose(seen[0], looks[0])
+    np.testing.assert_allclose(seen[2], looks[1])  # the second look's first frame
+    with pytest.raises(ValueError, match="camera"):
+        tower.run_trial("ssp", 0, 4, lib, SSPConfig(), camera_path="drone")
+
+
 def test_noise_presets():
     base = HypothesisNoise.structure()
     assert tower.noise_preset("structure") == base
@@ -279,3 +309,12 @@ def test_the_cli_default_methods_are_the_library_default():
 
     option = inspect.signature(bench_tower).parameters["methods"].default
     assert option.default.split(",") == list(DEFAULT_METHODS)
+
+
+def test_bench_tower_refuses_an_unknown_camera():
+    from typer.testing import CliRunner
+
+    from ssp.cli import app
+
+    r = CliRunner().invoke(app, ["bench", "tower", "--camera", "drone", "--trials", "1"])
+    assert r.exit_code != 0 and "--camera must be one of static, wrist" in r.output

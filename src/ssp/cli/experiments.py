@@ -366,6 +366,14 @@ def bench_tower(
             "MegaPose-like: errors mostly in depth along the viewing ray)."
         ),
     ),
+    camera: str = typer.Option(
+        "static",
+        "--camera",
+        help=(
+            "static: the paper's camera, 1 m away at 45 deg; wrist: on the robot's wrist, a "
+            "new view of the table before each pick (its pose from the arm's kinematics)."
+        ),
+    ),
     config: Path | None = ConfigOption,
     executor: str | None = ExecutorOption,
     workers: int = WorkersOption,
@@ -373,7 +381,10 @@ def bench_tower(
 ) -> None:
     """The paper's case study (Table III): a simulated robot stacks 8 cubes from perceived
     poses; writes results.json, results.md and a picture of a final tower per method."""
-    from ssp.eval.tower import HYPOTHESES, NOISE_PRESETS, write_tower
+    from ssp.eval.tower import CAMERAS, HYPOTHESES, NOISE_PRESETS, write_tower
+
+    if camera not in CAMERAS:
+        raise typer.BadParameter(f"--camera must be one of {', '.join(CAMERAS)}")
 
     if noise not in (*NOISE_PRESETS, "realistic", "rgb"):
         raise typer.BadParameter(
@@ -387,7 +398,7 @@ def bench_tower(
     lib = load_library(None, config)
     result, pictures = _run_tower(lib, cfg, parallel, trials=trials, seed=seed, methods=names,
                                   hypotheses=hypotheses, frames_per_step=frames_per_step,
-                                  noise=noise)  # fmt: skip
+                                  noise=noise, camera=camera)  # fmt: skip
     result["command"] = {
         "trials": trials,
         "seed": seed,
@@ -395,6 +406,7 @@ def bench_tower(
         "methods": names,
         "frames_per_step": frames_per_step,
         "noise": noise,
+        "camera": camera,
     }
     files = write_tower(result, out, pictures)
     _print_tower(result)
@@ -413,6 +425,7 @@ def _run_tower(
     hypotheses: str,
     frames_per_step: int,
     noise: str,
+    camera: str = "static",
 ) -> tuple[dict, dict]:
     """The tower case study with a progress bar: the result, and a picture of the first
     trial's tower per method."""
@@ -438,6 +451,7 @@ def _run_tower(
             frames_per_step=frames_per_step,
             noise=_tower_noise(noise),
             realism=SceneRealism(events=()) if noise in ("realistic", "rgb") else None,
+            camera_path=camera,
             progress=lambda msg: progress.update(task, description=msg),
             on_trial=on_trial,
             parallel=parallel,

@@ -8,7 +8,10 @@ tower can really fall (:mod:`ssp.sim.robot`; MuJoCo dynamics).
 1. Eight cubes (:data:`BLOCKS`) are dropped at random, non-overlapping spots of
    :data:`REGION`, with a random yaw, at least :data:`SITE_CLEARANCE` from the tower site
    :data:`SITE`, and settled.
-2. Each step, the static camera (:func:`camera_pose`) takes ``frames_per_step`` frames:
+2. Each step, the camera takes ``frames_per_step`` frames: the static camera
+   (:func:`camera_pose`), or with ``camera_path="wrist"`` a camera on the robot's wrist,
+   taken to a new view of the table before each pick, its pose known from the arm's
+   kinematics (:func:`wrist_camera_pose`; eye in hand, as today's robots look):
    - rendered depth with Kinect-like noise and the instance mask;
    - hypotheses: either noisy truth (``"noisy"``: Table I's structure preset,
      :meth:`HypothesisNoise.structure`, visibility-dependent) or the built-in estimator on
@@ -98,9 +101,11 @@ __all__ = [
     "PAPER_TABLE3",
     "TowerTrial",
     "NOISE_PRESETS",
+    "CAMERAS",
     "camera_pose",
     "noise_preset",
     "run_tower",
+    "wrist_camera_pose",
     "write_tower",
 ]
 
@@ -130,6 +135,18 @@ CAMERA_ELEVATION_DEG = 45.0
 CAMERA_TARGET = (0.0, 0.06, 0.12)
 
 HYPOTHESES = ("noisy", "estimated")
+
+#: Where the camera is (module docstring, step 2): ``static`` (the paper's) or ``wrist``.
+CAMERAS = ("static", "wrist")
+#: Wrist camera: each look's azimuth about :data:`CAMERA_TARGET` (deg from the static
+#: camera's side), elevation (deg) and distance (m), drawn uniformly ...
+WRIST_AZIMUTH_DEG = (-60.0, 60.0)
+WRIST_ELEVATION_DEG = (50.0, 70.0)
+WRIST_DISTANCE = (0.8, 0.95)
+#: ... and the arm's shake between the frames of one look: per-axis standard deviation of
+#: the eye's and the looked-at point's offsets, m.
+WRIST_SHAKE_EYE = 0.002
+WRIST_SHAKE_TARGET = 0.004
 
 #: Noisy-truth presets: factors on (sigma_t, sigma_r_deg) of :meth:`HypothesisNoise.structure`.
 #: ``"structure"`` is Table I's noise as is. ``"case-study"`` makes the estimator fluctuate on
@@ -176,6 +193,29 @@ def camera_pose() -> np.ndarray:
     e = math.radians(CAMERA_ELEVATION_DEG)
     target = np.asarray(CAMERA_TARGET, dtype=float)
     eye = target + CAMERA_DISTANCE * np.array([0.0, -math.cos(e), math.sin(e)])
+    return look_at(eye, target)
+
+
+def wrist_camera_pose(seed: int, trial: int, look: int, frame: int) -> np.ndarray:
+    """``T_world_cam`` of a wrist camera (eye in hand) at frame ``frame`` of look ``look``
+    (one look before each pick, and the last): before each look the arm takes the camera to a
+    new view of :data:`CAMERA_TARGET` (azimuth, elevation and distance drawn from
+    :data:`WRIST_AZIMUTH_DEG`, :data:`WRIST_ELEVATION_DEG`, :data:`WRIST_DISTANCE`), and it
+    shakes a little between that look's frames (:data:`WRIST_SHAKE_EYE`,
+    :data:`WRIST_SHAKE_TARGET`). The robot knows this pose from its forward kinematics: the
+    frames carry it (``Frame.T_world_cam``). Randomness ``default_rng([seed, trial, 3,
+    look])`` and ``[seed, trial, 3, look, frame]``, apart from the layout's and the frames'."""
+    rng = np.random.default_rng([seed, trial, 3, look])
+    az = math.radians(rng.uniform(*WRIST_AZIMUTH_DEG))
+    el = math.radians(rng.uniform(*WRIST_ELEVATION_DEG))
+    d = float(rng.uniform(*WRIST_DISTANCE))
+    target = np.asarray(CAMERA_TARGET, dtype=float)
+    eye = target + d * np.array([math.sin(az) * math.cos(el), -math.cos(az) * math.cos(el),
+                                 math.sin(el)])  # fmt: skip
+    if frame:
+        shake = np.random.default_rng([seed, trial, 3, look, frame]).standard_normal(6)
+        eye = eye + WRIST_SHAKE_EYE * shake[:3]
+        target = target + WRIST_SHAKE_TARGET * shake[3:]
     return look_at(eye, target)
 
 
@@ -293,7 +333,7 @@ class _Camera:
         self.realism = realism
         self.extras = dict(extras or {})
         self._cache: dict = {}
-        self._scene: tuple | None = None  # (poses, render, visib_fract) of the last scene
+        self._scene: tuple | None = None  # (poses, render, visib_fract, T_world_cam) last
         self._perception = None
         self.frames = 0
         if hypotheses == "estimated":
@@ -301,8 +341,17 @@ class _Camera:
 
             self._perception = Perception(library, config, classes=(CUBE,))
 
-    def frame(self, poses: Mapping[str, np.ndarray], rng: np.random.Generator, stamp: float):
-        """The parser's input for the world with true ``poses`` (distractors included)."""
+    def frame(
+        self,
+        poses: Mapping[str, np.ndarray],
+        rng: np.random.Generator,
+        stamp: float,
+        T_world_cam: np.ndarray | None = None,
+    ):
+        """The parser's input for the world with true ``poses`` (distractors included), seen
+        from ``T_world_cam`` (a wrist camera's; None: the static camera)."""
+        if T_world_cam is not None:
+            self.T_world_cam = np.asarray(T_world_cam, dtype=float)
         gt = {oid: (CUBE, T) for oid, T in poses.items() if oid not in self.extras}
         extras = {oid: (self.extras[oid], T) for oid, T in poses.items() if oid in self.extras}
         last = self._scene
@@ -310,12 +359,13 @@ class _Camera:
             last is None
             or last[0].keys() != poses.keys()
             or not all(np.array_equal(last[0][k], T) for k, T in poses.items())
+            or not np.array_equal(last[3], self.T_world_cam)
         ):
             scene, visib, _, _ = observe_static_scene(
                 self.library, gt, self.T_world_cam, self.camera, self.stride, self._cache, extras
             )
-            self._scene = last = (dict(poses), scene, visib)
-        _, scene, visib = last
+            self._scene = last = (dict(poses), scene, visib, self.T_world_cam.copy())
+        _, scene, visib, _ = last
         depth = add_depth_noise(scene.depth, rng, quantum=KINECT_QUANTUM)
         instance = scene.instance
         if self.realism is not None and self.realism.mask_defects is not None:
@@ -331,7 +381,8 @@ class _Camera:
             hyps = list(res.frame.hypotheses)
         elif self.stream is not None:
             labels = {oid: k for k, oid in enumerate([*gt, *extras])}
-            drawn = self.stream.draw(self.frames, gt, visib, segments=labels, distractors=extras)
+            drawn = self.stream.draw(self.frames, gt, visib, segments=labels, distractors=extras,
+                                     T_world_cam=self.T_world_cam)  # fmt: skip
             hyps = [d.hypothesis for d in drawn]
         else:
             hyps, _ = draw_hypotheses(gt, visib, self.library, self.noise, rng)
@@ -357,6 +408,7 @@ def run_trial(
     blocks: int = BLOCKS,
     stride: int = 1,
     realism: SceneRealism | None = None,
+    camera_path: str = "static",
     progress: Callable[[str], None] | None = None,
 ) -> TowerTrial:
     """One trial of one method (module docstring).
@@ -375,7 +427,11 @@ def run_trial(
         blocks: cubes on the table (and most stacks).
         realism: distractors on the table and mask defects (its events are not used: the
             robot's picks and placements are the dynamic events here).
+        camera_path: ``"static"`` (:func:`camera_pose`) or ``"wrist"``
+            (:func:`wrist_camera_pose`: a new view each look, its pose given).
     """
+    if camera_path not in CAMERAS:
+        raise ValueError(f"camera must be one of {CAMERAS}, got {camera_path!r}")
     model: ObjectModel = library[CUBE]
     size = float(model.mesh.extents[2])
     start = _layout(np.random.default_rng([seed, trial, 0]), size, blocks)
@@ -408,14 +464,16 @@ def run_trial(
     n_frames = 0
 
     moved: dict[str, np.ndarray] = {}  # what the robot moved since the last frame
+    looks = 0
 
     def look() -> list[Detection]:
-        nonlocal n_frames
+        nonlocal n_frames, looks
         dets: list[Detection] = []
-        for _ in range(frames_per_step):
+        for j in range(frames_per_step):
             poses = world.poses()
             rng = np.random.default_rng([seed, trial, 1, n_frames])
-            frame = cam.frame(poses, rng, float(n_frames))
+            T_wc = wrist_camera_pose(seed, trial, looks, j) if camera_path == "wrist" else None
+            frame = cam.frame(poses, rng, float(n_frames), T_wc)
             if moved:
                 frame.moved = dict(moved)
                 moved.clear()
@@ -424,6 +482,7 @@ def run_trial(
             out.seconds.append(time.perf_counter() - t0)
             out.frames.append(({o: poses[o] for o in cube_ids}, list(dets)))
             n_frames += 1
+        looks += 1
         return dets
 
     for step in range(blocks):
@@ -590,6 +649,7 @@ def run_tower(
     blocks: int = BLOCKS,
     stride: int = 1,
     realism: SceneRealism | None = None,
+    camera_path: str = "static",
     progress: Callable[[str], None] | None = None,
     on_trial: Callable[[str, int, TowerTrial], None] | None = None,
     parallel: Parallel | None = None,
@@ -607,6 +667,8 @@ def run_tower(
         raise ValueError(f"hypotheses must be one of {HYPOTHESES}, got {hypotheses!r}")
     if trials < 1 or frames_per_step < 1:
         raise ValueError("trials and frames_per_step must be >= 1")
+    if camera_path not in CAMERAS:
+        raise ValueError(f"camera must be one of {CAMERAS}, got {camera_path!r}")
     config = config if config is not None else SSPConfig()
     parallel = parallel if parallel is not None else Parallel()
     model = library[CUBE]
@@ -622,6 +684,7 @@ def run_tower(
         blocks=blocks,
         stride=stride,
         realism=realism,
+        camera_path=camera_path,
         progress=progress if parallel.serial else None,
     )
     done = done_messages(progress, parallel)
@@ -707,6 +770,7 @@ def run_tower(
         if hypotheses == "noisy"
         else None,
         "realism": None if realism is None else realism.to_dict(),
+        "camera": camera_path,
         "methods": out_methods,
         "trials_detail": detail,
         "wall_s": time.perf_counter() - t_start,
@@ -752,6 +816,8 @@ def _markdown(result: dict) -> str:
     preset = result.get("command", {}).get("noise")
     if result["hypotheses"] == "noisy" and preset:
         setting += f" ({preset} noise)"
+    if result.get("camera", "static") == "wrist":
+        setting += ", wrist camera (a new view before each pick, its pose given)"
     lines = [
         f"# Tower case study (paper Table III): {result['trials']} trials, seed "
         f"{result['seed']}, {setting}",
