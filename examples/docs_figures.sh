@@ -73,6 +73,10 @@ run tower-realistic-single-3000 results.json $SSP bench tower --trials 10 --seed
 run tower-realistic-base-3000 results.json $SSP bench tower --trials 10 --seed 3000 --noise realistic --methods estimator,icp,ray_slide,bestfit,temporal_filter,icp_filter
 run tower-structure-ssp-3000 results.json $SSP bench tower --trials 10 --seed 3000 --methods ssp
 run tower-structure-estimator-3000 results.json $SSP bench tower --trials 10 --seed 3000 --methods estimator
+run tower-wrist-ssp-1000 results.json $SSP bench tower --trials 10 --seed 1000 --noise realistic --methods ssp --camera wrist
+run tower-wrist-ssp-2000 results.json $SSP bench tower --trials 10 --seed 2000 --noise realistic --methods ssp --camera wrist
+run tower-wrist-ssp-3000 results.json $SSP bench tower --trials 10 --seed 3000 --noise realistic --methods ssp --camera wrist
+run tower-wrist-base-1000 results.json $SSP bench tower --trials 10 --seed 1000 --noise realistic --methods estimator,icp_filter,ray_slide --camera wrist
 run tower-case-study results.json $SSP bench tower --trials 10 --seed 1000 --noise case-study
 run tower-rgb results.json $SSP bench tower --trials 10 --seed 1000 --noise rgb
 run rgb-calibration results.json $SSP bench rgb-calibration --data ../shared/data/lmo-megapose

@@ -132,6 +132,15 @@ def _sources() -> dict[str, Source]:
             Source(f"tower-structure-ssp-{s}", f"{tower} --seed {s} --methods ssp"),
             Source(f"tower-structure-estimator-{s}", f"{tower} --seed {s} --methods estimator"),
         ]
+    for s in SEEDS:
+        out.append(
+            Source(
+                f"tower-wrist-ssp-{s}",
+                f"{tower} --seed {s} --noise realistic --methods ssp --camera wrist",
+            )
+        )
+    out.append(Source("tower-wrist-base-1000", f"{tower} --seed 1000 --noise realistic --methods "
+                      "estimator,icp_filter,ray_slide --camera wrist"))  # fmt: skip
     est = f"{tower} --seed 1000 --hypotheses estimated --methods"
     out += [
         Source("tower-case-study", f"{tower} --seed 1000 --noise case-study"),
