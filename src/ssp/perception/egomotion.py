@@ -29,7 +29,7 @@ that is counted in one frame, not in every one after; a frame where objects move
 away that cover more than :data:`~ssp.perception.camera_search.MAX_SEEN_THROUGH` of the map
 in view is refused (a restart in ``ssp run``), not located wrongly. A fit that keeps the
 camera where it was (:data:`KEEP_SHIFT`) is not checked, so a static camera whose objects are
-taken away keeps its world (its map is not carved either: no view is built). With
+taken away keeps its world (and its map forgets them, ready for the camera to move). With
 ``search`` (as ``ssp run`` locates cameras), a frame not tracked so, or tracked far from
 where the camera was heading (a jump: BOP-style keyframes 10-30 deg apart), is searched
 globally: the starts of a footprint correlation over every turn and shift
@@ -466,8 +466,8 @@ class CameraTracker:
         T = G @ T_plane
         if moved < KEEP_SHIFT or _fit(q, tree, normals, G_last).cost <= fit.cost:
             T, how = last, "kept"
-        if how != "kept":  # the map forgets what the moved camera sees through (gone since)
-            self._carve(views[0] if views else free_space_view(_thinned(p)), T)
+        # the map forgets what the located camera sees through (moved or gone since)
+        self._carve(views[0] if views else free_space_view(_thinned(p)), T)
         self._add(T, T_plane, q, q_normals)
         self._tracking = True
         return CameraFix(T.copy(), how, fit.inliers, fit.rms_mm, len(q))
@@ -577,14 +577,11 @@ class CameraTracker:
         self.accept(T, p)
         self._checked = dict(check)
 
-    def accept(
-        self, T: np.ndarray, p: np.ndarray, tracked: bool = False, moved: bool = False
-    ) -> None:
+    def accept(self, T: np.ndarray, p: np.ndarray, tracked: bool = False) -> None:
         """Keep ``T`` (4, 4) as the pose of the frame of camera-frame points ``p`` (N, 3; m)
         and its registered points in the map, as :meth:`update` does with a located frame: a
         resumed run's frames committed before (``tracked``: located from the frame before,
-        not the first or a restart; ``moved``: located at a new pose, ``how`` ``"tracked"``
-        or ``"searched"``, whose view :meth:`update` carved the map with).
+        not the first or a restart; the map forgets what it sees through, as there).
 
         Raises:
             TableNotFoundError: no table in the frame.
@@ -592,7 +589,7 @@ class CameraTracker:
         p = np.asarray(p, dtype=float)
         T_plane = table_pose(p, self.table_distance)
         T = np.asarray(T, dtype=float)
-        if moved:
+        if tracked:
             self._carve(free_space_view(_thinned(p)), T)
         self._add(T, T_plane, *_registered(p, T_plane))
         self._tracking = tracked

@@ -147,9 +147,8 @@ class CameraLocator:
             if camera.get("how") == "given":
                 self.tracker.checked(T, points_cam, camera)
             else:
-                how = camera.get("how")
+                tracked = camera.get("how") in ("tracked", "kept", "searched")
                 self.tracker.accept(np.asarray(T, dtype=float), np.asarray(points_cam, dtype=float),
-                                    how in ("tracked", "kept", "searched"),
-                                    how in ("tracked", "searched"))  # fmt: skip
+                                    tracked)  # fmt: skip
         except PerceptionError:
             pass  # a given pose on a frame without a table: the run did not map it either
