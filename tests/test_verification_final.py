@@ -65,3 +65,32 @@ def test_a_segment_whose_object_was_rejected_says_so():
     assert not est.objects and len(est.rejected) == 1
     r = est.rejected[0]
     assert est.segments == {0: f"rejected cube {r.id}: {r.reason}"}
+
+
+def test_an_object_its_own_segment_reaches_below_is_not_held_by_something_undetected():
+    """A cube fitted to the top of a can seen from above (the wrist-camera tower, development
+    seeds 2 and 7): it would fall where its data puts it, and strong data keeps such an object
+    (held by something undetected), but its own instance segment (the can) goes on down to
+    the table below it: the segment is one object reaching lower than a cube, nothing
+    undetected is under it, so it is rejected, and not kept at that hypothesis either. The
+    same cube with a segment that ends at its foot stands."""
+    from ssp.verification import reaches_below
+
+    cube = LIB["cube"]
+    T_top = make_pose(t=[0.0, 0.0, 0.095])  # its top face at the can's, 7 cm up
+    own = transform_points(T_top, np.asarray(cube.surface_points))
+    n = len(own) // 12  # the can's side seen below the cube: 8 % of the segment
+    a = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
+    z = np.linspace(0.005, 0.06, n)
+    can_side = np.column_stack([0.033 * np.cos(a), 0.033 * np.sin(a), z])
+    segment = np.concatenate([own, can_side])
+    below = reaches_below(cube, T_top, segment)
+    assert CFG.verification.fallback_below < below < 1.0 - CFG.verification.stand_explained
+    assert reaches_below(cube, T_top, own) == 0.0
+    v = verify_final(cube, T_top, [T_top], segment, None, CFG, own_label=1, stability=-30.0)
+    assert not v.keep and "lies below it" in v.reason
+    T_fallen = make_pose(t=[0.0, 0.0, 0.0254])
+    v = verify_final(cube, T_fallen, [T_top], segment, None, CFG, own_label=1, stability=0.0)
+    assert not v.keep  # not at the hypothesis either
+    v = verify_final(cube, T_top, [T_top], own, None, CFG, own_label=1, stability=-30.0)
+    assert v.keep

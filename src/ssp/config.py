@@ -467,6 +467,17 @@ class VerificationConfig(_Section):
             "physics only where it does not put one object into another."
         ),
     )
+    fallback_below: float = Field(
+        0.05,
+        ge=0,
+        le=1,
+        description=(
+            "... nor when more than this fraction of its own instance segment lies over 1 cm "
+            "below it: the segment is one object reaching lower than the hypothesis' shape (a "
+            "cube fitted to a can's top, seen from above), so nothing undetected holds it up "
+            "(ssp.verification.reaches_below)."
+        ),
+    )
     stand_explained: float = Field(
         0.8,
         ge=0,

@@ -309,10 +309,13 @@ def verify_final(
     hypothesis interpenetrates another object, so the data fallbacks could not put it back)
     but one of its ``hypotheses`` passes, it is kept at the best such hypothesis
     (:attr:`Verdict.T_world_obj`; the data decides whether and where it is; the reason
-    says so). When its ``stability`` term at the final pose says it would fall (below
+    says so), unless its own instance segment reaches below it there
+    (:func:`reaches_below`). When its ``stability`` term at the final pose says it would fall (below
     ``verification.fall_stability``), it is kept only if its data is strong
     (``verification.stand_explained``): a cube proposed on a ball explains half of the ball
-    and cannot rest on it. ``segment``: ``(K, 3)`` points or their KD-tree;
+    and cannot rest on it; and its own instance segment does not reach below it
+    (:func:`reaches_below`: a cube fitted to a can's top). ``segment``: ``(K, 3)`` points or
+    their KD-tree;
     ``segment_spacing``: their :func:`~ssp.segments.point_spacing` when known."""
     tree = segment if isinstance(segment, cKDTree) else None
     if tree is None and segment is not None and len(segment):
@@ -331,6 +334,9 @@ def verify_final(
             hv = check_new(ev_h, config)
             e = hv.judged
             strength = e.fit if e.explained is None else e.explained
+            if own_label is not None and tree is not None:  # held there by nothing under it
+                if reaches_below(model, T, tree.data) > config.verification.fallback_below:
+                    continue
             if hv.keep and (best is None or strength > best[0]):
                 best = (strength, np.asarray(T, dtype=float), hv)
         if best is None:
@@ -345,12 +351,17 @@ def verify_final(
             verdict,
         )
     strength = ev.fit if ev.explained is None else ev.explained
-    if falls_unheld(stability, strength, config):
+    below = 0.0
+    if own_label is not None and tree is not None:
+        below = reaches_below(model, T_final, tree.data)
+    if falls_unheld(stability, strength, config, below):
         what = "of its visible surface" if ev.explained is None else "of its segment"
+        why = f"accounts for only {100 * strength:.0f} % {what}"
+        if strength >= config.verification.stand_explained:
+            why = f"{100 * below:.0f} % of its own segment lies below it"
         return Verdict(
             False,
-            f"would fall where the data puts it (stability term {stability:.0f}) and accounts "
-            f"for only {100 * strength:.0f} % {what}",
+            f"would fall where the data puts it (stability term {stability:.0f}) and {why}",
             ev,
         )
     return verdict
@@ -423,6 +434,25 @@ def data_fallbacks(score, scorer, groups, config: SSPConfig) -> dict[str, tuple[
             )
             out[oid] = (np.asarray(hyps[j].T_world_obj, dtype=float).copy(), note)
     return out
+
+
+BELOW_TOLERANCE = 0.01
+"""A segment point lies below an object when it is lower than the object's lowest point by
+more than this, m (depth noise at the object's foot, a mask's edge on the table)."""
+
+
+def reaches_below(model: ObjectModel, T_world_obj: np.ndarray, segment: np.ndarray) -> float:
+    """The fraction of an object's instance segment ``segment`` (M, 3; world points, m) lying
+    more than :data:`BELOW_TOLERANCE` below the lowest point of ``model`` at ``T_world_obj``
+    (4, 4; world z up); 0.0 for an empty segment. An instance segment is one object: points
+    of it far below the object are the object's own, so the object reaches down there, and a
+    shape that does not (a cube fitted to the top of a can, seen from above) is the wrong
+    one: nothing undetected holds it up (:func:`fall_back_to_data`)."""
+    if not len(segment):
+        return 0.0
+    T = np.asarray(T_world_obj, dtype=float)
+    bottom = float((np.asarray(model.mesh.vertices) @ T[2, :3] + T[2, 3]).min())
+    return float(np.mean(np.asarray(segment)[:, 2] < bottom - BELOW_TOLERANCE))
 
 
 def still_visible(ev: Evidence, config: SSPConfig) -> bool:
@@ -538,7 +568,9 @@ def fall_back_to_data(ctx: FrameContext) -> None:
     """Stage *fallbacks*: data wins over physics for objects new in this frame, or held by
     their data before (an established object keeps its physically consistent pose): those the
     search moved off their data (:func:`data_fallbacks`) go back to their best hypothesis,
-    unless there they would be inside another object (``verification.fallback_collision``).
+    unless there they would be inside another object (``verification.fallback_collision``),
+    or their own instance segment reaches below them (:func:`reaches_below`,
+    ``verification.fallback_below``: the hypothesis' shape is not what the segment is).
 
     Sets ``fallbacks``; updates ``score`` and ``chosen``.
     """
@@ -548,6 +580,12 @@ def fall_back_to_data(ctx: FrameContext) -> None:
     fallbacks = data_fallbacks(
         ctx.scene_score, scorer, {oid: ctx.groups[oid] for oid in may_fall_back}, cfg
     )
+    for oid in [o for o in fallbacks if o in ctx.owner]:  # its own instance segment below it
+        below = reaches_below(ctx.models[oid], fallbacks[oid][0], ctx.segments.get(oid, ()))
+        if below > cfg.verification.fallback_below:
+            log.info("%s: not put back at its hypothesis: %.0f %% of its own segment lies "
+                     "below it", oid, 100 * below)  # fmt: skip
+            del fallbacks[oid]
     if fallbacks:
         searched = {oid: world.get_pose(oid) for oid in fallbacks}
         world.set_poses({oid: T for oid, (T, _) in fallbacks.items()})
@@ -664,13 +702,18 @@ def doubt(ev: Evidence, stability: float, config: SSPConfig) -> tuple[str, bool]
     return None
 
 
-def falls_unheld(stability: float, strength: float, config: SSPConfig) -> bool:
+def falls_unheld(stability: float, strength: float, config: SSPConfig, below: float = 0.0) -> bool:
     """An object whose stability term says it would fall (below
     ``verification.fall_stability``) stands only with strong data (``strength``, a fit or
     an explained fraction, at least ``verification.stand_explained``: held by something
-    undetected); a cube proposed on a ball explains half of the ball and cannot rest on it."""
+    undetected); a cube proposed on a ball explains half of the ball and cannot rest on it.
+    Nor when its own instance segment reaches below it (``below``, :func:`reaches_below`,
+    more than ``verification.fallback_below``): the segment is that one object, so nothing
+    undetected is under it."""
     v = config.verification
-    return stability < v.fall_stability and strength < v.stand_explained
+    return stability < v.fall_stability and (
+        strength < v.stand_explained or below > v.fallback_below
+    )
 
 
 #: A doubted known object whose hypothesis the data supports (:func:`check_new`) and fits by
