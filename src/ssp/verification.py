@@ -581,7 +581,8 @@ def fall_back_to_data(ctx: FrameContext) -> None:
         ctx.scene_score, scorer, {oid: ctx.groups[oid] for oid in may_fall_back}, cfg
     )
     for oid in [o for o in fallbacks if o in ctx.owner]:  # its own instance segment below it
-        below = reaches_below(ctx.models[oid], fallbacks[oid][0], ctx.segments.get(oid, ()))
+        segment = ctx.segments.get(oid, np.zeros((0, 3)))
+        below = reaches_below(ctx.models[oid], fallbacks[oid][0], segment)
         if below > cfg.verification.fallback_below:
             log.info("%s: not put back at its hypothesis: %.0f %% of its own segment lies "
                      "below it", oid, 100 * below)  # fmt: skip
