@@ -334,9 +334,8 @@ def verify_final(
             hv = check_new(ev_h, config)
             e = hv.judged
             strength = e.fit if e.explained is None else e.explained
-            if own_label is not None and tree is not None:  # held there by nothing under it
-                if reaches_below(model, T, tree.data) > config.verification.fallback_below:
-                    continue
+            if _own_below(model, T, tree, own_label) > config.verification.fallback_below:
+                continue  # held there by nothing under it
             if hv.keep and (best is None or strength > best[0]):
                 best = (strength, np.asarray(T, dtype=float), hv)
         if best is None:
@@ -351,9 +350,7 @@ def verify_final(
             verdict,
         )
     strength = ev.fit if ev.explained is None else ev.explained
-    below = 0.0
-    if own_label is not None and tree is not None:
-        below = reaches_below(model, T_final, tree.data)
+    below = _own_below(model, T_final, tree, own_label)
     if falls_unheld(stability, strength, config, below):
         what = "of its visible surface" if ev.explained is None else "of its segment"
         why = f"accounts for only {100 * strength:.0f} % {what}"
@@ -453,6 +450,14 @@ def reaches_below(model: ObjectModel, T_world_obj: np.ndarray, segment: np.ndarr
     T = np.asarray(T_world_obj, dtype=float)
     bottom = float((np.asarray(model.mesh.vertices) @ T[2, :3] + T[2, 3]).min())
     return float(np.mean(np.asarray(segment)[:, 2] < bottom - BELOW_TOLERANCE))
+
+
+def _own_below(model, T_world_obj, tree: cKDTree | None, own_label: int | None) -> float:
+    """:func:`reaches_below` of an object's own instance segment (``tree``'s points); 0.0
+    without one (no label: a cluster's points near it say nothing of what lies below it)."""
+    if own_label is None or tree is None:
+        return 0.0
+    return reaches_below(model, T_world_obj, tree.data)
 
 
 def still_visible(ev: Evidence, config: SSPConfig) -> bool:
