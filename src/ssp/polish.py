@@ -10,7 +10,6 @@ ICP pose on its segment for ``search.final_settle`` s, then the scene settles fo
 from __future__ import annotations
 
 import logging
-import math
 from collections.abc import Mapping
 from typing import TYPE_CHECKING
 
@@ -19,8 +18,14 @@ import numpy as np
 from ssp.config import SSPConfig
 from ssp.errors import PhysicsError
 from ssp.physics import World
-from ssp.probability import pose_change
-from ssp.registration import icp_refine
+from ssp.registration import (
+    REFIT_ITERATIONS,
+    REFIT_MAX_JUMP_DEG,
+    REFIT_MAX_JUMP_M,
+    REFIT_MIN_POINTS,
+    REFIT_TOLERANCE,
+    bounded_refit,
+)
 from ssp.search import Simulator
 from ssp.timing import StageTimer
 
@@ -38,19 +43,9 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-#: ICP results that move an object more than this (m, deg at its centre of mass) are a wrong
-#: local minimum and are ignored.
-MAX_JUMP_M = 0.02
-MAX_JUMP_DEG = 20.0
-
-#: Segments with fewer points are not registered.
-MIN_POINTS = 30
-
-#: ICP steps at most, and the step (m and rad) below which it stops: the spring target need not
-#: be finer than 10 um. At most 8 steps left a carton of a real capture (``examples/real_dev.py``,
-#: the milk scene) where it would fall.
-ICP_ITERATIONS = 20
-ICP_TOLERANCE = 1e-5
+# the polish's ICP: settings and the bounded refit live with the registration
+MAX_JUMP_M, MAX_JUMP_DEG = REFIT_MAX_JUMP_M, REFIT_MAX_JUMP_DEG
+MIN_POINTS, ICP_ITERATIONS, ICP_TOLERANCE = REFIT_MIN_POINTS, REFIT_ITERATIONS, REFIT_TOLERANCE
 
 
 def polish(
@@ -67,21 +62,11 @@ def polish(
     forces = sim.forces
     with timer("icp"):
         for oid, seg in segments.items():
-            if not world.is_enabled(oid) or len(seg) < MIN_POINTS:
+            if not world.is_enabled(oid):
                 continue
-            model = world.model_of(oid)
-            T = world.get_pose(oid)
-            T_icp = icp_refine(
-                model,
-                T,
-                seg,
-                camera_position,
-                max_distance=config.forces.icp_max_distance,
-                iterations=ICP_ITERATIONS,
-                tolerance=ICP_TOLERANCE,
-            )
-            dt, dth = pose_change(T, T_icp, None, model.center_of_mass)
-            if dt < MAX_JUMP_M and dth < math.radians(MAX_JUMP_DEG):
+            T_icp = bounded_refit(world.model_of(oid), world.get_pose(oid), seg,
+                                  camera_position, config)  # fmt: skip
+            if T_icp is not None:
                 forces.set_pose_target(world.index(oid), T_icp)
     forces.reset()
     state = world.save_state()

@@ -17,8 +17,9 @@ decides, for each undetected known object at its previous pose, in this order:
     held by its own data or falls: the camera's direct view of free space is not overruled by
     objects resting on a ghost);
 ``ephemeral``
-    hidden behind observed depth (``temporal.occluded_fraction``): kept, as the camera could
-    not have seen it;
+    hidden behind observed depth (``temporal.occluded_fraction``), or outside the camera's
+    field of view (a moving camera looked elsewhere: the fraction outside plus the fraction
+    hidden reach ``temporal.occluded_fraction``): kept, as the camera could not have seen it;
 ``unseen``
     none of these (no data either way): removed unless it holds others up.
 
@@ -45,6 +46,7 @@ from ssp.config import SSPConfig
 from ssp.library.model import ObjectModel
 from ssp.overlap import overlap_fractions
 from ssp.physics import World
+from ssp.registration import bounded_refit
 from ssp.verification import Evidence, evidence, still_visible
 from ssp.visibility import CameraView
 
@@ -128,6 +130,11 @@ def triage(
             reason = f"undetected but still visible: explains {100 * ev.fit:.0f} % of its surface"
             out[oid] = Triage(TriageState.VISIBLE, reason, ev)
             continue
+        if oid not in contested and oid in owner:
+            found = _refit_visible(model, T, segments[oid], owner[oid], view, config)
+            if found is not None:
+                out[oid] = found
+                continue
         if det_ids:
             members = [oid, *det_ids]
             frac = overlap_fractions(
@@ -155,10 +162,49 @@ def triage(
         elif view is not None and ev.facing and ev.occluded >= t.occluded_fraction:
             reason = f"hidden behind observed surfaces ({100 * ev.occluded:.0f} % occluded)"
             out[oid] = Triage(TriageState.EPHEMERAL, reason, ev)
+        elif (
+            view is not None and ev.outside > 0 and ev.outside + ev.occluded >= t.occluded_fraction
+        ):
+            reason = (
+                f"outside the camera's view ({100 * ev.outside:.0f} % of its surface; "
+                f"{100 * ev.occluded:.0f} % of what faces the camera hidden)"
+            )
+            out[oid] = Triage(TriageState.EPHEMERAL, reason, ev)
         else:
             out[oid] = Triage(TriageState.UNSEEN, "undetected and no data either way", ev)
         log.info("%s: %s", oid, out[oid].reason)
     return out
+
+
+def _refit_visible(
+    model: ObjectModel,
+    T: np.ndarray,
+    segment: np.ndarray,
+    label: int,
+    view: CameraView | None,
+    config: SSPConfig,
+) -> Triage | None:
+    """An undetected object that its own instance segment ``segment`` (K, 3; world, m;
+    instance ``label``) does not show at its previous pose ``T`` (4x4, m) but shows a little
+    off (:func:`~ssp.registration.bounded_refit`: within 2 cm and 20 deg): ``visible`` (its
+    data forces then pull it there), or None. A pose that drifted a few mm while the object
+    was half out of a moving camera's view, or one the sensor noise left a few mm off, is
+    otherwise judged at the wrong place: its facing sides seen through (removed as
+    ``seen_empty``) or its surface unexplained (``unseen``), though the mask says one object is
+    right there."""
+    cam = None if view is None else view.T_world_cam[:3, 3]
+    T_fit = bounded_refit(model, T, segment, cam, config)
+    if T_fit is None:
+        return None
+    ev = evidence(model, T_fit, segment, view, config, own_label=label)
+    if not still_visible(ev, config):
+        return None
+    off = 1000.0 * float(np.linalg.norm(T_fit[:3, 3] - T[:3, 3]))
+    reason = (
+        f"undetected but still visible {off:.0f} mm from its previous pose (its instance "
+        f"segment registered): explains {100 * ev.fit:.0f} % of its surface there"
+    )
+    return Triage(TriageState.VISIBLE, reason, ev)
 
 
 def support_retained(

@@ -89,6 +89,8 @@ class Evidence:
         explained: fraction of the instance segment's points the model accounts for, or None.
         seen_through: fraction of the facing samples whose ray sees past them.
         occluded: fraction of the facing samples hidden behind observed points.
+        outside: fraction of all its samples outside the camera's field of view
+            (:meth:`~ssp.visibility.CameraView.in_view`; 0.0 without a camera).
     """
 
     facing: int
@@ -97,6 +99,7 @@ class Evidence:
     explained: float | None
     seen_through: float
     occluded: float
+    outside: float = 0.0
 
     def seen_empty(self, config: SSPConfig) -> bool:
         """The camera sees through at least ``temporal.seen_through_fraction`` of the facing
@@ -111,6 +114,7 @@ class Evidence:
             "explained": None if self.explained is None else round(self.explained, 4),
             "seen_through": round(self.seen_through, 4),
             "occluded": round(self.occluded, 4),
+            "outside": round(self.outside, 4),
         }
 
 
@@ -178,9 +182,10 @@ def evidence(
         n_facing = int(np.count_nonzero(facing))
         through = int(np.count_nonzero(state == SEEN_THROUGH)) / n_facing if n_facing else 0.0
         occluded = int(np.count_nonzero(state == OCCLUDED)) / n_facing if n_facing else 0.0
+        outside = 1.0 - float(np.mean(view.in_view(pw))) if len(pw) else 0.0
     else:
         facing = visible = np.ones(len(pw), dtype=bool)
-        n_facing, through, occluded = len(pw), 0.0, 0.0
+        n_facing, through, occluded, outside = len(pw), 0.0, 0.0, 0.0
     n_visible = int(np.count_nonzero(visible))
     fit = 0.0
     tree = None
@@ -198,7 +203,7 @@ def evidence(
     if own_segment and tree is not None:
         radius = config.data.inlier_radius + config.library.surface_spacing
         explained = explained_fraction(tree.data, model, T, radius)
-    return Evidence(n_facing, n_visible, fit, explained, through, occluded)
+    return Evidence(n_facing, n_visible, fit, explained, through, occluded, outside)
 
 
 #: Loose check (raw hypotheses, before the search): the seen-through limit is at least this,

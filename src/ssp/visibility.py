@@ -26,6 +26,10 @@ looked up (one KD-tree query for all samples), and its depth compared to the sam
   surface would be, so that space is empty;
 * no observed point within the radius: **unknown** (missing data, or outside the view).
 
+:meth:`CameraView.in_view` tells the two kinds of unknown apart as far as the cloud allows: a
+ray outside the span of the observed rays (the image's extent) is outside the field of view;
+a camera that moves looks away from objects it saw before, which says nothing about them.
+
 Limits
 ------
 * No intrinsics: the field of view is known only through the observed points, so "unknown"
@@ -246,6 +250,8 @@ class CameraView:
         self._depths = p_cam[:, 2].copy()
         rays = np.ascontiguousarray(p_cam[:, :2] / p_cam[:, 2:3])
         self._tree = KDTree(rays, leafsize=RAY_TREE_LEAF) if len(rays) else None
+        # the field of view as the observed rays span it (x_min, y_min, x_max, y_max)
+        self._bounds = np.concatenate([rays.min(axis=0), rays.max(axis=0)]) if len(rays) else None
 
         if angular_resolution is None:
             self._resolution = estimate_angular_resolution(rays, self._tree)
@@ -366,6 +372,23 @@ class CameraView:
         found = np.isfinite(dist)
         depths = np.where(found, self._depths[np.where(found, idx, 0)], np.inf)
         out[front] = depths.min(axis=1)
+        return out
+
+    def in_view(self, points_world: np.ndarray) -> np.ndarray:
+        """(M,) bool: which points (M, 3; m, world frame) lie in the camera's field of view:
+        in front of the camera, their ray within the span of the observed rays (the image, as
+        far as the cloud shows it; module docstring "Limits") widened by the angular
+        resolution. A point outside it could not have been seen at all: a moving camera
+        looked elsewhere. None are without observed points."""
+        pts = _as_points(points_world, "points_world")
+        if self._bounds is None or not len(pts):
+            return np.zeros(len(pts), dtype=bool)
+        p_cam = transform_points(self._T_cam_world, pts)
+        out = p_cam[:, 2] > MIN_DEPTH
+        rays = p_cam[out, :2] / p_cam[out, 2:3]
+        r = self._resolution
+        inside = np.all((rays >= self._bounds[:2] - r) & (rays <= self._bounds[2:] + r), axis=1)
+        out[out] = inside
         return out
 
     def _nearest_rays(self, p_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
