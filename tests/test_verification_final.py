@@ -74,7 +74,7 @@ def test_an_object_its_own_segment_reaches_below_is_not_held_by_something_undete
     the table below it: the segment is one object reaching lower than a cube, nothing
     undetected is under it, so it is rejected, and not kept at that hypothesis either. The
     same cube with a segment that ends at its foot stands."""
-    from ssp.verification import reaches_below
+    from ssp.holders import reaches_below
 
     cube = LIB["cube"]
     T_top = make_pose(t=[0.0, 0.0, 0.095])  # its top face at the can's, 7 cm up

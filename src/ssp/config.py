@@ -475,7 +475,7 @@ class VerificationConfig(_Section):
             "... nor when more than this fraction of its own instance segment lies over 1 cm "
             "below it: the segment is one object reaching lower than the hypothesis' shape (a "
             "cube fitted to a can's top, seen from above), so nothing undetected holds it up "
-            "(ssp.verification.reaches_below)."
+            "(ssp.holders.reaches_below)."
         ),
     )
     stand_explained: float = Field(
@@ -486,6 +486,18 @@ class VerificationConfig(_Section):
             "A new object that would fall where the data puts it is kept only if it accounts "
             "for at least this fraction of its instance segment (of its visible surface "
             "without one): then it is there, held by something undetected."
+        ),
+    )
+    stand_seen_through: float = Field(
+        0.15,
+        ge=0,
+        le=1,
+        description=(
+            "... and the camera sees through less than this fraction of its camera-facing "
+            "surface there (half the seen-empty bar, temporal.seen_through_fraction): strong "
+            "data confirms the object at both ends, its segment explained and its surface "
+            "seen, not a shape that sticks out of what the camera saw (a cube fitted to a "
+            "can's top, its corners over the table)."
         ),
     )
 

@@ -89,6 +89,10 @@ class Rejected:
         id: the id it would have had; class_name, T_world_obj (4, 4): its best pose, m.
         reason: why, in words; evidence: the verification figures (``Evidence.as_dict``).
         segment: the instance segment its hypotheses came from, if any.
+        unheld: when it was rejected because it would fall where its data puts it and nothing
+            was shown to hold it up (weak data, or data that rules a holder out:
+            :func:`ssp.holders.nothing_holds`), why; the next frame remembers it where its
+            view cannot see under the object.
     """
 
     id: str
@@ -97,6 +101,16 @@ class Rejected:
     reason: str
     evidence: dict = field(default_factory=dict)
     segment: int | None = None
+    unheld: str | None = None
+
+    def state(self) -> dict[str, Any]:
+        """What the next frame remembers of it (:meth:`ssp.parser.SceneParser.state`)."""
+        return {
+            "class": self.class_name,
+            "T_world_obj": np.asarray(self.T_world_obj).tolist(),
+            "reason": self.reason,
+            "unheld": self.unheld,
+        }
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -106,6 +120,7 @@ class Rejected:
             "reason": self.reason,
             "evidence": dict(self.evidence),
             "segment": self.segment,
+            "unheld": self.unheld,
         }
 
 

@@ -170,10 +170,7 @@ class SceneParser:
                 }
                 for oid, k in sorted(self._known.items())
             ],
-            "rejected": [
-                {"class": r.class_name, "T_world_obj": r.T_world_obj.tolist(), "reason": r.reason}
-                for r in self._rejected
-            ],
+            "rejected": [r.state() for r in self._rejected],
         }
 
     @classmethod
@@ -216,9 +213,11 @@ class SceneParser:
                     None if o.get("doubt") is None else str(o["doubt"]),
                     *orientations_from_state(o),
                 )
-            for k, r in enumerate(state.get("rejected", [])):  # none in older states
+            for k, r in enumerate(state.get("rejected", [])):
                 cls_name, T = _state_entry(library, r, f"rejected object {k}")
-                parser._rejected.append(Rejected(f"rejected_{k}", cls_name, T, str(r["reason"])))
+                held = r.get("unheld") and str(r["unheld"])  # none in older states
+                parser._rejected.append(Rejected(f"rejected_{k}", cls_name, T, str(r["reason"]),
+                                                 unheld=held))  # fmt: skip
         except (KeyError, TypeError, ValueError) as exc:
             if isinstance(exc, InvalidPoseError | UnknownObjectError):
                 raise

@@ -39,7 +39,9 @@ from scipy.spatial import cKDTree
 from ssp.config import SSPConfig
 from ssp.estimate import Rejected
 from ssp.geometry import transform_points
+from ssp.holders import nothing_holds
 from ssp.library.model import ObjectModel
+from ssp.registration import bounded_refit
 from ssp.scene import Hypothesis
 from ssp.scoring import Term
 from ssp.segments import SegmentTrees, explained_fraction, point_spacing
@@ -122,13 +124,16 @@ class Evidence:
 class Verdict:
     """Whether an object is kept, and why (a short sentence for people); ``T_world_obj``:
     the pose to keep it at when that is not the pose it was judged for (:func:`verify_final`),
-    else None; ``searched``: then, the failed verdict at the pose it was judged for."""
+    else None; ``searched``: then, the failed verdict at the pose it was judged for;
+    ``unheld``: rejected because it would fall and nothing was shown to hold it up (weak data,
+    or data that rules a holder out), why."""
 
     keep: bool
     reason: str
     evidence: Evidence | None = None
     T_world_obj: np.ndarray | None = None
     searched: Verdict | None = None
+    unheld: str | None = None
 
     @property
     def judged(self) -> Evidence:
@@ -215,7 +220,9 @@ LOOSE_FIT = 1.0 / 3.0
 def check_new(ev: Evidence, config: SSPConfig, *, loose: bool = False) -> Verdict:
     """Verdict on an object not seen before, at its best pose: kept only if the camera could
     see enough of it (``verification.min_visible_samples``), its visible surface is explained
-    (``fit >= verification.min_fit``), it explains its instance segment
+    (``fit >= verification.min_fit``) by at least as many samples (a new object almost
+    hidden, 3 of its 10 visible samples explained, kept a ghost on the wrist-camera tower's
+    table: development seed 11, trial 2), it explains its instance segment
     (``explained >= verification.min_explained``) and its volume is not seen empty
     (``seen_through < temporal.seen_through_fraction``).
 
@@ -241,6 +248,13 @@ def check_new(ev: Evidence, config: SSPConfig, *, loose: bool = False) -> Verdic
         return Verdict(False, f"explains {pct:.0f} % of its visible surface (< {lim:.0f})", ev)
     if loose:
         return Verdict(True, "plausible", ev)
+    if ev.fit * ev.visible < v.min_visible_samples:  # what the data shows of it, counted
+        return Verdict(
+            False,
+            f"only {ev.fit * ev.visible:.0f} samples of its surface are explained by the data "
+            f"(< {v.min_visible_samples}): too little to verify it by",
+            ev,
+        )
     if ev.explained is not None and ev.explained < v.min_explained:
         return Verdict(
             False,
@@ -307,6 +321,7 @@ def verify_final(
     own_label: int | None,
     stability: float,
     segment_spacing: float | None = None,
+    before: Sequence[Rejected] = (),
 ) -> Verdict:
     """The verdict on a new object after the search: :func:`check_new` at its final pose
     ``T_final``. An object is never reported at a pose its data does not support: when the
@@ -314,14 +329,15 @@ def verify_final(
     hypothesis interpenetrates another object, so the data fallbacks could not put it back)
     but one of its ``hypotheses`` passes, it is kept at the best such hypothesis
     (:attr:`Verdict.T_world_obj`; the data decides whether and where it is; the reason
-    says so), unless its own instance segment reaches below it there
-    (:func:`reaches_below`). When its ``stability`` term at the final pose says it would fall (below
-    ``verification.fall_stability``), it is kept only if its data is strong
-    (``verification.stand_explained``): a cube proposed on a ball explains half of the ball
-    and cannot rest on it; and its own instance segment does not reach below it
-    (:func:`reaches_below`: a cube fitted to a can's top). ``segment``: ``(K, 3)`` points or
-    their KD-tree;
-    ``segment_spacing``: their :func:`~ssp.segments.point_spacing` when known."""
+    says so), unless nothing undetected can hold it up there
+    (:func:`~ssp.holders.nothing_holds`). When its ``stability`` term at the final pose says
+    it would fall (below ``verification.fall_stability``), it is kept only if its data is
+    strong (``verification.stand_explained``): a cube proposed on a ball explains half of the
+    ball and cannot rest on it; and the data must not rule out a holder
+    (:func:`~ssp.holders.nothing_holds`: a cube fitted to a can's top). ``segment``:
+    ``(K, 3)`` points or their KD-tree;
+    ``segment_spacing``: their :func:`~ssp.segments.point_spacing` when known; ``before``: the
+    previous frame's rejections (where nothing held an object up then)."""
     tree = segment if isinstance(segment, cKDTree) else None
     if tree is None and segment is not None and len(segment):
         tree = cKDTree(np.asarray(segment, dtype=float))
@@ -332,6 +348,7 @@ def verify_final(
     verdict = check_new(ev, config)
     if not verdict.keep:
         best: tuple[float, np.ndarray, Verdict] | None = None
+        unheld = None
         for T in hypotheses:
             ev_h = evidence(
                 model, T, tree, view, config, own_label=own_label, segment_spacing=spacing
@@ -339,12 +356,13 @@ def verify_final(
             hv = check_new(ev_h, config)
             e = hv.judged
             strength = e.fit if e.explained is None else e.explained
-            if _own_below(model, T, tree, own_label) > config.verification.fallback_below:
+            if hv.keep and (why := _unheld(model, T, tree, own_label, view, config, before)):
+                unheld = unheld or why
                 continue  # held there by nothing under it
             if hv.keep and (best is None or strength > best[0]):
                 best = (strength, np.asarray(T, dtype=float), hv)
         if best is None:
-            return verdict
+            return replace(verdict, unheld=unheld)
         _, T, hv = best
         return Verdict(
             True,
@@ -355,18 +373,42 @@ def verify_final(
             verdict,
         )
     strength = ev.fit if ev.explained is None else ev.explained
-    below = _own_below(model, T_final, tree, own_label)
-    if falls_unheld(stability, strength, config, below):
+    unheld = (
+        _unheld(model, T_final, tree, own_label, view, config, before)
+        if stability < (config.verification.fall_stability)
+        else None
+    )
+    through = ev.seen_through
+    if stability < config.verification.fall_stability:
+        through = _aligned_seen_through(model, T_final, tree, view, config, own_label, ev)
+    if falls_unheld(stability, strength, config, unheld is not None, through):
         what = "of its visible surface" if ev.explained is None else "of its segment"
         why = f"accounts for only {100 * strength:.0f} % {what}"
         if strength >= config.verification.stand_explained:
-            why = f"{100 * below:.0f} % of its own segment lies below it"
+            why = unheld or f"the camera sees through {100 * through:.0f} % of it"
         return Verdict(
             False,
             f"would fall where the data puts it (stability term {stability:.0f}) and {why}",
             ev,
+            unheld=why,
         )
     return verdict
+
+
+def _aligned_seen_through(model, T, tree, view, config, own_label, ev: Evidence) -> float:
+    """The share of ``model``'s facing surface the camera sees through at ``T`` (4x4, m;
+    ``ev``: its evidence there), or, when that is ``verification.stand_seen_through`` or more,
+    at its pose registered to its segment ``tree`` (:func:`~ssp.registration.bounded_refit`)
+    if that is less: a true object at a pose a few mm and degrees off shows its sides' edges
+    seen through; a shape that is not what the camera saw (a cube fitted to a can's top, its
+    corners over the table) stays seen through however it is aligned."""
+    if ev.seen_through < config.verification.stand_seen_through or tree is None or view is None:
+        return ev.seen_through
+    T_fit = bounded_refit(model, T, tree.data, view.T_world_cam[:3, 3], config)
+    if T_fit is None:
+        return ev.seen_through
+    return min(ev.seen_through, evidence(model, T_fit, tree, view, config,
+                                         own_label=own_label).seen_through)  # fmt: skip
 
 
 def may_hold_up(verdict: Verdict, config: SSPConfig) -> bool:
@@ -438,31 +480,19 @@ def data_fallbacks(score, scorer, groups, config: SSPConfig) -> dict[str, tuple[
     return out
 
 
-BELOW_TOLERANCE = 0.01
-"""A segment point lies below an object when it is lower than the object's lowest point by
-more than this, m (depth noise at the object's foot, a mask's edge on the table)."""
-
-
-def reaches_below(model: ObjectModel, T_world_obj: np.ndarray, segment: np.ndarray) -> float:
-    """The fraction of an object's instance segment ``segment`` (M, 3; world points, m) lying
-    more than :data:`BELOW_TOLERANCE` below the lowest point of ``model`` at ``T_world_obj``
-    (4, 4; world z up); 0.0 for an empty segment. An instance segment is one object: points
-    of it far below the object are the object's own, so the object reaches down there, and a
-    shape that does not (a cube fitted to the top of a can, seen from above) is the wrong
-    one: nothing undetected holds it up (:func:`fall_back_to_data`)."""
-    if not len(segment):
-        return 0.0
-    T = np.asarray(T_world_obj, dtype=float)
-    bottom = float((np.asarray(model.mesh.vertices) @ T[2, :3] + T[2, 3]).min())
-    return float(np.mean(np.asarray(segment)[:, 2] < bottom - BELOW_TOLERANCE))
-
-
-def _own_below(model, T_world_obj, tree: cKDTree | None, own_label: int | None) -> float:
-    """:func:`reaches_below` of an object's own instance segment (``tree``'s points); 0.0
-    without one (no label: a cluster's points near it say nothing of what lies below it)."""
+def _unheld(model, T_world_obj, tree: cKDTree | None, own_label: int | None, view, config,
+            before: Sequence[Rejected] = ()) -> str | None:  # fmt: skip
+    """:func:`~ssp.holders.nothing_holds` with an object's own instance segment (``tree``'s
+    points) and the previous frame's rejections ``before`` (:attr:`Rejected.unheld`): why
+    nothing undetected holds it up there, or None (also without one: a cluster's points near
+    it say nothing of what lies below it)."""
     if own_label is None or tree is None:
-        return 0.0
-    return reaches_below(model, T_world_obj, tree.data)
+        return None
+    ruled = [(r.T_world_obj, r.unheld) for r in before if r.class_name == model.name and r.unheld]
+    return nothing_holds(
+        model, T_world_obj, tree.data, view, own_label, config.verification.fallback_below,
+        ruled, config.temporal.association_distance,
+    )  # fmt: skip
 
 
 def still_visible(ev: Evidence, config: SSPConfig) -> bool:
@@ -477,7 +507,7 @@ def still_visible(ev: Evidence, config: SSPConfig) -> bool:
 
 
 def verify_and_place(
-    world, scorer, score, models, groups, segments, owner, view, skip, config, timer
+    world, scorer, score, models, groups, segments, owner, view, skip, config, timer, before=()
 ) -> tuple[dict[str, Verdict], dict[str, np.ndarray]]:
     """Parser step 8: :func:`verify_final` of every new object (not in ``skip``: known or
     removed ones) at its searched pose (``score``: the scene ``world`` holds, scored by
@@ -488,8 +518,9 @@ def verify_and_place(
     ``verification.fallback_collision``, the data fallbacks' rule): then it stays where
     the search put it and fails (a duplicate of a kept object, or a hypothesis physics
     cannot hold), unless it accounts for its own instance segment: then it is kept there
-    with that doubt in its reason (and so in the frame's warnings). Returns the verdicts
-    and the objects put at a hypothesis."""
+    with that doubt in its reason (and so in the frame's warnings). ``before``: the previous
+    frame's rejections (:func:`verify_final`). Returns the verdicts and the objects put at a
+    hypothesis."""
     cfg = config
     ids = score.ids
     verdicts: dict[str, Verdict] = {}
@@ -507,6 +538,7 @@ def verify_and_place(
             own_label=owner.get(oid),
             stability=float(score.terms[i, Term.STABILITY]),
             segment_spacing=segments.spacing(oid),
+            before=before,
         )
     to_place = [oid for oid, v in verdicts.items() if v.keep and v.T_world_obj is not None]
 
@@ -579,8 +611,8 @@ def fall_back_to_data(ctx: FrameContext) -> None:
     their data before (an established object keeps its physically consistent pose): those the
     search moved off their data (:func:`data_fallbacks`) go back to their best hypothesis,
     unless there they would be inside another object (``verification.fallback_collision``),
-    or their own instance segment reaches below them (:func:`reaches_below`,
-    ``verification.fallback_below``: the hypothesis' shape is not what the segment is).
+    or the data rules out a holder there (:func:`~ssp.holders.nothing_holds`: their own
+    instance segment reaches below them, or the camera sees under them).
 
     Sets ``fallbacks``; updates ``score`` and ``chosen``.
     """
@@ -590,12 +622,11 @@ def fall_back_to_data(ctx: FrameContext) -> None:
     fallbacks = data_fallbacks(
         ctx.scene_score, scorer, {oid: ctx.groups[oid] for oid in may_fall_back}, cfg
     )
-    for oid in [o for o in fallbacks if o in ctx.owner]:  # its own instance segment below it
-        segment = ctx.segments.get(oid, np.zeros((0, 3)))
-        below = reaches_below(ctx.models[oid], fallbacks[oid][0], segment)
-        if below > cfg.verification.fallback_below:
-            log.info("%s: not put back at its hypothesis: %.0f %% of its own segment lies "
-                     "below it", oid, 100 * below)  # fmt: skip
+    for oid in [o for o in fallbacks if o in ctx.owner]:  # what it shows under it
+        why = _unheld(ctx.models[oid], fallbacks[oid][0], ctx.segment_trees.tree(oid),
+                      ctx.owner[oid], ctx.view, cfg, ctx.remembered)  # fmt: skip
+        if why is not None:
+            log.info("%s: not put back at its hypothesis: %s", oid, why)
             del fallbacks[oid]
     if fallbacks:
         searched = {oid: world.get_pose(oid) for oid in fallbacks}
@@ -626,7 +657,7 @@ def place_new(ctx: FrameContext) -> None:
     world, scorer = sim.world, sim.scorer
     ctx.final_verdicts, ctx.placed = verify_and_place(
         world, scorer, ctx.scene_score, ctx.models, ctx.groups, trees, ctx.owner, ctx.view,
-        set(ctx.prev_pose) | set(ctx.removed), cfg, ctx.timer,
+        set(ctx.prev_pose) | set(ctx.removed), cfg, ctx.timer, ctx.remembered,
     )  # fmt: skip
     if ctx.placed:
         ctx.score = scorer.evaluate(world, ctx.timer)
@@ -685,6 +716,7 @@ def judge_final(ctx: FrameContext) -> None:
             why += f" (what rests on it, {', '.join(on_it)}, does not keep it)"
         rejected[oid] = Rejected(
             oid, models[oid].name, score.poses[i].copy(), why, verdict.judged.as_dict(), seg,
+            verdict.unheld,
         )  # fmt: skip
         log.info("%s (%s) rejected at its final pose: %s", oid, models[oid].name, why)
     ctx.warnings, ctx.rejected = warnings, rejected
@@ -713,18 +745,24 @@ def doubt(ev: Evidence, stability: float, config: SSPConfig) -> tuple[str, bool]
     return None
 
 
-def falls_unheld(stability: float, strength: float, config: SSPConfig, below: float = 0.0) -> bool:
+def falls_unheld(
+    stability: float,
+    strength: float,
+    config: SSPConfig,
+    unheld: bool = False,
+    seen_through: float = 0.0,
+) -> bool:
     """An object whose stability term says it would fall (below
     ``verification.fall_stability``) stands only with strong data (``strength``, a fit or
-    an explained fraction, at least ``verification.stand_explained``: held by something
-    undetected); a cube proposed on a ball explains half of the ball and cannot rest on it.
-    Nor when its own instance segment reaches below it (``below``, :func:`reaches_below`,
-    more than ``verification.fallback_below``): the segment is that one object, so nothing
-    undetected is under it."""
+    an explained fraction, at least ``verification.stand_explained``, and the camera seeing
+    through less than ``verification.stand_seen_through`` of its facing surface: held by
+    something undetected); a cube proposed on a ball explains half of the ball and cannot
+    rest on it. Nor when the data rules out a holder (``unheld``,
+    :func:`ssp.holders.nothing_holds`: its own instance segment reaches below it, or the
+    camera sees it under it)."""
     v = config.verification
-    return stability < v.fall_stability and (
-        strength < v.stand_explained or below > v.fallback_below
-    )
+    weak = strength < v.stand_explained or seen_through >= v.stand_seen_through
+    return stability < v.fall_stability and (weak or unheld)
 
 
 #: A doubted known object whose hypothesis the data supports (:func:`check_new`) and fits by
