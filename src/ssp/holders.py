@@ -97,9 +97,9 @@ def under_column(model: ObjectModel, T_world_obj: np.ndarray) -> tuple[np.ndarra
         return empty, empty
     try:
         hull = ConvexHull(V[:, :2])
-    except QhullError:  # a degenerate footprint (a flat object seen edge-on)
+    except QhullError:  # a footprint without area (a thin plate standing on its edge)
         return empty, empty
-    ring = V[hull.vertices, :2]  # counter-clockwise
+    ring = V[hull.vertices, :2]  # counter-clockwise (scipy's 2-D hulls)
     T = np.asarray(T_world_obj, dtype=float)
     com = (T[:3, :3] @ model.center_of_mass + T[:3, 3])[:2]
     ring = com + UNDER_SHRINK * (ring - com)
@@ -109,10 +109,8 @@ def under_column(model: ObjectModel, T_world_obj: np.ndarray) -> tuple[np.ndarra
         length = float(np.linalg.norm(edge))
         if length < 1e-9:
             continue
-        t = (np.arange(max(1, round(length / UNDER_SPACING))) + 0.5) / max(
-            1, round(length / UNDER_SPACING)
-        )
-        xy = a + t[:, None] * edge
+        n = max(1, round(length / UNDER_SPACING))
+        xy = a + ((np.arange(n) + 0.5) / n)[:, None] * edge
         out = np.array([edge[1], -edge[0]]) / length  # outward for a counter-clockwise ring
         grid = np.column_stack([np.repeat(xy, len(z), axis=0), np.tile(z, len(xy))])
         pts.append(grid)
