@@ -191,3 +191,32 @@ def test_a_disabled_cube_stays_disabled_after_the_test(lib):
     world.set_enabled("t0", False)
     support_retained(world, graph, ["t0"], CFG)
     assert not world.is_enabled("t0") and world.is_enabled("t1")
+
+
+def test_an_object_the_moving_camera_looks_away_from_keeps_its_id():
+    """A wrist camera looks at a cube, then at another part of the table (the cube outside its
+    image, no hypothesis of it), then back: the parser keeps the cube while it is out of view,
+    flagged ephemeral with the reason, and the same id when it is seen again (it removed it as
+    'no data either way' before, and the robot lost it)."""
+    from ssp.library.library import ObjectLibrary
+    from ssp.parser import SceneParser
+
+    lib = ObjectLibrary.builtin()
+    gt = {"a": ("cube", _on_table(lib)), "b": ("cube", _on_table(lib, x=0.6))}
+    at_a = look_at([-0.4, -0.25, 0.3], [0.0, 0.0, 0.02])
+    at_b = look_at([0.2, -0.25, 0.3], [0.6, 0.0, 0.02])
+    parser = SceneParser(lib)
+
+    def seen(cam, stamp, detect):
+        f = synthetic_frame(lib, gt, T_world_cam=cam, rng=int(stamp), k=3, stamp=stamp,
+                            detect=detect, give_segments=True)  # fmt: skip
+        return parser.update(f)
+
+    first = seen(at_a, 0.0, {"a"})
+    (a_id,) = [o.id for o in first.objects]
+    away = seen(at_b, 1.0, {"b"})
+    kept = {o.id: o for o in away.objects}
+    assert a_id in kept and kept[a_id].ephemeral, away
+    assert kept[a_id].reason.startswith("outside the camera's view"), kept[a_id].reason
+    back = seen(at_a, 2.0, {"a"})
+    assert a_id in {o.id for o in back.objects}
