@@ -1,7 +1,7 @@
 """Could something undetected hold an object up? What the data says under it.
 
 An object whose stability term says it would fall stays when its data is strong: something the
-estimator did not detect may hold it up (:func:`ssp.verification.falls_unheld`; a cube on a
+estimator did not detect may hold it up (:func:`ssp.verification.verify_final`; a cube on a
 block nobody proposed). That holder would stand between the object's lowest point and the
 table, and two things in the frame can rule it out:
 

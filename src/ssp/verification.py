@@ -372,20 +372,8 @@ def verify_final(
             T.copy(),
             verdict,
         )
-    strength = ev.fit if ev.explained is None else ev.explained
-    unheld = (
-        _unheld(model, T_final, tree, own_label, view, config, before)
-        if stability < (config.verification.fall_stability)
-        else None
-    )
-    through = ev.seen_through
-    if stability < config.verification.fall_stability:
-        through = _aligned_seen_through(model, T_final, tree, view, config, own_label, ev)
-    if falls_unheld(stability, strength, config, unheld is not None, through):
-        what = "of its visible surface" if ev.explained is None else "of its segment"
-        why = f"accounts for only {100 * strength:.0f} % {what}"
-        if strength >= config.verification.stand_explained:
-            why = unheld or f"the camera sees through {100 * through:.0f} % of it"
+    why = _falls(model, T_final, stability, ev, tree, view, config, own_label, before)
+    if why is not None:
         return Verdict(
             False,
             f"would fall where the data puts it (stability term {stability:.0f}) and {why}",
@@ -395,20 +383,77 @@ def verify_final(
     return verdict
 
 
-def _aligned_seen_through(model, T, tree, view, config, own_label, ev: Evidence) -> float:
-    """The share of ``model``'s facing surface the camera sees through at ``T`` (4x4, m;
-    ``ev``: its evidence there), or, when that is ``verification.stand_seen_through`` or more,
-    at its pose registered to its segment ``tree`` (:func:`~ssp.registration.bounded_refit`)
-    if that is less: a true object at a pose a few mm and degrees off shows its sides' edges
-    seen through; a shape that is not what the camera saw (a cube fitted to a can's top, its
-    corners over the table) stays seen through however it is aligned."""
-    if ev.seen_through < config.verification.stand_seen_through or tree is None or view is None:
-        return ev.seen_through
+def _place(oid, verdict: Verdict, world, scorer, model, segments, own_label, view, config,
+           timer, before) -> Verdict:  # fmt: skip
+    """:func:`verify_and_place` of one object kept at a hypothesis (``verdict.T_world_obj``):
+    put there in ``world`` and its verdict, or put back where the search left it (disabled)
+    with the failed one: it would fall there with nothing shown to hold it (:func:`_falls`),
+    or be inside another object without its own instance segment saying it is there."""
+    searched = world.get_pose(oid)
+    target = verdict.T_world_obj
+    assert target is not None, "a verdict kept at a hypothesis has its pose"
+    world.set_enabled(oid, True)
+    world.set_pose(oid, target)
+    terms = scorer.evaluate(world, timer).terms[world.index(oid)]
+    collision, stability = float(terms[Term.COLLISION]), float(terms[Term.STABILITY])
+    own = verdict.judged.explained is not None  # it accounts for its segment
+    falls = _falls(model, target, stability, verdict.judged, segments.tree(oid), view, config,
+                   own_label, before)  # fmt: skip
+    failed = verdict.searched if verdict.searched is not None else verdict
+    if falls is None and (collision >= config.verification.fallback_collision or own):
+        if collision < config.verification.fallback_collision:
+            # its own instance segment says it is there: kept, with the doubt said
+            return replace(verdict, reason=(
+                f"{verdict.reason}; there it is inside another object (collision term "
+                f"{collision:.1f}): its model or a neighbour's may not match the data"
+            ))  # fmt: skip
+        return verdict
+    world.set_pose(oid, searched)
+    world.set_enabled(oid, False)
+    if falls is not None:  # held there by nothing: the rule of a final pose
+        why = f"would fall (stability term {stability:.0f}) and {falls}"
+    else:
+        why = f"would be inside another object (collision term {collision:.1f})"
+    return Verdict(False, f"{failed.reason}; at its best hypothesis it {why}", failed.evidence,
+                   unheld=falls)  # fmt: skip
+
+
+def _weak(ev: Evidence, config: SSPConfig) -> str | None:
+    """Why ``ev`` is not strong enough to keep an object that would fall (held by something
+    undetected), or None: it explains ``verification.stand_explained`` of its instance
+    segment and of its visible surface, and the camera sees through less than
+    ``verification.stand_seen_through`` of it."""
+    v = config.verification
+    if ev.explained is not None and ev.explained < v.stand_explained:
+        return f"accounts for only {100 * ev.explained:.0f} % of its segment"
+    if ev.fit < v.stand_explained:
+        return f"explains only {100 * ev.fit:.0f} % of its visible surface"
+    if ev.seen_through >= v.stand_seen_through:
+        return f"the camera sees through {100 * ev.seen_through:.0f} % of it"
+    return None
+
+
+def _falls(model, T, stability, ev, tree, view, config, own_label, before) -> str | None:
+    """Why a new object that would fall at ``T`` (4x4, m; its ``stability`` term below
+    ``verification.fall_stability``; ``ev``: its evidence there) is not held by something
+    undetected, or None (it stands on its data): the data rules a holder out (:func:`_unheld`),
+    or it is weak (:func:`_weak`) at ``T`` and at its pose registered to its segment ``tree``
+    (:func:`~ssp.registration.bounded_refit`: a true object a few mm and degrees off shows its
+    sides' edges seen through and its surface half explained; a shape that is not what the
+    camera saw, a cube fitted to a can's top or a ball, stays so however it is aligned)."""
+    if stability >= config.verification.fall_stability:
+        return None
+    unheld = _unheld(model, T, tree, own_label, view, config, before)
+    if unheld is not None:
+        return unheld
+    weak = _weak(ev, config)
+    if weak is None or tree is None or view is None:
+        return weak
     T_fit = bounded_refit(model, T, tree.data, view.T_world_cam[:3, 3], config)
     if T_fit is None:
-        return ev.seen_through
-    return min(ev.seen_through, evidence(model, T_fit, tree, view, config,
-                                         own_label=own_label).seen_through)  # fmt: skip
+        return weak
+    ev_fit = evidence(model, T_fit, tree, view, config, own_label=own_label)
+    return None if _weak(ev_fit, config) is None else weak
 
 
 def may_hold_up(verdict: Verdict, config: SSPConfig) -> bool:
@@ -555,33 +600,11 @@ def verify_and_place(
     for oid in unverified + to_place:
         world.set_enabled(oid, False)
     for oid in sorted(to_place, key=lambda o: (strength(o), o)):
-        searched = world.get_pose(oid)
+        verdicts[oid] = _place(oid, verdicts[oid], world, scorer, models[oid], segments,
+                               owner.get(oid), view, cfg, timer, before)  # fmt: skip
         target = verdicts[oid].T_world_obj
-        assert target is not None, "to_place holds the verdicts with a pose"
-        world.set_enabled(oid, True)
-        world.set_pose(oid, target)
-        collision = float(scorer.evaluate(world, timer).terms[world.index(oid), Term.COLLISION])
-        own = verdicts[oid].judged.explained is not None  # it accounts for its segment
-        if collision >= cfg.verification.fallback_collision or own:
+        if verdicts[oid].keep and target is not None:
             placed[oid] = target
-            if collision < cfg.verification.fallback_collision:
-                # its own instance segment says it is there: kept, with the doubt said
-                v = verdicts[oid]
-                verdicts[oid] = replace(v, reason=(
-                    f"{v.reason}; there it is inside another object (collision term "
-                    f"{collision:.1f}): its model or a neighbour's may not match the data"
-                ))  # fmt: skip
-            continue
-        world.set_pose(oid, searched)
-        world.set_enabled(oid, False)
-        v = verdicts[oid]
-        assert v.searched is not None, "a verdict kept at a hypothesis has the searched one"
-        verdicts[oid] = Verdict(
-            False,
-            f"{v.searched.reason}; at its best hypothesis it would be inside another object "
-            f"(collision term {collision:.1f})",
-            v.searched.evidence,
-        )
     for oid in unverified + to_place:
         world.set_enabled(oid, True)
     return verdicts, placed
@@ -745,24 +768,14 @@ def doubt(ev: Evidence, stability: float, config: SSPConfig) -> tuple[str, bool]
     return None
 
 
-def falls_unheld(
-    stability: float,
-    strength: float,
-    config: SSPConfig,
-    unheld: bool = False,
-    seen_through: float = 0.0,
-) -> bool:
-    """An object whose stability term says it would fall (below
-    ``verification.fall_stability``) stands only with strong data (``strength``, a fit or
-    an explained fraction, at least ``verification.stand_explained``, and the camera seeing
-    through less than ``verification.stand_seen_through`` of its facing surface: held by
-    something undetected); a cube proposed on a ball explains half of the ball and cannot
-    rest on it. Nor when the data rules out a holder (``unheld``,
-    :func:`ssp.holders.nothing_holds`: its own instance segment reaches below it, or the
-    camera sees it under it)."""
+def falls_unheld(stability: float, strength: float, config: SSPConfig) -> bool:
+    """A known object whose stability term says it would fall (below
+    ``verification.fall_stability``) stands only with strong data (``strength``, a fit or an
+    explained fraction, at least ``verification.stand_explained``: held by something
+    undetected); a cube proposed on a ball explains half of the ball and cannot rest on it
+    (:func:`doubt`; a new object is judged by :func:`verify_final`'s stricter rule)."""
     v = config.verification
-    weak = strength < v.stand_explained or seen_through >= v.stand_seen_through
-    return stability < v.fall_stability and (weak or unheld)
+    return stability < v.fall_stability and strength < v.stand_explained
 
 
 #: A doubted known object whose hypothesis the data supports (:func:`check_new`) and fits by
