@@ -483,9 +483,10 @@ class VerificationConfig(_Section):
         ge=0,
         le=1,
         description=(
-            "A new object that would fall where the data puts it is kept only if it accounts "
-            "for at least this fraction of its instance segment (of its visible surface "
-            "without one): then it is there, held by something undetected."
+            "A new object that would fall where the data puts it is kept only if it explains "
+            "at least this fraction of its visible surface and accounts for as much of its "
+            "instance segment (when it has one): then it is there, held by something "
+            "undetected (a known object: its fit alone, ssp.verification.falls_unheld)."
         ),
     )
     stand_seen_through: float = Field(
