@@ -94,3 +94,20 @@ def test_an_object_its_own_segment_reaches_below_is_not_held_by_something_undete
     assert not v.keep  # not at the hypothesis either
     v = verify_final(cube, T_top, [T_top], own, None, CFG, own_label=1, stability=-30.0)
     assert v.keep
+
+
+def test_strong_data_explains_the_surface_as_well_as_the_segment():
+    """A cube fitted to the top of a ball (the wrist tower, development seed 25) accounted for
+    92 % of the ball's segment but explained 64 % of its own visible surface: an object that
+    would fall stands on its data only when both are strong (verification.stand_explained)."""
+    cube = LIB["cube"]
+    T = make_pose(t=[0.0, 0.0, 0.06])
+    surface = transform_points(T, np.asarray(cube.surface_points))
+    half = surface[surface[:, 2] > 0.06]  # only its upper half has data
+    v = verify_final(cube, T, [T], surface, None, CFG, own_label=1, stability=-30.0)
+    assert v.keep, v.reason
+    v = verify_final(cube, T, [T], half, None, CFG, own_label=1, stability=-30.0)
+    assert not v.keep and "explains only" in v.reason, v.reason
+    assert v.unheld is not None and v.unheld.startswith("explains only")
+    # resting (no fall), the same data verifies it
+    assert verify_final(cube, T, [T], half, None, CFG, own_label=1, stability=0.0).keep
