@@ -131,7 +131,8 @@ def triage(
             out[oid] = Triage(TriageState.VISIBLE, reason, ev)
             continue
         if oid not in contested and oid in owner:
-            found = _refit_visible(model, T, segments[oid], owner[oid], view, config)
+            seg = segments.get(oid, np.zeros((0, 3)))
+            found = _refit_visible(model, T, seg, owner[oid], view, config)
             if found is not None:
                 out[oid] = found
                 continue
