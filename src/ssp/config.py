@@ -494,7 +494,8 @@ class VerificationConfig(_Section):
         ge=0,
         le=1,
         description=(
-            "... and the camera sees through less than this fraction of its camera-facing "
+            "... and, with its own instance segment, the camera sees through less than this "
+            "fraction of its camera-facing "
             "surface there (half the seen-empty bar, temporal.seen_through_fraction): strong "
             "data confirms the object at both ends, its segment explained and its surface "
             "seen, not a shape that sticks out of what the camera saw (a cube fitted to a "
