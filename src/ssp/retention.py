@@ -131,8 +131,7 @@ def triage(
             out[oid] = Triage(TriageState.VISIBLE, reason, ev)
             continue
         if oid not in contested and oid in owner:
-            seg = segments.get(oid, np.zeros((0, 3)))
-            found = _refit_visible(model, T, seg, owner[oid], view, config)
+            found = _refit_visible(model, T, segments.get(oid), owner[oid], view, config)
             if found is not None:
                 out[oid] = found
                 continue
@@ -180,7 +179,7 @@ def triage(
 def _refit_visible(
     model: ObjectModel,
     T: np.ndarray,
-    segment: np.ndarray,
+    segment: np.ndarray | None,
     label: int,
     view: CameraView | None,
     config: SSPConfig,
@@ -193,6 +192,8 @@ def _refit_visible(
     otherwise judged at the wrong place: its facing sides seen through (removed as
     ``seen_empty``) or its surface unexplained (``unseen``), though the mask says one object is
     right there."""
+    if segment is None:
+        return None
     cam = None if view is None else view.T_world_cam[:3, 3]
     T_fit = bounded_refit(model, T, segment, cam, config)
     if T_fit is None:
