@@ -217,7 +217,9 @@ LOOSE_SEEN_THROUGH = 0.6
 LOOSE_FIT = 1.0 / 3.0
 
 
-def check_new(ev: Evidence, config: SSPConfig, *, loose: bool = False) -> Verdict:
+def check_new(
+    ev: Evidence, config: SSPConfig, *, loose: bool = False, counted: bool = True
+) -> Verdict:
     """Verdict on an object not seen before, at its best pose: kept only if the camera could
     see enough of it (``verification.min_visible_samples``), its visible surface is explained
     (``fit >= verification.min_fit``) by at least as many samples (a new object almost
@@ -229,7 +231,8 @@ def check_new(ev: Evidence, config: SSPConfig, *, loose: bool = False) -> Verdic
     ``loose``: the check of a raw hypothesis, which may be a few millimetres off (a face 5 mm
     too close to the camera is seen through): the seen-through limit is at least
     :data:`LOOSE_SEEN_THROUGH`, the fit limit :data:`LOOSE_FIT` of ``min_fit``, and the
-    segment is not checked."""
+    segment is not checked. ``counted``: the explained samples are counted (not for a known
+    object, :func:`doubt`: one mostly hidden is not doubted for it)."""
     v = config.verification
     through = config.temporal.seen_through_fraction
     min_fit = v.min_fit
@@ -248,7 +251,7 @@ def check_new(ev: Evidence, config: SSPConfig, *, loose: bool = False) -> Verdic
         return Verdict(False, f"explains {pct:.0f} % of its visible surface (< {lim:.0f})", ev)
     if loose:
         return Verdict(True, "plausible", ev)
-    if ev.fit * ev.visible < v.min_visible_samples:  # what the data shows of it, counted
+    if counted and ev.fit * ev.visible < v.min_visible_samples:  # what the data shows of it
         return Verdict(
             False,
             f"only {ev.fit * ev.visible:.0f} samples of its surface are explained by the data "
@@ -397,8 +400,10 @@ def _place(oid, verdict: Verdict, world, scorer, model, segments, own_label, vie
     terms = scorer.evaluate(world, timer).terms[world.index(oid)]
     collision, stability = float(terms[Term.COLLISION]), float(terms[Term.STABILITY])
     own = verdict.judged.explained is not None  # it accounts for its segment
-    falls = _falls(model, target, stability, verdict.judged, segments.tree(oid), view, config,
-                   own_label, before)  # fmt: skip
+    falls = None  # with its own instance segment: without masks a cluster says less
+    if own:
+        falls = _falls(model, target, stability, verdict.judged, segments.tree(oid), view,
+                       config, own_label, before)  # fmt: skip
     failed = verdict.searched if verdict.searched is not None else verdict
     if falls is None and (collision >= config.verification.fallback_collision or own):
         if collision < config.verification.fallback_collision:
@@ -449,8 +454,8 @@ def _falls(model, T, stability, ev, tree, view, config, own_label, before) -> st
     if unheld is not None:
         return unheld
     weak = _weak(ev, config)
-    if weak is None or tree is None or view is None:
-        return weak
+    if weak is None or tree is None or view is None or ev.explained is None:
+        return weak  # registered only to its own instance segment (a cluster may be several)
     T_fit = bounded_refit(model, T, tree.data, view.T_world_cam[:3, 3], config)
     if T_fit is None:
         return weak
@@ -759,7 +764,7 @@ def doubt(ev: Evidence, stability: float, config: SSPConfig) -> tuple[str, bool]
     either)."""
     if ev.visible < config.verification.min_visible_samples:
         return None
-    verdict = check_new(replace(ev, explained=None), config)
+    verdict = check_new(replace(ev, explained=None), config, counted=False)
     if not verdict.keep:
         return verdict.reason, False
     if falls_unheld(stability, ev.fit, config):
