@@ -185,13 +185,13 @@ def _refit_visible(
     config: SSPConfig,
 ) -> Triage | None:
     """An undetected object that its own instance segment ``segment`` (K, 3; world, m;
-    instance ``label``; None: none this frame) does not show at its previous pose ``T`` (4x4, m) but shows a little
-    off (:func:`~ssp.registration.bounded_refit`: within 2 cm and 20 deg): ``visible`` (its
-    data forces then pull it there), or None. A pose that drifted a few mm while the object
-    was half out of a moving camera's view, or one the sensor noise left a few mm off, is
-    otherwise judged at the wrong place: its facing sides seen through (removed as
-    ``seen_empty``) or its surface unexplained (``unseen``), though the mask says one object is
-    right there."""
+    instance ``label``; None: none this frame) does not show at its previous pose ``T`` (4x4,
+    m) but shows a little off (:func:`~ssp.registration.bounded_refit`: within 2 cm and 20
+    deg): ``visible`` (its data forces then pull it there), or None. A pose that drifted a few
+    mm while the object was half out of a moving camera's view, or one the sensor noise left a
+    few mm off, is otherwise judged at the wrong place: its facing sides seen through (removed
+    as ``seen_empty``) or its surface unexplained (``unseen``), though the mask says one
+    object is right there."""
     if segment is None:
         return None
     cam = None if view is None else view.T_world_cam[:3, 3]
