@@ -121,7 +121,11 @@ def under_column(model: ObjectModel, T_world_obj: np.ndarray) -> tuple[np.ndarra
 
 
 def seen_under(
-    model: ObjectModel, T_world_obj: np.ndarray, view: CameraView, own_label: int
+    model: ObjectModel,
+    T_world_obj: np.ndarray,
+    view: CameraView,
+    own_label: int,
+    column: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[int, int]:
     """``(rays, unheld)``: of the rays to the column under the object (:func:`under_column`)
     that tell something (module docstring), how many meet the object's own instance segment
@@ -129,8 +133,8 @@ def seen_under(
     hold it from above), meets the column's side at its depth, or meets something below the
     object in front of it tells something; only the object's own segment there rules a holder
     out. A ray hidden by something at the object's height or above (the object itself) tells
-    nothing."""
-    pts, nrm = under_column(model, T_world_obj)
+    nothing. ``column``: :func:`under_column`'s samples when already made."""
+    pts, nrm = under_column(model, T_world_obj) if column is None else column
     if not len(pts):
         return 0, 0
     _, bottom = _bottom(model, T_world_obj)
@@ -176,11 +180,12 @@ def nothing_holds(
     below = reaches_below(model, T_world_obj, segment)
     if below > below_limit:
         return f"{100 * below:.0f} % of its own segment lies below it"
-    if not len(under_column(model, T_world_obj)[0]):
+    column = under_column(model, T_world_obj)
+    if not len(column[0]):
         return None  # on the table: nothing needs to hold it
     rays = unheld = 0
     if view is not None:
-        rays, unheld = seen_under(model, T_world_obj, view, own_label)
+        rays, unheld = seen_under(model, T_world_obj, view, own_label, column)
     if rays >= UNDER_MIN_RAYS:
         if unheld < UNDER_FRACTION * rays:
             return None  # something under it may be a holder

@@ -4,7 +4,8 @@ ICP alone is precise but knows no physics (it floats and interpenetrates objects
 forces alone are physical but converge slowly. A spring toward each object's ICP pose inside
 the simulation gets both: every enabled object with data is pulled toward its point-to-plane
 ICP pose on its segment for ``search.final_settle`` s, then the scene settles for
-``search.settle_without_forces`` s without forces.
+``search.settle_without_forces`` s without forces. The ICP and its bounds (a jump of 2 cm or
+20 deg is a wrong minimum) are :func:`ssp.registration.bounded_refit`'s.
 """
 
 from __future__ import annotations
@@ -18,34 +19,16 @@ import numpy as np
 from ssp.config import SSPConfig
 from ssp.errors import PhysicsError
 from ssp.physics import World
-from ssp.registration import (
-    REFIT_ITERATIONS,
-    REFIT_MAX_JUMP_DEG,
-    REFIT_MAX_JUMP_M,
-    REFIT_MIN_POINTS,
-    REFIT_TOLERANCE,
-    bounded_refit,
-)
+from ssp.registration import bounded_refit
 from ssp.search import Simulator
 from ssp.timing import StageTimer
 
 if TYPE_CHECKING:
     from ssp.frame_context import FrameContext
 
-__all__ = [
-    "ICP_ITERATIONS",
-    "ICP_TOLERANCE",
-    "MAX_JUMP_DEG",
-    "MAX_JUMP_M",
-    "polish",
-    "polish_scene",
-]
+__all__ = ["polish", "polish_scene"]
 
 log = logging.getLogger(__name__)
-
-# the polish's ICP: settings and the bounded refit live with the registration
-MAX_JUMP_M, MAX_JUMP_DEG = REFIT_MAX_JUMP_M, REFIT_MAX_JUMP_DEG
-MIN_POINTS, ICP_ITERATIONS, ICP_TOLERANCE = REFIT_MIN_POINTS, REFIT_ITERATIONS, REFIT_TOLERANCE
 
 
 def polish(

@@ -335,9 +335,9 @@ def verify_final(
     says so), unless nothing undetected can hold it up there
     (:func:`~ssp.holders.nothing_holds`). When its ``stability`` term at the final pose says
     it would fall (below ``verification.fall_stability``), it is kept only if its data is
-    strong (``verification.stand_explained``): a cube proposed on a ball explains half of the
-    ball and cannot rest on it; and the data must not rule out a holder
-    (:func:`~ssp.holders.nothing_holds`: a cube fitted to a can's top). ``segment``:
+    strong and does not rule out a holder (:func:`_falls`: a cube proposed on a ball
+    explains half of the ball and cannot rest on it; a cube fitted to a can's top has the
+    can's side under it). ``segment``:
     ``(K, 3)`` points or their KD-tree;
     ``segment_spacing``: their :func:`~ssp.segments.point_spacing` when known; ``before``: the
     previous frame's rejections (where nothing held an object up then)."""
@@ -427,9 +427,9 @@ def _weak(ev: Evidence, config: SSPConfig) -> str | None:
     """Why ``ev`` is not strong enough to keep an object that would fall (held by something
     undetected), or None: it explains ``verification.stand_explained`` of its instance
     segment and of its visible surface, and, with its own instance segment, the camera sees
-    through less than ``verification.stand_seen_through`` of it (without instance masks that
-    bar rejected objects that held others up, and those left interpenetrating: 20.7 mm on
-    Table I's structures without masks, seed 1005)."""
+    through less than ``verification.stand_seen_through`` of it (a version that applied that
+    bar without instance masks too left objects interpenetrating, 20.7 mm on Table I's
+    structures without masks, seed 1005; how was not traced)."""
     v = config.verification
     if ev.explained is not None and ev.explained < v.stand_explained:
         return f"accounts for only {100 * ev.explained:.0f} % of its segment"
