@@ -140,6 +140,19 @@ def test_an_undetected_cube_a_little_off_its_own_segment_is_visible_there(lib):
     assert v.evidence.fit > 0.9
 
 
+def test_a_hidden_cube_given_the_segment_in_front_of_it_is_hidden_not_unseen(lib):
+    # the label vote gave c, hidden behind a wall, the segment of the wall's cube in front of
+    # it: that segment is not its own surface seen from behind (wrist-camera tower,
+    # development seed 31, trial 1: the cube was removed as "no data either way")
+    wall = {f"w{k}": ("cube", _on_table(lib, x=-0.1, level=k)) for k in range(2)}
+    view, points = _seen(lib, {**wall, "c": ("cube", _on_table(lib))}, LOW_CAM)
+    given = {"c": points["w0"]}
+    out = triage(["c"], {"c": lib["cube"]}, {"c": _on_table(lib)}, {}, given, {"c": 0}, view, CFG)
+    v = out["c"]
+    assert v.state == "ephemeral" and "hidden" in v.reason, v
+    assert v.evidence.explained is None and v.evidence.occluded >= CFG.temporal.occluded_fraction
+
+
 def test_each_missing_object_gets_its_own_state(lib):
     view, points = _seen(lib, {"a": ("cube", _on_table(lib, x=0.1))})
     models = {oid: lib["cube"] for oid in ("a", "b", "d")}
