@@ -115,6 +115,21 @@ def test_reported_moves_count_only_objects_that_did_not_move():
     r.update({"a": ("cube", T), "b": ("cube", moved)}, {"a": "perturbed", "b": "perturbed"})
     r.update({"a": ("cube", T), "b": ("cube", moved)}, {"a": "static"})
     assert (r.static, r.moved) == (2, 1)  # a twice (once perturbed); b moved, then unmatched
+    assert (r.moving, r.unreported) == (1, 0)  # b moved, reported so
+
+
+def test_moved_objects_reported_static_count_only_moves_beyond_the_static_thresholds():
+    r = ReportedMoves(0.0075, 5.0)
+    T = np.eye(4)
+    r.update({"a": ("cube", T), "b": ("cube", T)}, {"a": "added", "b": "added"})
+    near, far = T.copy(), T.copy()
+    near[0, 3], far[0, 3] = 0.005, 0.015  # 5 mm: within the parser's static threshold
+    r.update({"a": ("cube", near), "b": ("cube", far)}, {"a": "static", "b": "static"})
+    assert (r.moving, r.unreported) == (1, 1)  # b: moved 15 mm, reported static
+    back = far.copy()
+    back[0, 3] = 0.0
+    r.update({"a": ("cube", near), "b": ("cube", back)}, {"a": "static", "b": "perturbed"})
+    assert (r.moving, r.unreported, r.static, r.moved) == (2, 1, 1, 0)
 
 
 def test_table1_locates_the_camera_when_its_pose_is_not_given(lib):

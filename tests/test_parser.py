@@ -22,6 +22,8 @@ from ssp.scene import Frame, FrameError, Hypothesis, TransitionMode
 from ssp.scoring import SceneScorer
 from ssp.sim.frames import synthetic_frame
 from ssp.sim.render import look_at
+from ssp.verification import evidence
+from ssp.visibility import CameraView
 
 LIB = ObjectLibrary.builtin()
 CUBE = LIB["cube"]
@@ -297,6 +299,55 @@ def test_moved_object_is_perturbed():
     moved = min(est1.objects, key=lambda o: abs(o.T_world_obj[0, 3] + 0.03))
     assert moved.mode == TransitionMode.PERTURBED
     assert errors(est1, gt1)["a"][0] < 2.0
+
+
+def test_a_corrected_estimate_of_an_object_that_did_not_move_is_static():
+    # the parser remembers cube a 10 mm off where it stands; the frame shows it where it is,
+    # and its estimate goes there: motion in the world only if the data left the old place
+    rng = np.random.default_rng(8)
+    gt = {"a": ("cube", on_table(CUBE, x=-0.05)), "b": ("cube", on_table(CUBE, x=0.06))}
+    parser = SceneParser(LIB)
+    parser.update(frame(gt, rng))
+    f1 = frame(gt, rng, stamp=1.0)
+    wrong = on_table(CUBE, x=-0.04)
+    cfg = SSPConfig()
+    view = CameraView(f1.points, CAMERA, labels=f1.labels,
+                      depth_tolerance=cfg.temporal.depth_tolerance)  # fmt: skip
+    there = evidence(CUBE, wrong, f1.points[f1.labels == 0], view, cfg, own_label=0, residual=True)
+    state = parser.state()
+    (a,) = [o for o in state["objects"] if abs(o["T_world_obj"][0][3] + 0.05) < 0.005]
+    assert 0 < a["seen_residual"] < 0.0015 and a["seen_fit"] > 0.9  # right, in frame 0
+    a["T_world_obj"] = wrong.tolist()
+    modes = {}
+    # the data there as it was, or (then) explained as well as at the right pose
+    for seen in ((there.fit, there.residual), (a["seen_fit"], a["seen_residual"])):
+        a["seen_fit"], a["seen_residual"] = seen
+        est = SceneParser.from_state(LIB, state).update(f1)
+        (o,) = [o for o in est.objects if o.id == a["id"]]
+        assert abs(o.T_world_obj[0, 3] + 0.05) < 0.003  # where it is
+        modes[seen[0] == there.fit] = o
+    assert modes[True].mode == TransitionMode.STATIC, modes[True].reason
+    assert "static in the world, its estimate corrected by 10 mm" in modes[True].reason
+    assert modes[False].mode == TransitionMode.PERTURBED
+    assert "static in the world" not in modes[False].reason
+
+
+@pytest.mark.parametrize("cls", ["cube", "block"])
+def test_an_object_turned_or_slid_a_little_is_perturbed(cls):
+    # turned 10 deg in place, most of its surface stays within the inlier radius of where it
+    # was; slid 10 mm along its long side, its top and sides stay in their planes: the data
+    # there changed all the same, and the mode says so
+    model = LIB[cls]
+    for after in (on_table(model, x=-0.05, yaw_deg=10), on_table(model, x=-0.04)):
+        rng = np.random.default_rng(8)
+        gt = {"a": (cls, on_table(model, x=-0.05)), "b": ("cube", on_table(CUBE, x=0.08))}
+        parser = SceneParser(LIB)
+        parser.update(frame(gt, rng))
+        gt1 = {"a": (cls, after), "b": gt["b"]}
+        est = parser.update(frame(gt1, rng, stamp=1.0))
+        o = min(est.objects, key=lambda o: np.linalg.norm(o.T_world_obj[:2, 3] - after[:2, 3]))
+        assert errors(est, gt1)["a"][1] < 2.0
+        assert o.mode == TransitionMode.PERTURBED, o.reason
 
 
 def test_symmetric_cube_never_flips_between_frames():

@@ -322,6 +322,27 @@ class TemporalConfig(_Section):
     static_rotation: float = Field(
         math.radians(5.0), gt=0, description="Static below this rotation, rad (5 deg)."
     )
+    moved_fit_drop: float = Field(
+        0.5,
+        ge=0,
+        le=1,
+        description=(
+            "A known object whose estimate changed beyond the static thresholds moved in the "
+            "world only if the data where it was changed: its previous pose is now seen "
+            "empty, explains this much less of its visible surface than in the frame that "
+            "set it, or its data lie temporal.moved_residual_rise farther from it; otherwise "
+            "the estimate was corrected and the object is static (ssp.temporal.moved_in_world)."
+        ),
+    )
+    moved_residual_rise: float = Field(
+        0.0005,
+        ge=0,
+        description=(
+            "A changed estimate is motion when the object's segment lies this much farther "
+            "from its previous pose than in the frame that set it (mean point-to-plane "
+            "distance, the evidence's residual, m; ssp.temporal.moved_in_world)."
+        ),
+    )
     association_distance: float = Field(
         0.05, gt=0, description="Largest centre distance of a hypothesis to its object, m."
     )

@@ -60,6 +60,14 @@ class Known:
     #: its decided orientation ranking and the view it was ranked from (None: none decided
     #: yet; :func:`ssp.orientation.same_view`)
     ranking: Ranking | None = None
+    #: the fraction of its visible surface its data explained at ``T_world_obj`` in the frame
+    #: that set it (:class:`ssp.verification.Evidence`'s ``fit``; None: too little of it was
+    #: visible to say): what :func:`ssp.temporal.moved_in_world` compares the next frame with,
+    #: with the residual below
+    seen_fit: float | None = None
+    #: the mean capped distance of its visible samples to its data there (m; the evidence's
+    #: ``residual``; NaN: not known)
+    seen_residual: float = float("nan")
 
 
 @dataclass(frozen=True)

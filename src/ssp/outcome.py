@@ -14,20 +14,23 @@ from __future__ import annotations
 import logging
 from collections.abc import Mapping
 from dataclasses import replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ssp.config import SSPConfig
 from ssp.correction import correction_note, correction_of
 from ssp.estimate import ObjectEstimate, SceneEstimate, SupportEdge
 from ssp.frame_context import Known
 from ssp.orientation import Orientation, Ranking
+from ssp.probability import pose_change
 from ssp.retention import TriageState
 from ssp.scene import TransitionMode
 from ssp.search import CandidateSource
 from ssp.segments import segment_verdicts
 from ssp.support import GROUND
-from ssp.temporal import classify, snap_symmetric
+from ssp.temporal import classify, moved_in_world, snap_symmetric
+from ssp.verification import Evidence, evidence
 
 if TYPE_CHECKING:
     from ssp.frame_context import FrameContext
@@ -61,6 +64,11 @@ def transition_modes(ctx: FrameContext) -> None:
         ephemeral = v is not None and v.state == TriageState.EPHEMERAL
         retained = oid in ctx.retained or (ephemeral and bool(score.graph.children(i)))
         mode = classify(prev, T, model.symmetry, cfg.temporal, retained, model.center_of_mass)
+        corrected = None
+        if mode == TransitionMode.PERTURBED and oid not in ctx.old_of:
+            assert prev is not None, "a perturbed object has a previous pose"
+            corrected = _corrected(ctx, oid, prev, T)
+            mode = TransitionMode.PERTURBED if corrected is None else TransitionMode.STATIC
         terms = score.object_terms(i)
         ev = ctx.evidence.get(oid)
         if oid not in ctx.placed and ev is not None and ev.seen_empty(cfg):
@@ -81,7 +89,7 @@ def transition_modes(ctx: FrameContext) -> None:
                 terms=terms,
                 source=ctx.chosen.get(oid, CandidateSource.CURRENT),
                 fit=float(score.fit[i]),
-                reason=_with_correction(ctx, oid, _reason(ctx, oid, T, prev)),
+                reason=_with_correction(ctx, oid, _reason(ctx, oid, T, prev), corrected),
                 evidence=verdict.judged.as_dict() if verdict is not None else None,
                 orientation=orientation,
             )
@@ -91,6 +99,7 @@ def transition_modes(ctx: FrameContext) -> None:
             doubt=ctx.doubts.get(oid),
             alternatives=_alternatives(ctx, out_id, orientation),
             ranking=_ranking(ctx, oid, out_id, orientation),
+            **_seen(ctx.evidence.get(oid), cfg),
         )  # fmt: skip
 
 
@@ -116,10 +125,43 @@ def _ranking(
     return None if known is None else known.ranking
 
 
-def _with_correction(ctx: FrameContext, oid: str, reason: str) -> str:
-    """``reason`` with the depth correction of the object's hypothesis said, when it had one."""
+def _with_correction(ctx: FrameContext, oid: str, reason: str, corrected: str | None = None) -> str:
+    """``reason`` with the depth correction of the object's hypothesis said, when it had one,
+    and ``corrected``, why its changed estimate is no motion in the world (:func:`_corrected`)."""
     fix = correction_of(ctx, oid)
-    return reason if fix is None else f"{reason}; {correction_note(fix)}"
+    out = reason if fix is None else f"{reason}; {correction_note(fix)}"
+    return out if corrected is None else f"{out}; {corrected}"
+
+
+def _corrected(ctx: FrameContext, oid: str, prev: np.ndarray, T: np.ndarray) -> str | None:
+    """Why known object ``oid``, whose estimate changed from ``prev`` to ``T`` (4x4, m) beyond
+    the static thresholds, did not move in the world (:func:`ssp.temporal.moved_in_world`:
+    the data at ``prev`` is as it was), in words; None: it moved, or the data cannot say."""
+    known = ctx.known.get(oid)
+    if known is None or known.seen_fit is None:
+        return None
+    trees, model = ctx.segment_trees, ctx.models[oid]
+    now = evidence(
+        model, prev, trees.tree(oid), ctx.view, ctx.config, own_label=ctx.owner.get(oid),
+        segment_spacing=trees.spacing(oid), residual=True,
+    )  # fmt: skip
+    if moved_in_world(known.seen_fit, known.seen_residual, now, ctx.config):
+        return None
+    dt, dr = pose_change(prev, T, model.symmetry, model.center_of_mass)
+    return (
+        f"static in the world, its estimate corrected by {1000 * dt:.0f} mm / "
+        f"{np.degrees(dr):.0f} deg: the data where it was is as it was (explains "
+        f"{100 * now.fit:.0f} % of its visible surface there, {100 * known.seen_fit:.0f} % "
+        "in the frame before)"
+    )
+
+
+def _seen(ev: Evidence | None, config: SSPConfig) -> dict[str, Any]:
+    """:attr:`Known.seen_fit` and ``seen_residual`` from an object's evidence at its output
+    pose (none when too little of it is visible)."""
+    if ev is None or ev.visible < config.verification.min_visible_samples:
+        return {}
+    return {"seen_fit": float(ev.fit), "seen_residual": float(ev.residual)}
 
 
 def _reason(ctx: FrameContext, oid: str, T: np.ndarray, prev: np.ndarray | None) -> str:

@@ -77,7 +77,7 @@ from ssp.scene import Frame, FrameError
 from ssp.search import prepare_world, search_scene
 from ssp.segments import segment_frame
 from ssp.static import find_static, keep_unchanged
-from ssp.temporal import associate_frame, reidentify_moved
+from ssp.temporal import associate_frame, reidentify_moved, seen_from_state, seen_state
 from ssp.timing import StageTimer
 from ssp.verification import (
     doubt_known,
@@ -167,6 +167,7 @@ class SceneParser:
                     "held": k.held,
                     "doubt": k.doubt,
                     **orientations_state(k.alternatives, k.ranking),
+                    **seen_state(k.seen_fit, k.seen_residual),
                 }
                 for oid, k in sorted(self._known.items())
             ],
@@ -212,6 +213,7 @@ class SceneParser:
                     bool(o.get("held", False)),
                     None if o.get("doubt") is None else str(o["doubt"]),
                     *orientations_from_state(o),
+                    *seen_from_state(o),
                 )
             for k, r in enumerate(state.get("rejected", [])):
                 cls_name, T = _state_entry(library, r, f"rejected object {k}")

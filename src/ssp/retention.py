@@ -129,8 +129,7 @@ def triage(
     for oid in missing:
         model, T = models[oid], prev_pose[oid]
         ev = evidence(model, T, segments.get(oid), view, config, own_label=owner.get(oid))
-        # the data says it is there: no hypothesis overrules it, but one that explains the
-        # data in its volume better (contested)
+        # the data says it is there: only a hypothesis explaining it better overrules it
         if oid not in contested and still_visible(ev, config):
             reason = f"undetected but still visible: explains {100 * ev.fit:.0f} % of its surface"
             out[oid] = Triage(TriageState.VISIBLE, reason, ev)

@@ -335,6 +335,34 @@ def explained_fraction(
     return float(np.count_nonzero(np.isfinite(dist))) / len(points)
 
 
+def surface_residual(
+    points: np.ndarray, model: ObjectModel, T_world_obj: np.ndarray, cap: float
+) -> float:
+    """Mean point-to-plane distance (m) of the ``points`` ``(K, 3)`` (world, m) within the
+    model's bounding sphere grown by ``cap`` to the model's surface at ``T_world_obj``: to the
+    tangent plane of the nearest surface sample, each distance capped at ``cap`` (a point
+    with no sample within ``cap`` counts ``cap``). Noise-level where the pose is right,
+    whatever part of it the camera sees; it grows with a pose error smaller than the inlier
+    radius that the data fit's counts do not see (a turn of a few degrees). NaN without such
+    points."""
+    points = np.asarray(points, dtype=float).reshape(-1, 3)
+    c_local, r = _bounding_sphere(model)
+    R, t = T_world_obj[:3, :3], T_world_obj[:3, 3]
+    centre = R @ c_local + t
+    near = np.linalg.norm(points - centre, axis=1) <= r + cap
+    if not near.any():
+        return float("nan")
+    local = (points[near] - t) @ R  # the points in the model frame
+    dist, j = model.surface_tree.query(local, k=1, distance_upper_bound=cap)
+    out = np.full(len(local), cap)
+    hit = np.isfinite(dist)
+    samples = np.asarray(model.surface_points, dtype=float)[j[hit]]
+    normals = np.asarray(model.surface_normals, dtype=float)[j[hit]]
+    plane = np.abs(np.einsum("ij,ij->i", local[hit] - samples, normals))
+    out[hit] = np.minimum(plane, cap)
+    return float(np.mean(out))
+
+
 def segment_frame(ctx: FrameContext) -> None:
     """Stage *segments*: each object's segment (:func:`object_segments`, gathered around its
     provisional pose and its hypotheses, or its previous pose when undetected; the instance

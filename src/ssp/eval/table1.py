@@ -185,6 +185,8 @@ class _Tails:
         self.flips_from_right = 0
         self.static_modes = 0  # object-frames of objects that did not move, with a mode
         self.reported_moved = 0  # ... reported perturbed
+        self.moving_modes = 0  # object-frames of objects that moved, with a mode
+        self.unreported_moves = 0  # ... reported static
 
     def add(self, sf, fm: FrameMatch, dets, conditions, kinds, gate: float) -> None:
         by_gt = fm.by_gt()
@@ -212,6 +214,8 @@ class _Tails:
     ) -> None:
         self.static_modes += moves.static
         self.reported_moved += moves.moved
+        self.moving_modes += moves.moving
+        self.unreported_moves += moves.unreported
         self.flips += flips.flips
         self.flips_from_right += flips.from_right
         self.tracked |= tracked
@@ -237,6 +241,8 @@ class _Tails:
         self.flips_from_right += other.flips_from_right
         self.static_modes += other.static_modes
         self.reported_moved += other.reported_moved
+        self.moving_modes += other.moving_modes
+        self.unreported_moves += other.unreported_moves
         self.tracked |= other.tracked
         self.switch_events += other.switch_events
 
@@ -251,6 +257,8 @@ class _Tails:
             "flips": self.flips,
             "flips_from_right": self.flips_from_right,
             "static_reported_moved": self.reported_moved if self.static_modes else None,
+            "moved_reported_static": self.unreported_moves if self.moving_modes else None,
+            "moved_with_mode": self.moving_modes,
             "false_object_causes": dict(sorted(self.fp_causes.items())),
         }
         if self.by_condition:
@@ -568,7 +576,9 @@ def _sequence_part(
     runners = {m: make_method(m, library, config) for m in methods}
     ids = {m: IdSwitches() for m in methods}
     flips = {m: Flips() for m in methods}
-    moves = {m: ReportedMoves() for m in methods}
+    t = (config or SSPConfig()).temporal
+    tilt = float(np.degrees(t.static_rotation))
+    moves = {m: ReportedMoves(t.static_translation, tilt) for m in methods}
     sources = _sources(seq)
     kinds = (seq.info or {}).get("hypothesis_kinds") if sources is not None else None
     history = DetectionHistory()
@@ -1033,6 +1043,13 @@ def _tails_markdown(result: dict) -> list[str]:
     if moved:
         lines += ["", "Objects reported moved (transition mode perturbed) that did not move "
                   "(object-frames): " + ", ".join(moved) + "."]  # fmt: skip
+    still = [f"{name} {d['moved_reported_static']} of {d['moved_with_mode']}"
+             for name, d in methods.items()
+             if d.get("moved_reported_static") is not None]  # fmt: skip
+    if still:
+        lines += ["", "Objects that moved (beyond the static thresholds, 7.5 mm or 5 deg, "
+                  "since their last match) reported static (object-frames): "
+                  + ", ".join(still) + "."]  # fmt: skip
     flips = [f"{name} {d['flips']} ({d['flips_from_right']})" for name, d in methods.items()
              if d.get("flips") is not None]  # fmt: skip
     if flips:

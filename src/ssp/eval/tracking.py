@@ -100,16 +100,22 @@ class Flips:
 
 
 class ReportedMoves:
-    """Objects reported moved that did not: a matched estimate whose transition mode is
-    ``perturbed`` while its object has not moved in the world since its last match (as for a
-    static id switch). A moving camera must not make the scene's objects move. Only methods
-    that report transition modes (ssp) are counted; ``static``: the object-frames that could
-    have been so reported."""
+    """Transition modes against the truth. *Reported moved, not moved*: a matched estimate
+    whose transition mode is ``perturbed`` while its object has not moved in the world since
+    its last match (as for a static id switch); a moving camera must not make the scene's
+    objects move, nor a corrected estimate. *Moved, reported static*: a matched estimate whose
+    mode is ``static`` while its object moved more than the parser's static thresholds
+    (``shift``, m; ``tilt_deg``; ``temporal.static_translation`` and ``static_rotation``)
+    since its last match. Only methods that report transition modes (ssp) are counted;
+    ``static`` and ``moving``: the object-frames that could have been so reported."""
 
-    def __init__(self) -> None:
+    def __init__(self, shift: float = 0.0075, tilt_deg: float = 5.0) -> None:
         self._last: dict[str, np.ndarray] = {}
+        self._shift, self._tilt = shift, tilt_deg
         self.static = 0
         self.moved = 0
+        self.moving = 0
+        self.unreported = 0
 
     def update(self, gt: Mapping[str, tuple[str, np.ndarray]], modes: Mapping[str, str]) -> None:
         """``modes``: ground-truth id -> the transition mode of the estimate matched to it
@@ -122,4 +128,7 @@ class ReportedMoves:
                 if dt < STATIC_SHIFT and math.degrees(dr) < STATIC_TILT_DEG:
                     self.static += 1
                     self.moved += int(str(mode) == "perturbed")
+                elif dt >= self._shift or math.degrees(dr) >= self._tilt:
+                    self.moving += 1
+                    self.unreported += int(str(mode) == "static")
             self._last[gid] = T.copy()
