@@ -185,6 +185,7 @@ def test_run_table1_reports_the_tails_on_the_realistic_stream(tmp_path):
     for name in methods:  # orientation flips of unmoved objects: counted, at most all
         d = result["methods"][name]
         assert 0 <= d["flips_from_right"] <= d["flips"] <= sum(len(f.gt) for f in seq.frames)
+        assert d["static_spread"] is None  # one frame per static scene: no spread
     for name in methods:  # per class: every object-frame counted once, AR where targets
         pc = result["methods"][name]["per_class"]
         assert set(pc) == {c for f in seq.frames for c, _ in f.gt.values()}
@@ -195,6 +196,14 @@ def test_run_table1_reports_the_tails_on_the_realistic_stream(tmp_path):
     md = (tmp_path / "results.md").read_text()
     assert "Tails" in md and "nominal" in md  # the per-condition table
     assert "| cube |" in md and "Per class" in md
+
+
+def test_the_static_spread_counts_object_scenes_within_2_mm_and_the_worst():
+    from ssp.eval.table1 import _spread
+
+    assert _spread([]) is None
+    out = _spread([(0.4, 0.2), (1.99, 0.5), (2.0, 0.1), (23.0, 90.0)])
+    assert out == {"object_scenes": 4, "within_2mm": 0.5, "worst_mm": 23.0, "worst_deg": 90.0}
 
 
 def test_run_table1_without_masks_gives_bare_clouds():
