@@ -350,6 +350,32 @@ def test_an_object_turned_or_slid_a_little_is_perturbed(cls):
         assert o.mode == TransitionMode.PERTURBED, o.reason
 
 
+def _outputs(gt_frames, config):
+    """Cube a's output position (m) in each frame of ``gt_frames`` (one parser)."""
+    rng = np.random.default_rng(3)
+    parser = SceneParser(LIB, config)
+    out = []
+    for t, gt in enumerate(gt_frames):
+        est = parser.update(frame(gt, rng, stamp=float(t)))
+        T = gt["a"][1]
+        o = min(est.objects, key=lambda o: np.linalg.norm(o.T_world_obj[:3, 3] - T[:3, 3]))
+        out.append(o.T_world_obj[:3, 3].copy())
+    return np.array(out)
+
+
+def test_a_static_objects_output_averages_its_estimates_and_a_small_push_is_followed():
+    still = {"a": ("cube", on_table(CUBE, x=-0.05)), "b": ("cube", on_table(CUBE, x=0.06))}
+    fused = _outputs([still] * 6, SSPConfig())
+    raw = _outputs([still] * 6, SSPConfig(temporal={"static_fusion_frames": 1}))
+    spread = lambda p: np.linalg.norm(p[1:] - p[1:].mean(0), axis=1).max()  # noqa: E731
+    assert spread(fused) < spread(raw)
+    # pushed 5 mm (within the static thresholds): the data where it was changed, so its
+    # output goes where the data put it, not a mean with where it was
+    pushed = {"a": ("cube", on_table(CUBE, x=-0.045)), "b": still["b"]}
+    out = _outputs([still] * 4 + [pushed] * 2, SSPConfig())
+    assert abs(out[4, 0] + 0.045) < 0.0015, out[:, 0]
+
+
 def test_symmetric_cube_never_flips_between_frames():
     rng = np.random.default_rng(9)
     sym = CUBE.symmetry.discrete

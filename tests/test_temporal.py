@@ -17,6 +17,7 @@ from ssp.temporal import (
     associate,
     classify,
     default_id_factory,
+    fuse_static,
     moved_in_world,
     same_volume_test,
     snap_symmetric,
@@ -217,6 +218,22 @@ def test_a_changed_estimate_is_motion_only_when_the_data_left_where_it_was():
     assert moved_in_world(0.9, 0.001, _ev(0.9, residual=0.001 + rise + 1e-5), cfg)
     assert not moved_in_world(0.9, 0.001, _ev(0.9, residual=0.001 + rise - 1e-5), cfg)
     assert not moved_in_world(0.9, NAN, _ev(0.9, residual=0.005), cfg)  # not known then
+
+
+def test_a_static_objects_output_is_the_running_mean_of_its_estimates():
+    a, b = pose(0.0, R=rot("z", 0)), pose(0.004, R=rot("z", 4))
+    # at rest for 0 frames before this one: this frame's estimate as it is
+    np.testing.assert_allclose(fuse_static(a, b, 0, 4), b)
+    # one frame before: the mean of the two (translation and turn halfway)
+    half = fuse_static(a, b, 1, 4)
+    assert half[0, 3] == pytest.approx(0.002)
+    assert math.degrees(rotation_angle(half[:3, :3])) == pytest.approx(2.0)
+    # three or more before: at least a quarter (about four frames' memory)
+    assert fuse_static(a, b, 3, 4)[0, 3] == pytest.approx(0.001)
+    assert fuse_static(a, b, 30, 4)[0, 3] == pytest.approx(0.001)
+    # one frame: no memory
+    np.testing.assert_allclose(fuse_static(a, b, 30, 1), b)
+    assert np.allclose(half[:3, :3] @ half[:3, :3].T, np.eye(3))  # a rotation
 
 
 # ----------------------------------------------------------------------------- snap_symmetric

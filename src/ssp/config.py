@@ -343,6 +343,15 @@ class TemporalConfig(_Section):
             "distance, the evidence's residual, m; ssp.temporal.moved_in_world)."
         ),
     )
+    static_fusion_frames: int = Field(
+        4,
+        ge=1,
+        description=(
+            "A static object whose data where it was are as they were is output at the "
+            "running mean of its estimates since it came to rest, over at most this many "
+            "frames (ssp.temporal.fuse_static); 1: each frame's estimate as it is."
+        ),
+    )
     association_distance: float = Field(
         0.05, gt=0, description="Largest centre distance of a hypothesis to its object, m."
     )

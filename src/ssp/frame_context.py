@@ -68,6 +68,9 @@ class Known:
     #: the mean capped distance of its visible samples to its data there (m; the evidence's
     #: ``residual``; NaN: not known)
     seen_residual: float = float("nan")
+    #: frames it has been static in the world, its data where it was as they were
+    #: (:func:`ssp.temporal.fuse_static`)
+    still: int = 0
 
 
 @dataclass(frozen=True)
@@ -206,6 +209,10 @@ class FrameContext:
     placed: dict[str, np.ndarray] = _dict()
     #: every object's evidence at its final pose
     evidence: dict[str, Evidence] = _dict()
+
+    # ---- static fusion (ssp.temporal.fuse_at_rest)
+    #: object at rest -> its output pose, the mean of its estimates since it came to rest
+    fused: dict[str, np.ndarray] = _dict()
 
     # ---- orientations (ssp.orientation.decide_orientations)
     #: object with an instance segment -> whether its orientation is decided, and the tied ones

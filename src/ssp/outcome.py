@@ -1,6 +1,8 @@
 """The frame's outcome: each object's transition mode and reason, and the scene estimate.
 
-The last stages of :meth:`ssp.parser.SceneParser.update`. :func:`transition_modes` gives every
+The last stages of :meth:`ssp.parser.SceneParser.update`. :func:`fuse_at_rest` gives each
+object at rest the mean of its estimates since it came to rest (:func:`ssp.temporal.at_rest`)
+where that mean stays clear of its neighbours; :func:`transition_modes` gives every
 object that stays its output pose (the symmetric equivalent closest to its previous one,
 :func:`ssp.temporal.snap_symmetric`), its transition mode (paper section IV-C:
 :func:`ssp.temporal.classify`), its reason in words and the frame's per-object warnings;
@@ -18,7 +20,6 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ssp.config import SSPConfig
 from ssp.correction import correction_note, correction_of
 from ssp.estimate import ObjectEstimate, SceneEstimate, SupportEdge
 from ssp.frame_context import Known
@@ -29,18 +30,79 @@ from ssp.scene import TransitionMode
 from ssp.search import CandidateSource
 from ssp.segments import segment_verdicts
 from ssp.support import GROUND
-from ssp.temporal import classify, moved_in_world, snap_symmetric
-from ssp.verification import Evidence, evidence
+from ssp.temporal import at_rest, classify, moved_in_world, object_residual, snap_symmetric
+from ssp.verification import evidence
 
 if TYPE_CHECKING:
     from ssp.frame_context import FrameContext
 
-__all__ = ["TABLE", "report_moved", "scene_estimate", "transition_modes"]
+__all__ = [
+    "FUSION_DEPTH_SLACK",
+    "TABLE",
+    "fuse_at_rest",
+    "report_moved",
+    "scene_estimate",
+    "transition_modes",
+]
 
 log = logging.getLogger(__name__)
 
 #: Name of the ground in support edges.
 TABLE = "table"
+
+
+#: A fused pose may not push an object deeper into another (or the table) than its estimate
+#: by more than this, m.
+FUSION_DEPTH_SLACK = 1e-4
+
+
+def fuse_at_rest(ctx: FrameContext) -> None:
+    """Stage *static fusion*: every known object at rest (:func:`at_rest`) is output at the
+    mean of its estimates since it came to rest, unless that mean would push it into another
+    object or the table (its deepest contact more than :data:`FUSION_DEPTH_SLACK` deeper than
+    at its estimate; tested in the frame's world, left as it was): output means of stacked
+    blocks put them up to 1.2 mm into each other on development seeds.
+
+    Sets ``fused``.
+    """
+    ctx.fused = {}
+    if ctx.config.temporal.static_fusion_frames <= 1:
+        return
+    score, world = ctx.scene_score, ctx.sim.world
+    fused = {}
+    for i, oid in enumerate(score.ids):
+        if oid in ctx.gone or oid in ctx.placed or oid in ctx.old_of:
+            continue
+        T = at_rest(ctx, oid, score.poses[i])
+        if T is not None:
+            fused[oid] = T
+    if not fused:
+        return
+    before = _deepest(world)
+    state = world.save_state()
+    try:
+        for _ in range(3):  # an object put back may free another
+            world.set_poses(fused)
+            deeper = _deepest(world) > before + FUSION_DEPTH_SLACK
+            back = [oid for oid in fused if deeper[world.index(oid)]]
+            if not back:
+                break
+            for oid in back:
+                world.set_pose(oid, score.poses[world.index(oid)])
+                del fused[oid]
+    finally:
+        world.restore_state(state)
+    ctx.fused = fused
+
+
+def _deepest(world) -> np.ndarray:
+    """Each object's deepest contact in ``world`` now (m; 0 without one), world order."""
+    c = world.contacts()
+    out = np.zeros(len(world.ids))
+    for side in (c.obj_a, c.obj_b):
+        ok = side >= 0
+        np.maximum.at(out, side[ok], np.maximum(c.depth[ok], 0.0))
+    return out
 
 
 def transition_modes(ctx: FrameContext) -> None:
@@ -69,6 +131,9 @@ def transition_modes(ctx: FrameContext) -> None:
             assert prev is not None, "a perturbed object has a previous pose"
             corrected = _corrected(ctx, oid, prev, T)
             mode = TransitionMode.PERTURBED if corrected is None else TransitionMode.STATIC
+        still = 0
+        if mode == TransitionMode.STATIC and oid in ctx.fused:
+            T, still = ctx.fused[oid], ctx.known[oid].still + 1
         terms = score.object_terms(i)
         ev = ctx.evidence.get(oid)
         if oid not in ctx.placed and ev is not None and ev.seen_empty(cfg):
@@ -99,7 +164,8 @@ def transition_modes(ctx: FrameContext) -> None:
             doubt=ctx.doubts.get(oid),
             alternatives=_alternatives(ctx, out_id, orientation),
             ranking=_ranking(ctx, oid, out_id, orientation),
-            **_seen(ctx.evidence.get(oid), cfg),
+            still=still,
+            **_seen(ctx, oid, T),
         )  # fmt: skip
 
 
@@ -156,12 +222,13 @@ def _corrected(ctx: FrameContext, oid: str, prev: np.ndarray, T: np.ndarray) -> 
     )
 
 
-def _seen(ev: Evidence | None, config: SSPConfig) -> dict[str, Any]:
-    """:attr:`Known.seen_fit` and ``seen_residual`` from an object's evidence at its output
-    pose (none when too little of it is visible)."""
-    if ev is None or ev.visible < config.verification.min_visible_samples:
+def _seen(ctx: FrameContext, oid: str, T: np.ndarray) -> dict[str, Any]:
+    """:attr:`Known.seen_fit` (from the object's evidence at its final pose) and
+    ``seen_residual`` (at its output pose ``T``); none when too little of it is visible."""
+    ev = ctx.evidence.get(oid)
+    if ev is None or ev.visible < ctx.config.verification.min_visible_samples:
         return {}
-    return {"seen_fit": float(ev.fit), "seen_residual": float(ev.residual)}
+    return {"seen_fit": float(ev.fit), "seen_residual": object_residual(ctx, oid, T)}
 
 
 def _reason(ctx: FrameContext, oid: str, T: np.ndarray, prev: np.ndarray | None) -> str:

@@ -5,14 +5,13 @@ the parser's state untouched), takes :attr:`Frame.moved` into the remembered sce
 :data:`STAGES` in order over one :class:`~ssp.frame_context.FrameContext`; each stage lives in
 the module of its concept (docs/algorithm.md maps them to the paper):
 
-1. **depth correction** (:func:`ssp.correction.correct_frame`): the camera's view of the
-   frame; each hypothesis whose silhouette covers observed surface at another depth slid
-   along its viewing ray to it and aligned (an RGB estimator's error), before anything
-   judges it;
+1. **depth correction** (:func:`ssp.correction.correct_frame`): the camera's view; each
+   hypothesis whose silhouette covers observed surface at another depth slid along its
+   viewing ray to it and aligned (an RGB estimator's error), before anything judges it;
 2. **association** (:func:`ssp.temporal.associate_frame`): hypotheses grouped per object
-   (instance ids, else a globally optimal assignment on class and pose distance at the centre
-   of mass), one object per instance segment, duplicates of undetected objects dropped; each
-   detected object's provisional pose (:func:`ssp.first_guess.first_guess`);
+   (instance ids, else an optimal assignment on class and pose), one object per instance
+   segment, duplicates of undetected objects dropped; each detected object's provisional
+   pose (:func:`ssp.first_guess.first_guess`);
 3. **segments** (:func:`ssp.segments.segment_frame`): each object's points;
 4. **verification of the new** (:func:`ssp.verification.verify_new_objects`): a new object the
    data supports at none of its hypotheses is rejected before the search;
@@ -40,12 +39,13 @@ the module of its concept (docs/algorithm.md maps them to the paper):
     known object its data contradicts two frames running leaves;
 18. **re-identification** (:func:`ssp.temporal.reidentify_moved`): a new object where a known
     one of its class vanished is that object, moved;
-19. **transition modes** (:func:`ssp.outcome.transition_modes`): output poses (symmetric
-    snapping), modes, reasons, warnings;
-20. **outcome** (:func:`ssp.outcome.scene_estimate`): the :class:`SceneEstimate`.
+19. **static fusion** (:func:`ssp.outcome.fuse_at_rest`): an object at rest is output at
+    the mean of its estimates since it came to rest;
+20. **transition modes** (:func:`ssp.outcome.transition_modes`): output poses (symmetric
+    snapping), modes (motion in the world), reasons, warnings;
+21. **outcome** (:func:`ssp.outcome.scene_estimate`): the :class:`SceneEstimate`.
 
-The parser then commits what the next frame remembers. A frame that raises leaves the state as
-it was.
+The parser then commits what the next frame remembers; a frame that raises leaves it as it was.
 """
 
 from __future__ import annotations
@@ -68,7 +68,7 @@ from ssp.geometry import validate_pose
 from ssp.library.library import ObjectLibrary
 from ssp.library.model import ObjectInstance
 from ssp.orientation import decide_orientations, orientations_from_state, orientations_state
-from ssp.outcome import report_moved, scene_estimate, transition_modes
+from ssp.outcome import fuse_at_rest, report_moved, scene_estimate, transition_modes
 from ssp.physics import World
 from ssp.polish import polish_scene
 from ssp.registration import load_kernels as load_icp_kernels
@@ -167,7 +167,7 @@ class SceneParser:
                     "held": k.held,
                     "doubt": k.doubt,
                     **orientations_state(k.alternatives, k.ranking),
-                    **seen_state(k.seen_fit, k.seen_residual),
+                    **seen_state(k.seen_fit, k.seen_residual, k.still),
                 }
                 for oid, k in sorted(self._known.items())
             ],
@@ -205,16 +205,12 @@ class SceneParser:
             parser._counters = {str(k): int(v) for k, v in state.get("id_counters", {}).items()}
             for o in state["objects"]:
                 cls_name, T = _state_entry(library, o, f"object {o['id']!r}")
+                doubt = None if o.get("doubt") is None else str(o["doubt"])
                 parser._known[str(o["id"])] = Known(
-                    cls_name,
-                    T,
-                    bool(o.get("ephemeral")),
-                    float(o.get("fit", 0.0)),
-                    bool(o.get("held", False)),
-                    None if o.get("doubt") is None else str(o["doubt"]),
-                    *orientations_from_state(o),
+                    cls_name, T, bool(o.get("ephemeral")), float(o.get("fit", 0.0)),
+                    bool(o.get("held", False)), doubt, *orientations_from_state(o),
                     *seen_from_state(o),
-                )
+                )  # fmt: skip
             for k, r in enumerate(state.get("rejected", [])):
                 cls_name, T = _state_entry(library, r, f"rejected object {k}")
                 held = r.get("unheld") and str(r["unheld"])  # none in older states
@@ -359,6 +355,7 @@ STAGES: tuple[Stage, ...] = (
     Stage("final verdicts", judge_final),
     Stage("re-verification", doubt_known, timer="verification"),
     Stage("re-identification", reidentify_moved),
+    Stage("static fusion", fuse_at_rest),
     Stage("transition modes", transition_modes),
     Stage("outcome", scene_estimate),
 )

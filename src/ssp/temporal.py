@@ -5,7 +5,8 @@
 * :func:`classify` names an object's transition mode (added / removed / static / perturbed /
   support-retained) from its previous and current poses (DESIGN section 4, "Temporal");
   :func:`moved_in_world` asks the data whether a changed estimate is motion in the world or a
-  correction (then the object is static).
+  correction (then the object is static); :func:`at_rest` / :func:`fuse_static`: the mean of
+  an object's estimates while the data show it at rest.
 * :func:`snap_symmetric` picks, among the symmetric equivalents of a pose, the one closest to
   the previous frame's, so a symmetric object never flips between frames (DESIGN "Symmetry").
 
@@ -35,8 +36,9 @@ from ssp.overlap import same_volume
 from ssp.probability import pose_change
 from ssp.retention import TriageState
 from ssp.scene import FrameError, Hypothesis, TransitionMode
-from ssp.segments import TABLE_CLEARANCE, explained_fraction
+from ssp.segments import TABLE_CLEARANCE, explained_fraction, surface_residual
 from ssp.shared_volume import resolve_shared_volumes
+from ssp.verification import RESIDUAL_CAP
 
 if TYPE_CHECKING:
     from ssp.frame_context import FrameContext
@@ -52,7 +54,9 @@ __all__ = [
     "classify",
     "default_id_factory",
     "duplicates_of_undetected",
+    "fuse_static",
     "moved_in_world",
+    "object_residual",
     "seen_from_state",
     "seen_state",
     "one_object_per_segment",
@@ -60,6 +64,7 @@ __all__ = [
     "reidentify_moved",
     "same_volume_test",
     "snap_symmetric",
+    "at_rest",
 ]
 
 log = logging.getLogger(__name__)
@@ -573,22 +578,73 @@ def moved_in_world(
     return bool(now.residual - seen_residual > t.moved_residual_rise)  # NaN: not known, False
 
 
-def seen_state(seen_fit: float | None, seen_residual: float) -> dict[str, float | None]:
-    """A scene state object's ``seen_fit`` and ``seen_residual`` entries (null: not known;
-    :attr:`ssp.frame_context.Known.seen_fit`)."""
+def fuse_static(T_prev: np.ndarray, T_cur: np.ndarray, still: int, frames: int) -> np.ndarray:
+    """The output pose of an object static in the world for ``still`` frames before this one
+    (its data where it was as they were, :func:`moved_in_world`): this frame's estimate
+    ``T_cur`` given the weight ``1 / (still + 1)``, at least ``1 / frames``, against the
+    previous output ``T_prev`` (4x4, m; rotation interpolated along the geodesic, ``T_cur``
+    snapped to ``T_prev``'s symmetric equivalent before). The running mean of its estimates
+    since it came to rest, then an exponential one over about ``frames`` frames: a static
+    object's estimate follows the view's noise and bias (a moving camera sees another side
+    each frame; each frame's fit leans toward what it sees), the mean of several views does
+    not. ``frames`` 1: ``T_cur`` as it is."""
+    w = 1.0 / min(still + 1, max(frames, 1))
+    if w >= 1.0:
+        return np.array(T_cur, dtype=float)
+    R_prev = np.asarray(T_prev, dtype=float)[:3, :3]
+    turn = Rotation.from_matrix(R_prev.T @ np.asarray(T_cur, dtype=float)[:3, :3]).as_rotvec()
+    out = np.eye(4)
+    out[:3, :3] = R_prev @ Rotation.from_rotvec(w * turn).as_matrix()
+    out[:3, 3] = (1.0 - w) * np.asarray(T_prev)[:3, 3] + w * np.asarray(T_cur)[:3, 3]
+    return out
+
+
+def object_residual(ctx: FrameContext, oid: str, T: np.ndarray) -> float:
+    """Object ``oid``'s :attr:`~ssp.verification.Evidence.residual` at ``T`` (4x4, m): its
+    segment's mean capped point-to-plane distance to it (m; NaN without a segment)."""
+    tree = ctx.segment_trees.tree(oid)
+    if tree is None:
+        return float("nan")
+    cap = RESIDUAL_CAP * ctx.config.data.inlier_radius
+    return surface_residual(tree.data, ctx.models[oid], T, cap)
+
+
+def at_rest(ctx: FrameContext, oid: str, T: np.ndarray) -> np.ndarray | None:
+    """The mean pose (:func:`fuse_static`) of known object ``oid``, estimated at ``T`` (4x4,
+    m), when it is at rest: ``T`` within the static thresholds of its previous pose, its
+    segment lying where it was as it did (its residual there at most
+    ``temporal.moved_residual_rise`` above the frame before's); else None."""
+    known, prev = ctx.known.get(oid), ctx.prev_pose.get(oid)
+    t = ctx.config.temporal
+    if known is None or prev is None or known.ephemeral or math.isnan(known.seen_residual):
+        return None
+    model = ctx.models[oid]
+    T = snap_symmetric(prev, T, model.symmetry)
+    if classify(prev, T, model.symmetry, t, centre=model.center_of_mass) != TransitionMode.STATIC:
+        return None
+    if not object_residual(ctx, oid, prev) - known.seen_residual <= t.moved_residual_rise:
+        return None
+    return fuse_static(prev, T, known.still, t.static_fusion_frames)
+
+
+def seen_state(seen_fit: float | None, seen_residual: float, still: int) -> dict[str, Any]:
+    """A scene state object's ``seen_fit``, ``seen_residual`` and ``still`` entries (null:
+    not known; :attr:`ssp.frame_context.Known.seen_fit`)."""
     return {
         "seen_fit": seen_fit,
         "seen_residual": None if math.isnan(seen_residual) else float(seen_residual),
+        "still": int(still),
     }
 
 
-def seen_from_state(entry: Mapping[str, Any]) -> tuple[float | None, float]:
-    """``(seen_fit, seen_residual)`` of a scene state object ``entry`` (none in older
-    states: None and NaN)."""
+def seen_from_state(entry: Mapping[str, Any]) -> tuple[float | None, float, int]:
+    """``(seen_fit, seen_residual, still)`` of a scene state object ``entry`` (none in older
+    states: None, NaN and 0)."""
     fit, residual = entry.get("seen_fit"), entry.get("seen_residual")
     return (
         None if fit is None else float(fit),
         float("nan") if residual is None else float(residual),
+        int(entry.get("still", 0)),
     )
 
 

@@ -714,7 +714,6 @@ def place_new(ctx: FrameContext) -> None:
             cfg,
             own_label=ctx.owner.get(oid),
             segment_spacing=trees.spacing(oid),
-            residual=True,
         )  # fmt: skip
         for oid in world.ids
         if oid not in ctx.removed
