@@ -209,7 +209,7 @@ class SceneParser:
                 parser._known[str(o["id"])] = Known(
                     cls_name, T, bool(o.get("ephemeral")), float(o.get("fit", 0.0)),
                     bool(o.get("held", False)), doubt, *orientations_from_state(o),
-                    *seen_from_state(o),
+                    **seen_from_state(o),
                 )  # fmt: skip
             for k, r in enumerate(state.get("rejected", [])):
                 cls_name, T = _state_entry(library, r, f"rejected object {k}")

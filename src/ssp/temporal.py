@@ -652,15 +652,15 @@ def seen_state(seen_fit: float | None, seen_residual: float, still: int) -> dict
     }
 
 
-def seen_from_state(entry: Mapping[str, Any]) -> tuple[float | None, float, int]:
-    """``(seen_fit, seen_residual, still)`` of a scene state object ``entry`` (none in older
-    states: None, NaN and 0)."""
+def seen_from_state(entry: Mapping[str, Any]) -> dict[str, Any]:
+    """The :class:`~ssp.frame_context.Known` fields ``seen_fit``, ``seen_residual`` and
+    ``still`` of a scene state object ``entry`` (none in older states: None, NaN and 0)."""
     fit, residual = entry.get("seen_fit"), entry.get("seen_residual")
-    return (
-        None if fit is None else float(fit),
-        float("nan") if residual is None else float(residual),
-        int(entry.get("still", 0)),
-    )
+    return {
+        "seen_fit": None if fit is None else float(fit),
+        "seen_residual": float("nan") if residual is None else float(residual),
+        "still": int(entry.get("still", 0)),
+    }
 
 
 def _quat_angle(R: np.ndarray) -> float:
