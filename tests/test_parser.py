@@ -301,15 +301,16 @@ def test_moved_object_is_perturbed():
     assert errors(est1, gt1)["a"][0] < 2.0
 
 
-def test_a_corrected_estimate_of_an_object_that_did_not_move_is_static():
-    # the parser remembers cube a 10 mm off where it stands; the frame shows it where it is,
-    # and its estimate goes there: motion in the world only if the data left the old place
+def _remembered_off(x_wrong: float):
+    """A parser state after one frame of cubes a (at x = -0.05) and b, with a's pose moved to
+    ``x_wrong`` (m); the next frame of the same scene; a's state entry; a's evidence at the
+    wrong pose in that frame."""
     rng = np.random.default_rng(8)
     gt = {"a": ("cube", on_table(CUBE, x=-0.05)), "b": ("cube", on_table(CUBE, x=0.06))}
     parser = SceneParser(LIB)
     parser.update(frame(gt, rng))
     f1 = frame(gt, rng, stamp=1.0)
-    wrong = on_table(CUBE, x=-0.04)
+    wrong = on_table(CUBE, x=x_wrong)
     cfg = SSPConfig()
     view = CameraView(f1.points, CAMERA, labels=f1.labels,
                       depth_tolerance=cfg.temporal.depth_tolerance)  # fmt: skip
@@ -318,6 +319,13 @@ def test_a_corrected_estimate_of_an_object_that_did_not_move_is_static():
     (a,) = [o for o in state["objects"] if abs(o["T_world_obj"][0][3] + 0.05) < 0.005]
     assert 0 < a["seen_residual"] < 0.0015 and a["seen_fit"] > 0.9  # right, in frame 0
     a["T_world_obj"] = wrong.tolist()
+    return state, f1, a, there
+
+
+def test_a_corrected_estimate_of_an_object_that_did_not_move_is_static():
+    # the parser remembers cube a 10 mm off where it stands; the frame shows it where it is,
+    # and its estimate goes there: motion in the world only if the data left the old place
+    state, f1, a, there = _remembered_off(-0.04)
     modes = {}
     # the data there as it was, or (then) explained as well as at the right pose
     for seen in ((there.fit, there.residual), (a["seen_fit"], a["seen_residual"])):
@@ -380,19 +388,8 @@ def test_a_correction_the_data_prefer_is_not_averaged_with_the_wrong_pose():
     # the parser remembers cube a 5 mm off (within the static thresholds) and at rest there
     # for three frames; the frame shows it where it is: its estimate goes there, not to a
     # mean with the wrong pose (the data fit the new estimate better)
-    rng = np.random.default_rng(8)
-    gt = {"a": ("cube", on_table(CUBE, x=-0.05)), "b": ("cube", on_table(CUBE, x=0.06))}
-    parser = SceneParser(LIB)
-    parser.update(frame(gt, rng))
-    f1 = frame(gt, rng, stamp=1.0)
-    wrong = on_table(CUBE, x=-0.045)
-    cfg = SSPConfig()
-    view = CameraView(f1.points, CAMERA, labels=f1.labels,
-                      depth_tolerance=cfg.temporal.depth_tolerance)  # fmt: skip
-    there = evidence(CUBE, wrong, f1.points[f1.labels == 0], view, cfg, own_label=0, residual=True)
-    state = parser.state()
-    (a,) = [o for o in state["objects"] if abs(o["T_world_obj"][0][3] + 0.05) < 0.005]
-    a.update(T_world_obj=wrong.tolist(), seen_fit=there.fit, seen_residual=there.residual, still=3)
+    state, f1, a, there = _remembered_off(-0.045)
+    a.update(seen_fit=there.fit, seen_residual=there.residual, still=3)
     est = SceneParser.from_state(LIB, state).update(f1)
     (o,) = [o for o in est.objects if o.id == a["id"]]
     assert o.mode == TransitionMode.STATIC
