@@ -69,13 +69,13 @@ def fuse_at_rest(ctx: FrameContext) -> None:
     if ctx.config.temporal.static_fusion_frames <= 1:
         return
     score, world = ctx.scene_score, ctx.sim.world
-    fused = {}
+    fused, estimate = {}, {}
     for i, oid in enumerate(score.ids):
         if oid in ctx.gone or oid in ctx.placed or oid in ctx.old_of:
             continue
         T = at_rest(ctx, oid, score.poses[i])
         if T is not None:
-            fused[oid] = T
+            fused[oid], estimate[oid] = T, score.poses[i]
     if not fused:
         return
     before = _deepest(world)
@@ -88,7 +88,7 @@ def fuse_at_rest(ctx: FrameContext) -> None:
             if not back:
                 break
             for oid in back:
-                world.set_pose(oid, score.poses[world.index(oid)])
+                world.set_pose(oid, estimate[oid])
                 del fused[oid]
     finally:
         world.restore_state(state)
