@@ -7,6 +7,7 @@ simplest tests use a cloud of the models' upward and sideways surface samples in
 from __future__ import annotations
 
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -20,8 +21,10 @@ from ssp.physics import World
 from ssp.probability import pose_change
 from ssp.scene import Frame, FrameError, Hypothesis, TransitionMode
 from ssp.scoring import SceneScorer
+from ssp.segments import surface_residual
 from ssp.sim.frames import synthetic_frame
 from ssp.sim.render import look_at
+from ssp.temporal import RESIDUAL_CAP
 from ssp.verification import evidence
 from ssp.visibility import CameraView
 
@@ -314,7 +317,11 @@ def _remembered_off(x_wrong: float):
     cfg = SSPConfig()
     view = CameraView(f1.points, CAMERA, labels=f1.labels,
                       depth_tolerance=cfg.temporal.depth_tolerance)  # fmt: skip
-    there = evidence(CUBE, wrong, f1.points[f1.labels == 0], view, cfg, own_label=0, residual=True)
+    there = evidence(CUBE, wrong, f1.points[f1.labels == 0], view, cfg, own_label=0)
+    cap = RESIDUAL_CAP * cfg.data.inlier_radius
+    there = SimpleNamespace(
+        fit=there.fit, residual=surface_residual(f1.points[f1.labels == 0], CUBE, wrong, cap)
+    )
     state = parser.state()
     (a,) = [o for o in state["objects"] if abs(o["T_world_obj"][0][3] + 0.05) < 0.005]
     assert 0 < a["seen_residual"] < 0.0015 and a["seen_fit"] > 0.9  # right, in frame 0

@@ -129,3 +129,26 @@ def test_a_voter_far_from_every_point_votes_for_nothing(lib):
     )
     alone, owner_alone = object_segments(frame, {"high": (cube, [T_high])}, radius=0.01)
     assert owner_both == owner_alone and np.array_equal(both["high"], alone["high"])
+
+
+def test_the_surface_queries_find_what_the_models_own_tree_finds():
+    # explained_fraction and surface_residual query a pykdtree of the surface samples (kept
+    # per process: it does not pickle); it must give the model's cKDTree's samples and
+    # distances, or their results would change with the tree
+    from ssp.library import ObjectLibrary
+    from ssp.segments import _near_surface
+
+    rng = np.random.default_rng(0)
+    library = ObjectLibrary.builtin()
+    for model in (library[name] for name in library.names):
+        T = make_pose(t=[0.1, -0.2, 0.05])
+        pts = transform_points(T, model.surface_points) + rng.normal(
+            0, 0.003, (len(model.surface_points), 3)
+        )
+        local, dist, idx = _near_surface(pts, model, T, 0.0074)
+        d_ref, i_ref = model.surface_tree.query(local, k=1, distance_upper_bound=0.0074)
+        hit = np.isfinite(d_ref)
+        assert hit.any() and not hit.all(), model.name
+        np.testing.assert_array_equal(np.isfinite(dist), hit)
+        np.testing.assert_array_equal(dist[hit], d_ref[hit])
+        np.testing.assert_array_equal(idx[hit], i_ref[hit])

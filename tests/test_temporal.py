@@ -195,29 +195,30 @@ def test_classify_added_removed_retained():
 
 def _ev(
     fit: float, visible: int = 60, seen_through: float = 0.0, residual: float = NAN
-) -> Evidence:
-    return Evidence(visible, visible, fit, None, seen_through, 0.0, 0.0, residual)
+) -> tuple[Evidence, float]:
+    """The evidence at the previous pose now, and the residual there."""
+    return Evidence(visible, visible, fit, None, seen_through, 0.0, 0.0), residual
 
 
 def test_a_changed_estimate_is_motion_only_when_the_data_left_where_it_was():
     cfg = SSPConfig()
     drop = cfg.temporal.moved_fit_drop
     # the data at the previous pose as it was (within the drop): a correction, not motion
-    assert not moved_in_world(0.9, NAN, _ev(0.9), cfg)
-    assert not moved_in_world(0.9, NAN, _ev(0.9 - drop + 0.01), cfg)
-    assert not moved_in_world(0.4, NAN, _ev(0.5), cfg)  # a wrong pose then, as wrong now
+    assert not moved_in_world(0.9, NAN, *_ev(0.9), cfg)
+    assert not moved_in_world(0.9, NAN, *_ev(0.9 - drop + 0.01), cfg)
+    assert not moved_in_world(0.4, NAN, *_ev(0.5), cfg)  # a wrong pose then, as wrong now
     # the data left it: explained much less, or its volume seen empty
-    assert moved_in_world(0.9, NAN, _ev(0.9 - drop - 0.01), cfg)
-    assert moved_in_world(0.9, NAN, _ev(0.9, seen_through=cfg.temporal.seen_through_fraction), cfg)
+    assert moved_in_world(0.9, NAN, *_ev(0.9 - drop - 0.01), cfg)
+    assert moved_in_world(0.9, NAN, *_ev(0.9, seen_through=cfg.temporal.seen_through_fraction), cfg)
     # too little seen, now or then: the data cannot say, the estimate's change decides
     few = cfg.verification.min_visible_samples - 1
-    assert moved_in_world(0.9, NAN, _ev(0.9, visible=few), cfg)
-    assert moved_in_world(None, NAN, _ev(0.9), cfg)
+    assert moved_in_world(0.9, NAN, *_ev(0.9, visible=few), cfg)
+    assert moved_in_world(None, NAN, *_ev(0.9), cfg)
     # a turn in place: the fit as it was, the points farther from its surface there
     rise = cfg.temporal.moved_residual_rise
-    assert moved_in_world(0.9, 0.001, _ev(0.9, residual=0.001 + rise + 1e-5), cfg)
-    assert not moved_in_world(0.9, 0.001, _ev(0.9, residual=0.001 + rise - 1e-5), cfg)
-    assert not moved_in_world(0.9, NAN, _ev(0.9, residual=0.005), cfg)  # not known then
+    assert moved_in_world(0.9, 0.001, *_ev(0.9, residual=0.001 + rise + 1e-5), cfg)
+    assert not moved_in_world(0.9, 0.001, *_ev(0.9, residual=0.001 + rise - 1e-5), cfg)
+    assert not moved_in_world(0.9, NAN, *_ev(0.9, residual=0.005), cfg)  # not known then
 
 
 def test_a_static_objects_output_is_the_running_mean_of_its_estimates():

@@ -65,8 +65,8 @@ class Known:
     #: visible to say): what :func:`ssp.temporal.moved_in_world` compares the next frame with,
     #: with the residual below
     seen_fit: float | None = None
-    #: the mean capped distance of its visible samples to its data there (m; the evidence's
-    #: ``residual``; NaN: not known)
+    #: its segment's mean point-to-plane distance to it there (m,
+    #: :func:`ssp.temporal.object_residual`; NaN: not known)
     seen_residual: float = float("nan")
     #: frames it has been static in the world, its data where it was as they were
     #: (:func:`ssp.temporal.fuse_static`)

@@ -209,9 +209,10 @@ def _corrected(ctx: FrameContext, oid: str, prev: np.ndarray, T: np.ndarray) -> 
     trees, model = ctx.segment_trees, ctx.models[oid]
     now = evidence(
         model, prev, trees.tree(oid), ctx.view, ctx.config, own_label=ctx.owner.get(oid),
-        segment_spacing=trees.spacing(oid), residual=True,
+        segment_spacing=trees.spacing(oid),
     )  # fmt: skip
-    if moved_in_world(known.seen_fit, known.seen_residual, now, ctx.config):
+    residual = object_residual(ctx, oid, prev)
+    if moved_in_world(known.seen_fit, known.seen_residual, now, residual, ctx.config):
         return None
     dt, dr = pose_change(prev, T, model.symmetry, model.center_of_mass)
     return (

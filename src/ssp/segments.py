@@ -29,6 +29,7 @@ import logging
 from collections.abc import Collection, Mapping, Sequence
 from functools import cache
 from typing import TYPE_CHECKING
+from weakref import WeakKeyDictionary
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -314,6 +315,33 @@ def _crop(
     return seg
 
 
+#: Each model's surface samples in pykdtree's tree, per process (the tree does not pickle, so
+#: it stays off the model): the same nearest samples and distances as
+#: :attr:`ObjectModel.surface_tree`'s, in about half the time (tests/test_segments.py).
+_SURFACE_KDTREES: WeakKeyDictionary[ObjectModel, KDTree] = WeakKeyDictionary()
+
+
+def _near_surface(
+    points: np.ndarray, model: ObjectModel, T_world_obj: np.ndarray, radius: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ``points`` ``(K, 3)`` (world, m) within the model's bounding sphere at
+    ``T_world_obj`` grown by ``radius`` (m), in the model frame ``(L, 3)``, with each one's
+    distance to its nearest surface sample within ``radius`` (inf: none) and that sample's
+    index."""
+    c_local, r = _bounding_sphere(model)
+    R, t = T_world_obj[:3, :3], T_world_obj[:3, 3]
+    near = np.linalg.norm(points - (R @ c_local + t), axis=1) <= r + radius
+    local = np.ascontiguousarray((points[near] - t) @ R)  # R^T (p - t)
+    if not len(local):
+        return local, np.zeros(0), np.zeros(0, dtype=np.int64)
+    tree = _SURFACE_KDTREES.get(model)
+    if tree is None:
+        tree = KDTree(np.ascontiguousarray(model.surface_points, dtype=float))
+        _SURFACE_KDTREES[model] = tree
+    dist, idx = tree.query(local, k=1, distance_upper_bound=radius)
+    return local, dist, idx.astype(np.int64)
+
+
 def explained_fraction(
     points: np.ndarray, model: ObjectModel, T_world_obj: np.ndarray, radius: float
 ) -> float:
@@ -324,14 +352,7 @@ def explained_fraction(
     points = np.asarray(points, dtype=float).reshape(-1, 3)
     if not len(points):
         return 0.0
-    c_local, r = _bounding_sphere(model)
-    centre = T_world_obj[:3, :3] @ c_local + T_world_obj[:3, 3]
-    near = np.linalg.norm(points - centre, axis=1) <= r + radius
-    if not near.any():
-        return 0.0
-    R, t = T_world_obj[:3, :3], T_world_obj[:3, 3]
-    local = (points[near] - t) @ R  # R^T (p - t): the points in the model frame
-    dist, _ = model.surface_tree.query(local, k=1, distance_upper_bound=radius)
+    _, dist, _ = _near_surface(points, model, T_world_obj, radius)
     return float(np.count_nonzero(np.isfinite(dist))) / len(points)
 
 
@@ -346,14 +367,9 @@ def surface_residual(
     radius that the data fit's counts do not see (a turn of a few degrees). NaN without such
     points."""
     points = np.asarray(points, dtype=float).reshape(-1, 3)
-    c_local, r = _bounding_sphere(model)
-    R, t = T_world_obj[:3, :3], T_world_obj[:3, 3]
-    centre = R @ c_local + t
-    near = np.linalg.norm(points - centre, axis=1) <= r + cap
-    if not near.any():
+    local, dist, j = _near_surface(points, model, T_world_obj, cap)
+    if not len(local):
         return float("nan")
-    local = (points[near] - t) @ R  # the points in the model frame
-    dist, j = model.surface_tree.query(local, k=1, distance_upper_bound=cap)
     out = np.full(len(local), cap)
     hit = np.isfinite(dist)
     samples = np.asarray(model.surface_points, dtype=float)[j[hit]]

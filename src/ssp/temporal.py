@@ -38,7 +38,6 @@ from ssp.retention import TriageState
 from ssp.scene import FrameError, Hypothesis, TransitionMode
 from ssp.segments import TABLE_CLEARANCE, explained_fraction, surface_residual
 from ssp.shared_volume import resolve_shared_volumes
-from ssp.verification import RESIDUAL_CAP
 
 if TYPE_CHECKING:
     from ssp.frame_context import FrameContext
@@ -46,25 +45,26 @@ if TYPE_CHECKING:
 
 __all__ = [
     "CLASS_MARGIN",
+    "RESIDUAL_CAP",
     "Association",
-    "association_gates",
     "associate",
     "associate_frame",
-    "counted_id_factory",
+    "association_gates",
+    "at_rest",
     "classify",
+    "counted_id_factory",
     "default_id_factory",
     "duplicates_of_undetected",
     "fuse_static",
     "moved_in_world",
     "object_residual",
-    "seen_from_state",
-    "seen_state",
     "one_object_per_segment",
     "reidentify",
     "reidentify_moved",
     "same_volume_test",
+    "seen_from_state",
+    "seen_state",
     "snap_symmetric",
-    "at_rest",
 ]
 
 log = logging.getLogger(__name__)
@@ -548,14 +548,19 @@ def classify(
 
 
 def moved_in_world(
-    seen_fit: float | None, seen_residual: float, now: Evidence, config: SSPConfig
+    seen_fit: float | None,
+    seen_residual: float,
+    now: Evidence,
+    residual: float,
+    config: SSPConfig,
 ) -> bool:
     """Whether a known object whose estimate changed beyond the static thresholds
     (:func:`classify`: ``PERTURBED``) moved in the world, judged by the data where it was.
 
-    ``now`` is the evidence (:func:`ssp.verification.evidence`, with its residual) at its
-    previous pose in this frame; ``seen_fit`` and ``seen_residual`` the fraction of its visible
-    surface explained and the residual there in the frame that set that pose. It moved when
+    ``now`` is the evidence (:func:`ssp.verification.evidence`) at its previous pose in this
+    frame and ``residual`` its :func:`object_residual` there (m); ``seen_fit`` and
+    ``seen_residual`` the fraction of its visible surface explained and the residual there in
+    the frame that set that pose. It moved when
     the data left that place: its volume there is now seen empty, its segment lies
     ``temporal.moved_residual_rise`` (0.5 mm) farther from that pose on average (point to
     plane: a turn of 10 deg in place keeps most samples within the inlier radius, not at the
@@ -567,15 +572,16 @@ def moved_in_world(
     static camera, 1 with this test). The bars sit above what static objects showed on
     development seeds (the residual up to 0.47 mm farther, the fit up to 0.36 lower, a
     moving camera's new view included) and below what a 10 mm slide (0.6 mm) or a 10 deg
-    turn (0.52-0.82 mm) shows; a turn of 6 deg in place may pass for a correction. With too
-    little of it visible now or then (``verification.min_visible_samples``) the data cannot
-    tell: the change of the estimate decides (moved)."""
+    turn (0.52-0.82 mm) shows (tracing scripts, not kept); a turn of 6 deg in place may pass
+    for a correction. With too little of it visible now or then
+    (``verification.min_visible_samples``) the data cannot tell: the change of the estimate
+    decides (moved)."""
     t = config.temporal
     if seen_fit is None or now.visible < config.verification.min_visible_samples:
         return True
     if now.seen_empty(config) or now.fit < seen_fit - t.moved_fit_drop:
         return True
-    return bool(now.residual - seen_residual > t.moved_residual_rise)  # NaN: not known, False
+    return bool(residual - seen_residual > t.moved_residual_rise)  # NaN: not known, False
 
 
 def fuse_static(T_prev: np.ndarray, T_cur: np.ndarray, still: int, frames: int) -> np.ndarray:
@@ -599,9 +605,15 @@ def fuse_static(T_prev: np.ndarray, T_cur: np.ndarray, still: int, frames: int) 
     return out
 
 
+#: :func:`object_residual` caps each point's distance at this many inlier radii: a point far
+#: from the surface (a mask defect, a neighbour's point) counts as far, not farther.
+RESIDUAL_CAP = 2.0
+
+
 def object_residual(ctx: FrameContext, oid: str, T: np.ndarray) -> float:
-    """Object ``oid``'s :attr:`~ssp.verification.Evidence.residual` at ``T`` (4x4, m): its
-    segment's mean capped point-to-plane distance to it (m; NaN without a segment)."""
+    """Object ``oid``'s residual at ``T`` (4x4, m): its segment's mean point-to-plane distance
+    to its surface there (:func:`ssp.segments.surface_residual`, each point's capped at
+    :data:`RESIDUAL_CAP` x the inlier radius; m; NaN without a segment)."""
     tree = ctx.segment_trees.tree(oid)
     if tree is None:
         return float("nan")
@@ -615,7 +627,7 @@ def object_residual(ctx: FrameContext, oid: str, T: np.ndarray) -> float:
 #: thresholds, stayed 11 mm off for frames when it was averaged: the report seeds' tools
 #: seen by an orbiting camera). Of 2361 estimates at rest on development seeds (blocks 0-4,
 #: tools 0-2 with an orbiting camera), 90 % lie within 0.02 mm of the previous pose by this
-#: measure, the largest 0.19 mm.
+#: measure, the largest 0.19 mm (a tracing script, not kept).
 FUSION_CORRECTION = 0.00025
 
 

@@ -44,7 +44,7 @@ from ssp.library.model import ObjectModel
 from ssp.registration import bounded_refit
 from ssp.scene import Hypothesis
 from ssp.scoring import Term
-from ssp.segments import SegmentTrees, explained_fraction, point_spacing, surface_residual
+from ssp.segments import SegmentTrees, explained_fraction, point_spacing
 from ssp.visibility import (
     BEHIND_OWN,
     NOT_FACING,
@@ -93,10 +93,6 @@ class Evidence:
         occluded: fraction of the facing samples hidden behind observed points.
         outside: fraction of all its samples outside the camera's field of view
             (:meth:`~ssp.visibility.CameraView.in_view`; 0.0 without a camera).
-        residual: the segment's mean point-to-plane distance to the model's surface
-            (:func:`~ssp.segments.surface_residual`, capped at :data:`RESIDUAL_CAP` x the
-            inlier radius; m); NaN when not asked for (:func:`evidence`'s ``residual``) or
-            without segment points near it.
     """
 
     facing: int
@@ -106,7 +102,6 @@ class Evidence:
     seen_through: float
     occluded: float
     outside: float = 0.0
-    residual: float = float("nan")
 
     def seen_empty(self, config: SSPConfig) -> bool:
         """The camera sees through at least ``temporal.seen_through_fraction`` of the facing
@@ -149,10 +144,6 @@ class Verdict:
         return self.evidence
 
 
-#: :attr:`Evidence.residual` caps each point's distance at this many inlier radii: a point
-#: far from the surface (a mask defect, a neighbour's point) counts as far, not farther.
-RESIDUAL_CAP = 2.0
-
 #: A surface sample counts as explained within this many point spacings of the segment (at
 #: least the inlier radius): a grid of spacing s leaves no surface point farther than 0.71 s.
 SPACING_COVER = 0.75
@@ -176,14 +167,12 @@ def evidence(
     *,
     own_label: int | None = None,
     segment_spacing: float | None = None,
-    residual: bool = False,
 ) -> Evidence:
     """The :class:`Evidence` for ``model`` at ``T_world_obj`` (4x4, m): ``segment`` ``(K, 3)``
     (or its KD-tree) is the object's part of the cloud, ``own_label`` the instance label it
     came from when it is the object's instance segment (then ``explained`` is computed).
     ``segment_spacing``: the segment's :func:`point_spacing` when already known (several
-    poses of one object). ``residual``: also the segment's mean capped point-to-plane distance
-    to the model's surface there (one more query)."""
+    poses of one object)."""
     own_segment = own_label is not None
     pts, nrm = _samples(model, int(config.search.fit_samples))
     T = np.asarray(T_world_obj, dtype=float)
@@ -203,7 +192,7 @@ def evidence(
         facing = visible = np.ones(len(pw), dtype=bool)
         n_facing, through, occluded, outside = len(pw), 0.0, 0.0, 0.0
     n_visible = int(np.count_nonzero(visible))
-    fit, mean_d = 0.0, float("nan")
+    fit = 0.0
     tree = None
     if segment is not None:
         tree = segment if isinstance(segment, cKDTree) else None
@@ -215,13 +204,11 @@ def evidence(
         radius = max(config.data.inlier_radius, SPACING_COVER * segment_spacing)
         d, _ = tree.query(pw[visible], k=1, distance_upper_bound=radius)
         fit = float(np.count_nonzero(np.isfinite(d))) / n_visible
-    if residual and tree is not None:
-        mean_d = surface_residual(tree.data, model, T, RESIDUAL_CAP * config.data.inlier_radius)
     explained = None
     if own_segment and tree is not None:
         radius = config.data.inlier_radius + config.library.surface_spacing
         explained = explained_fraction(tree.data, model, T, radius)
-    return Evidence(n_facing, n_visible, fit, explained, through, occluded, outside, mean_d)
+    return Evidence(n_facing, n_visible, fit, explained, through, occluded, outside)
 
 
 #: Loose check (raw hypotheses, before the search): the seen-through limit is at least this,
