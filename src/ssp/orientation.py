@@ -69,7 +69,7 @@ from ssp.geometry import same_camera_pose, validate_pose
 from ssp.library.model import ObjectModel
 from ssp.probability import pose_change
 from ssp.registration import even_rows, icp_refine
-from ssp.segments import SegmentTrees
+from ssp.segments import SegmentTrees, indices_by_label
 from ssp.static import RANKED_TURN
 from ssp.verification import Evidence, check_new, evidence
 
@@ -644,11 +644,11 @@ class OwnPoints:
                 in_cluster.setdefault(int(ctx.members[oid]), []).append(oid)
         # a cluster of several objects: whose point is whose is not known
         alone = {ids[0]: label for label, ids in in_cluster.items() if len(ids) == 1}
-        of_label = _points_by_label(frame.points, frame.labels, set(alone.values()))
+        of_label = indices_by_label(frame.labels)
         segments = {}
         reach = ctx.config.forces.max_distance
         for oid, label in alone.items():
-            pts = of_label[label]
+            pts = frame.points[of_label[label]]
             model, T = ctx.models[oid], np.asarray(ctx.sim.world.get_pose(oid), dtype=float)
             centre = T[:3, :3] @ np.asarray(model.center_of_mass, dtype=float) + T[:3, 3]
             near = np.sum((pts - centre) ** 2, axis=1) <= (model.d_max + reach) ** 2
@@ -674,23 +674,6 @@ class OwnPoints:
             ctx.models[oid], T, trees.tree(oid), ctx.view, ctx.config,
             own_label=self.labels.get(oid), segment_spacing=trees.spacing(oid),
         )  # fmt: skip
-
-
-def _points_by_label(
-    points: np.ndarray, labels: np.ndarray, wanted: set[int]
-) -> dict[int, np.ndarray]:
-    """``label -> (K, 3)`` the ``points`` ``(N, 3)`` of each ``wanted`` label of ``labels``
-    ``(N,)``, in their order (one pass over the labels, then over the objects' points)."""
-    lab = np.asarray(labels).reshape(-1)
-    idx = np.flatnonzero(lab >= 0) if wanted and min(wanted) >= 0 else np.arange(len(lab))
-    sub = lab[idx]
-    order = np.argsort(sub, kind="stable")
-    keys = sub[order]
-    out = {}
-    for label in wanted:
-        a, b = np.searchsorted(keys, [label, label + 1])
-        out[label] = points[idx[order[a:b]]]
-    return out
 
 
 def _judged(ctx: FrameContext, oid: str, T: np.ndarray) -> Evidence:

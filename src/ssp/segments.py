@@ -46,6 +46,7 @@ if TYPE_CHECKING:
 __all__ = [
     "SegmentTrees",
     "explained_fraction",
+    "indices_by_label",
     "object_segments",
     "point_spacing",
     "segment_frame",
@@ -142,7 +143,7 @@ def object_segments(
     """
     points = frame.points
 
-    by_label = _indices_by_label(frame.labels) if frame.labels is not None else {}
+    by_label = indices_by_label(frame.labels) if frame.labels is not None else {}
     voters = [
         (model, poses[0])
         for oid, (model, poses) in objects.items()
@@ -224,7 +225,7 @@ def _top_label(votes: Mapping[int, float]) -> int | None:
     return max(votes, key=lambda k: (votes[k], -k), default=None)
 
 
-def _indices_by_label(labels: np.ndarray) -> dict[int, np.ndarray]:
+def indices_by_label(labels: np.ndarray) -> dict[int, np.ndarray]:
     """``label -> indices (ascending)`` of the points that carry it."""
     labels = np.asarray(labels).reshape(-1)
     if not len(labels):
