@@ -21,7 +21,6 @@ from ssp.library.builtin import builtin_spec
 from ssp.library.symmetry import Symmetry
 from ssp.orientation import (
     CLOSER_GAIN,
-    CLOSER_POINTS,
     CLOSER_RADII,
     DECIDE_MARGIN,
     SAME_VIEW_POINTS,
@@ -38,7 +37,6 @@ from ssp.orientation import (
 )
 from ssp.parser import SceneParser
 from ssp.probability import pose_change
-from ssp.registration import even_rows
 from ssp.scene import Hypothesis
 from ssp.sim.frames import synthetic_frame
 from ssp.sim.render import look_at
@@ -133,10 +131,7 @@ def test_closer_tells_a_nearly_square_tin_from_its_quarter_turn():
     residuals = Residuals(seg, tin, tau)
     assert residuals.closer(T, quarter) == gain and residuals.closer(quarter, T) is None
     assert residuals.costs(T.copy()) is residuals.costs(T)
-    # on at most CLOSER_POINTS of the segment's points, evenly spaced
-    (few,) = even_rows(CLOSER_POINTS, seg)
-    assert len(seg) > CLOSER_POINTS == len(few)
-    np.testing.assert_array_equal(residuals.costs(T), residual_costs(few, tin, T, tau))
+    np.testing.assert_array_equal(residuals.costs(T), residual_costs(seg, tin, T, tau))
 
 
 def test_a_remembered_wrong_orientation_turns_when_the_data_decide(lib):

@@ -68,7 +68,7 @@ from ssp.errors import PhysicsError
 from ssp.geometry import same_camera_pose, validate_pose
 from ssp.library.model import ObjectModel
 from ssp.probability import pose_change
-from ssp.registration import even_rows, icp_refine
+from ssp.registration import icp_refine
 from ssp.segments import SegmentTrees, indices_by_label
 from ssp.static import RANKED_TURN
 from ssp.verification import Evidence, check_new, evidence
@@ -80,7 +80,6 @@ __all__ = [
     "DECIDE_MARGIN",
     "DECIDE_Z",
     "CLOSER_GAIN",
-    "CLOSER_POINTS",
     "CLOSER_RADII",
     "MAX_RULED_OUT",
     "MIN_CLOSER_POINTS",
@@ -125,10 +124,6 @@ CLOSER_RADII = 2.0
 #: over 880 points; 0.02 left a tin a quarter turn off for a whole sequence).
 CLOSER_GAIN = 0.005
 
-#: Distances are compared on at most this many of the segment's points (evenly spaced): a
-#: real capture's carton has some 10 000, and each pose's costs were a KD-tree query of all.
-CLOSER_POINTS = 2000
-
 #: Fewer segment points than this never decide by distance.
 MIN_CLOSER_POINTS = 30
 
@@ -136,16 +131,6 @@ MIN_CLOSER_POINTS = 30
 #: then), seen from the same camera pose, shows the same part of the object (a handle coming
 #: into view adds more).
 SAME_VIEW_POINTS = 0.05
-
-#: Candidates are aligned (:meth:`OwnPoints.aligned`) on at most this many of the object's
-#: points, evenly spaced, until a step moves less than ALIGN_TOLERANCE (m and rad): a rank
-#: counts points within the 3.7 mm inlier radius, and the polish aligns the pose kept. The
-#: ICP's defaults (2000 points, 1 um) took a third of the stage on a real capture's cartons;
-#: on development seeds 0-1 of the view-ambiguous protocol (built-in estimator) 4 of 360
-#: object-frames changed, one wrench's (6.0 deg off -> 0.02 deg; the others 0.2-0.3 mm off ->
-#: under 0.1 mm).
-ALIGN_POINTS = 500
-ALIGN_TOLERANCE = 1e-5
 
 #: A :class:`Ranking` remembers at most this many ruled-out orientations.
 MAX_RULED_OUT = 16
@@ -469,12 +454,10 @@ def closer(
 class Residuals:
     """:func:`residual_costs` of one instance segment ``(K, 3)`` (or None) and its model,
     ``tau`` m, computed once per pose: the stage compares each candidate with the same pose,
-    both ways (:func:`closer`), and the cost of a pose is a KD-tree query of the segment's
-    points (at most :data:`CLOSER_POINTS` of them, evenly spaced)."""
+    both ways (:func:`closer`), and the cost of a pose is a KD-tree query of every segment
+    point (about 5 ms for a real capture's box)."""
 
     def __init__(self, segment: np.ndarray | None, model: ObjectModel, tau: float) -> None:
-        if segment is not None:
-            (segment,) = even_rows(CLOSER_POINTS, segment)
         self.segment, self.model, self.tau = segment, model, float(tau)
         self.n = 0 if segment is None else len(segment)
         self._costs: dict[bytes, np.ndarray] = {}
@@ -662,10 +645,7 @@ class OwnPoints:
         segment = self.segments.get(oid)
         if segment is None or not len(segment):
             return np.asarray(U, dtype=float)
-        return icp_refine(
-            self.ctx.models[oid], U, segment, self.ctx.sim.camera_position,
-            n_points=ALIGN_POINTS, tolerance=ALIGN_TOLERANCE,
-        )  # fmt: skip
+        return icp_refine(self.ctx.models[oid], U, segment, self.ctx.sim.camera_position)
 
     def judged(self, oid: str, T: np.ndarray) -> Evidence:
         """:func:`ssp.verification.evidence` of object ``oid`` at ``T`` on its points."""
