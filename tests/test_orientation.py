@@ -26,6 +26,7 @@ from ssp.orientation import (
     SAME_VIEW_POINTS,
     Ranking,
     Residuals,
+    _decided,
     closer,
     decides,
     distinct_orientations,
@@ -132,6 +133,26 @@ def test_closer_tells_a_nearly_square_tin_from_its_quarter_turn():
     assert residuals.closer(T, quarter) == gain and residuals.closer(quarter, T) is None
     assert residuals.costs(T.copy()) is residuals.costs(T)
     np.testing.assert_array_equal(residuals.costs(T), residual_costs(seg, tin, T, tau))
+
+
+def test_on_a_cluster_tied_ranks_are_not_decided_by_distance():
+    """The tin's quarter turn, tied in rank with the pose: the segment's distances decide on
+    an instance segment, not on a cluster's points (where the same test turned a tin a
+    quarter one way and back frame after frame)."""
+    tin = _model("tin")
+    T, quarter = _standing(tin, 10.0), _standing(tin, 100.0)
+    pts, _ = trimesh.sample.sample_surface(tin.mesh, 3000, seed=0)
+    up = pts[:, 2] > tin.mesh.bounds[0][2] + 1e-4
+    seg = pts[up] @ T[:3, :3].T + T[:3, 3]
+    cfg = SSPConfig()
+    residuals = Residuals(seg, tin, CLOSER_RADII * cfg.data.inlier_radius)
+    ev = Evidence(300, 200, 0.9, 0.95, 0.0, 0.0)
+    ranked = [
+        (orientation_rank(ev), T, ev)
+    ]  # the candidate: the true pose; the pose: a quarter off
+    bar = orientation_rank(ev)
+    assert _decided(ranked, bar, ev, residuals, quarter, cfg, by_distance=True) == (0, False)
+    assert _decided(ranked, bar, ev, residuals, quarter, cfg, by_distance=False) is None
 
 
 def test_a_remembered_wrong_orientation_turns_when_the_data_decide(lib):
