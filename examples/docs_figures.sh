@@ -49,6 +49,7 @@ run t1-structure-rgb results.json $SSP bench table1 --experiment structure --seq
 $SSP models export-builtin bench-out/mug-models --names mug,tin,mallet,drill,sander,wrench
 run t1-isolated-mug results.json $SSP bench table1 --experiment isolated --sequences 10 --seed 1000 --models bench-out/mug-models --hypotheses estimated --methods ssp,ssp_single,estimator,icp_filter
 run t1-isolated-mug-realistic results.json $SSP bench table1 --experiment isolated --sequences 10 --seed 1000 --models bench-out/mug-models --noise realistic --methods ssp,ssp_single,estimator,icp_filter
+run t1-isolated-mug-nomask results.json $SSP bench table1 --experiment isolated --sequences 10 --seed 1000 --models bench-out/mug-models --hypotheses estimated --masks none --methods ssp,ssp_single,estimator,icp_filter
 run t1-structure-realistic-orbit results.json $SSP bench table1 --experiment structure --sequences 10 --seed 1000 --noise realistic --methods ssp,icp_filter --camera orbit
 run t1-structure-realistic-keyframes results.json $SSP bench table1 --experiment structure --sequences 10 --seed 1000 --noise realistic --methods ssp,icp_filter --camera keyframes
 run t1-structure-realistic-orbit-located results.json $SSP bench table1 --experiment structure --sequences 10 --seed 1000 --noise realistic --methods ssp,icp_filter --camera orbit --camera-pose estimated

@@ -41,9 +41,10 @@ class ObjectEstimate:
         evidence: for an object new in this frame, the figures verification judged it by at
             its output pose (``Evidence.as_dict``: ``fit`` of its visible surface,
             ``explained``, ...); None otherwise.
-        orientation: with instance masks, whether its orientation is decided and the
-            orientations its data allow as well (:class:`ssp.orientation.Orientation`); None
-            without masks, and for removed objects.
+        orientation: whether its orientation is decided and the orientations its data allow
+            as well (:class:`ssp.orientation.Orientation`); None for an object without points
+            of its own (:class:`ssp.orientation.OwnPoints`: without masks, one that shares its
+            cluster), and for removed objects.
     """
 
     id: str

@@ -49,10 +49,10 @@ orientation, a moved object or camera, or a segment that gained or lost
 Without masks an object's points are a crop of the cloud, which may hold a neighbour's, and
 ``explained`` would count them: an object is ranked there only when it lies alone in its
 cluster (``Frame.label_kind == "cluster"``; no other object of the scene in it), on that
-cluster's points within its bounding sphere (grown by ``forces.max_distance``). Without the
-stage a mug's memory held the yaw it first chose without masks: development seeds 0-1 (the
-view-ambiguous protocol, the built-in estimator) its mean rotation error 106 deg against the
-memoryless parser's 67.
+cluster's points within its bounding sphere (grown by ``forces.max_distance``), and ties are
+not decided by distance there (:func:`_decided`). Without the stage a mug's memory held the
+yaw it first chose without masks: development seeds 0-1 (the view-ambiguous protocol, the
+built-in estimator) its mean rotation error 106 deg against the memoryless parser's 67.
 """
 
 from __future__ import annotations

@@ -107,6 +107,8 @@ def _sources() -> dict[str, Source]:
                f"{mug} --hypotheses estimated --methods ssp,ssp_single,estimator,icp_filter"),
         Source("t1-isolated-mug-realistic",
                f"{mug} --noise realistic --methods ssp,ssp_single,estimator,icp_filter"),
+        Source("t1-isolated-mug-nomask", f"{mug} --hypotheses estimated --masks none "
+                                         "--methods ssp,ssp_single,estimator,icp_filter"),
     ]  # fmt: skip
     moving = ("ssp bench table1 --experiment structure --sequences 10 --seed 1000 --noise "
               "realistic --methods ssp,icp_filter --camera")  # fmt: skip
@@ -534,7 +536,8 @@ def _figures() -> dict[str, Figure]:
         Figure("tower-rgb", ("tower-rgb",), _tower_report_table(("tower-rgb",))),
     ]  # fmt: skip
     for name, src in (("mug-estimated", "t1-isolated-mug"),
-                      ("mug-realistic", "t1-isolated-mug-realistic")):  # fmt: skip
+                      ("mug-realistic", "t1-isolated-mug-realistic"),
+                      ("mug-nomask", "t1-isolated-mug-nomask")):  # fmt: skip
         out += [
             Figure(name, (src,), _realistic_table("isolated", (src,))),
             Figure(f"{name}-classes", (src,), _per_class_figure(src)),
