@@ -149,6 +149,31 @@ def test_simulate_to_disk(lib, tmp_path):
         assert len(e.symmetry.continuous) == len(lib[cls].symmetry.continuous)
 
 
+def test_a_simulated_dataset_read_with_its_own_models_folder(lib, tmp_path):
+    """``ssp simulate`` names its objects in ``models.json`` (mug, tin, ...) and writes their
+    BOP models (obj_000001, ...): read with a library of that ``models/`` folder, the scene's
+    classes, its hypotheses and the results' obj_ids are the BOP models' (they were refused:
+    "classes not in the library")."""
+    from ssp.pipeline.bop import bop_object_ids
+
+    (path,) = simulate_to_disk("isolated", 1, 3, None, tmp_path, library=lib, stages=1,
+                               frames_per_stage=1, stride=8, objects_per_stage=2)  # fmt: skip
+    root = tmp_path / "isolated"
+    names = {
+        int(k): v for k, v in json.loads((root / "models.json").read_text())["obj_ids"].items()
+    }
+    own = ObjectLibrary.from_folder(root / "models")
+    scene = open_bop(path, own)
+    assert scene.classes == {i: f"obj_{i:06d}" for i in names}
+    frame = scene.load(0)
+    used = {h.class_name for h in frame.hypotheses} | {c for c, _ in frame.gt.values()}
+    assert used and used <= set(own)
+    ids = bop_object_ids(path, own)
+    assert all(ids[f"obj_{i:06d}"] == i for i in names)
+    # with the library the dataset names, as before
+    assert open_bop(path, lib).classes == names
+
+
 def test_published_scene_without_ssp_files(lib, seq, tmp_path):
     """A scene with only the toolkit's files: stamps from im_id, classes obj_XXXXXX, no world
     frame unless cam_R_w2c is given, segmentation from mask_visib (ground truth)."""

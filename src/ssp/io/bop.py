@@ -65,6 +65,7 @@ __all__ = [
     "BopFrame",
     "BopScene",
     "bop_scenes",
+    "by_bop_name",
     "dataset_root",
     "is_bop_scene",
     "mask_source",
@@ -680,13 +681,42 @@ def _classes(d: Path) -> dict[int, str]:
     return {}
 
 
+def by_bop_name(classes: Mapping[int, str], library: Mapping | None) -> dict[str, str]:
+    """``class -> obj_XXXXXX`` for the classes of ``classes`` (``obj_id -> class``, named by a
+    ``models.json``, as ``ssp simulate`` writes) that are not in ``library`` but whose BOP
+    model name is: a library read from the dataset's own ``models/`` folder names its models
+    by obj_id. Empty without a library."""
+    if library is None:
+        return {}
+    return {
+        c: f"obj_{i:06d}"
+        for i, c in classes.items()
+        if c not in library and f"obj_{i:06d}" in library
+    }
+
+
+def _renamed_entries(entries: Any, renamed: Mapping[str, str]) -> Any:
+    """``hypotheses.json`` entries of one image with their ``class`` renamed (``renamed``);
+    anything malformed as it is (the reader names it)."""
+    if not isinstance(entries, list):
+        return entries
+    return [
+        {**h, "class": renamed[h["class"]]}
+        if isinstance(h, Mapping) and isinstance(h.get("class"), str) and h["class"] in renamed
+        else h
+        for h in entries
+    ]
+
+
 def open_bop(path, library: Mapping | None = None, *, period: float = DEFAULT_PERIOD) -> BopScene:
     """Open a BOP scene folder (module docstring): read its JSON files (not its images).
 
     Args:
         path: the scene folder ``DATASET/SPLIT/SCENE_ID`` (or a scene on its own).
         library: when given, every class of the scene's ground truth and hypotheses must be
-            in it (checked here, so a run fails before its first frame).
+            in it (checked here, so a run fails before its first frame); a class a
+            ``models.json`` names that it lacks is its BOP model ``obj_XXXXXX`` when it has
+            that (the dataset's own ``models/`` folder).
         period: seconds between consecutive ``im_id`` when the scene has no stamps.
 
     Raises:
@@ -715,6 +745,12 @@ def open_bop(path, library: Mapping | None = None, *, period: float = DEFAULT_PE
         if not isinstance(doc, Mapping):
             raise InputError(f"{d / name}: expected an object {{im_id: ...}}")
     classes = _classes(d)
+    renamed = by_bop_name(classes, library)
+    if renamed:  # the dataset's own models/ folder given: its models are named by obj_id
+        classes = {i: renamed.get(c, c) for i, c in classes.items()}
+        if meta.get("models"):
+            meta = {**meta, "models": [renamed.get(c, c) for c in meta["models"]]}
+        hyps = {k: _renamed_entries(v, renamed) for k, v in hyps.items()}
     _warn_rotations(gt_path, scene_gt)
     try:
         if simulated:

@@ -14,7 +14,7 @@ import numpy as np
 from ssp.config import SSPConfig
 from ssp.errors import ArgumentError, InputError, SSPError
 from ssp.geometry import invert
-from ssp.io.bop import DEFAULT_PERIOD, MASK_MODES, BopFrame, mask_source, open_bop
+from ssp.io.bop import DEFAULT_PERIOD, MASK_MODES, BopFrame, by_bop_name, mask_source, open_bop
 from ssp.io.detections import (
     Detection,
     Detections,
@@ -312,7 +312,8 @@ def bop_object_ids(scene: Path, library: Mapping) -> ObjectIds:
     classes = open_bop(scene).classes
     if not classes:
         return ObjectIds.for_input(scene, list(library))
-    ids = {cls: oid for oid, cls in classes.items()}
+    renamed = by_bop_name(classes, library)  # the dataset's own models/ folder: obj_XXXXXX
+    ids = {renamed.get(cls, cls): oid for oid, cls in classes.items()}
     nxt = max(classes) + 1
     for c in sorted(set(library) - set(ids)):
         ids[c] = nxt
