@@ -170,8 +170,10 @@ def test_a_simulated_dataset_read_with_its_own_models_folder(lib, tmp_path):
     assert used and used <= set(own)
     ids = bop_object_ids(path, own)
     assert all(ids[f"obj_{i:06d}"] == i for i in names)
-    # with the library the dataset names, as before
+    # with the library the dataset names, as before; a library that lacks some names the folder
     assert open_bop(path, lib).classes == names
+    with pytest.raises(InputError, match=r"give the dataset's models with --models \(.*models\)"):
+        open_bop(path, ObjectLibrary([lib["cube"]]))
 
 
 def test_published_scene_without_ssp_files(lib, seq, tmp_path):

@@ -786,9 +786,16 @@ def open_bop(path, library: Mapping | None = None, *, period: float = DEFAULT_PE
         names = {classes.get(i, f"obj_{i:06d}") if isinstance(i, int) else i for i in ids}
         missing = sorted(c for c in names if c not in library)
         if missing:
+            root = dataset_root(d)
+            models = (
+                f" ({root / 'models'})"
+                if root is not None and (root / "models").is_dir()
+                else ""
+            )  # fmt: skip
             raise InputError(
                 f"{d / name}: classes not in the library: {missing} (known: "
                 f"{', '.join(library) or 'none'}); give the dataset's models with --models"
+                f"{models}"
             )
     has_world = all(
         isinstance(scene_camera.get(str(im)), Mapping) and "cam_R_w2c" in scene_camera[str(im)]
