@@ -554,9 +554,10 @@ def _turn(
             o.decided, orientation_rank(ev), o.alternatives, turn
         )  # fmt: skip
     ctx.score = sim.scorer.evaluate(world, ctx.timer)
+    stages = OwnPoints.stages(ctx)
     for oid in world.ids:  # every object's evidence at its settled pose, as the stages judge it
         if oid in ctx.evidence:
-            ctx.evidence[oid] = _judged(ctx, oid, world.get_pose(oid))
+            ctx.evidence[oid] = stages.judged(oid, world.get_pose(oid))
 
 
 def orientations_state(
@@ -619,6 +620,12 @@ class OwnPoints:
         self.trees, self.shared = trees, shared
 
     @classmethod
+    def stages(cls, ctx: FrameContext) -> OwnPoints:
+        """The frame's segments, as the other stages judge every object (owned when it is
+        its instance segment)."""
+        return cls(ctx, ctx.owner, ctx.segments, ctx.segment_trees, True)
+
+    @classmethod
     def of(cls, ctx: FrameContext) -> OwnPoints:
         """The objects of ``ctx``'s scene (not removed) with points of their own."""
         frame = ctx.frame
@@ -634,7 +641,7 @@ class OwnPoints:
                 in_cluster.setdefault(int(ctx.members[oid]), []).append(oid)
         # a cluster of several objects: whose point is whose is not known
         alone = {ids[0]: label for label, ids in in_cluster.items() if len(ids) == 1}
-        of_label = indices_by_label(frame.labels)
+        of_label = indices_by_label(frame.labels) if alone else {}
         segments = {}
         reach = ctx.config.forces.max_distance
         for oid, label in alone.items():
@@ -661,13 +668,3 @@ class OwnPoints:
             ctx.models[oid], T, trees.tree(oid), ctx.view, ctx.config,
             own_label=self.labels.get(oid), segment_spacing=trees.spacing(oid),
         )  # fmt: skip
-
-
-def _judged(ctx: FrameContext, oid: str, T: np.ndarray) -> Evidence:
-    """:func:`ssp.verification.evidence` of object ``oid`` at ``T`` as the other stages judge
-    it: on its segment (``FrameContext.segments``), owned when it is its instance segment."""
-    trees = ctx.segment_trees
-    return evidence(
-        ctx.models[oid], T, trees.tree(oid), ctx.view, ctx.config, own_label=ctx.owner.get(oid),
-        segment_spacing=trees.spacing(oid),
-    )  # fmt: skip
