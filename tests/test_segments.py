@@ -6,8 +6,8 @@ import logging
 
 import numpy as np
 
+from ssp.cells import PointCells
 from ssp.geometry import make_pose, transform_points
-from ssp.kdtree import KDTree
 from ssp.scene import Frame
 from ssp.segments import _label_votes, explained_fraction, object_segments
 
@@ -76,9 +76,7 @@ def test_one_object_per_instance_label_a_hidden_object_keeps_its_own_points(lib)
     known, it takes its own label, the upper cube the other one, never both the same segment;
     new, it takes the label it covers most (it must earn its place with its data)."""
     cube, T_low, T_high, frame, n_low = _two_cubes(lib)
-    votes = _label_votes(
-        frame, KDTree(frame.points), np.arange(len(frame.points)), cube, T_low, 0.01
-    )
+    votes = _label_votes(frame, PointCells(frame.points, 0.01), cube, T_low, 0.01)
     assert votes[1] > votes[0]  # alone, the lower cube's vote went to the upper cube's label
     objects = {"low": (cube, [T_low]), "high": (cube, [T_high])}
     seg, owner = object_segments(frame, objects, radius=0.01, known={"low", "high"})

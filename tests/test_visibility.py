@@ -355,3 +355,45 @@ def test_least_depth_sees_the_edge_of_a_silhouette_and_past_a_floating_point(vie
     assert np.all(least - depth(edge) < 0.005)
     assert view.least_depth(floating, 8, 2.0)[0] - depth(floating)[0] > 0.03
     assert np.isinf(view.least_depth(np.array([[0.0, -2.0, 0.5]]), 8, 2.0)).all()  # behind
+
+
+def _self_hidden_by_tree(p_cam, p_world, n_world, spacing, tol):
+    """The self-occlusion test as a KD-tree states it (the implementation before the compiled
+    one): each sample's SELF_NEIGHBOURS + 1 nearest rays closer than the largest footprint."""
+    from scipy.spatial import cKDTree
+
+    n = len(p_cam)
+    depth = p_cam[:, 2]
+    rays = p_cam[:, :2] / depth[:, None]
+    cover = vis.SELF_COVER * spacing / depth
+    k = min(vis.SELF_NEIGHBOURS + 1, n)
+    dist, idx = cKDTree(rays).query(rays, k=k, distance_upper_bound=float(cover.max()))
+    dist, idx = dist.reshape(n, k), idx.reshape(n, k)
+    ok = np.isfinite(dist)
+    j = np.where(ok, idx, 0)
+    ok &= dist <= cover[j]
+    ok &= depth[j] < depth[:, None] - tol
+    nrm = n_world / np.maximum(np.linalg.norm(n_world, axis=1, keepdims=True), 1e-12)
+    off_plane = np.einsum("ikd,id->ik", p_world[j] - p_world[:, None, :], nrm)
+    ok &= off_plane > tol
+    return ok.any(axis=1)
+
+
+@pytest.mark.parametrize("max_cells", [vis.SELF_MAX_CELLS, 4])
+def test_self_occlusion_is_what_the_k_nearest_rays_decide(T_cam, max_cells, monkeypatch):
+    """The compiled self-occlusion test (rays in cells) gives every verdict of the KD-tree's
+    k-nearest formulation, on a concave object seen from several sides (with 4 cells too:
+    the cells grow until they fit)."""
+    monkeypatch.setattr(vis, "SELF_MAX_CELLS", max_cells)
+    front, back = ((0.10, 0.02, 0.10), (0.0, -0.1, 0.05)), ((0.10, 0.02, 0.10), (0.0, 0.0, 0.05))
+    pts, nrm, spacing = _union_samples([front, back], n=1500)
+    hidden = 0
+    for eye in (EYE, (0.5, -0.1, 0.12), (0.3, -0.5, 0.3), (0.02, 0.0, 0.6)):
+        T = look_at(eye, (0.0, -0.05, 0.05))
+        p_cam = (pts - T[:3, 3]) @ T[:3, :3]
+        facing = np.einsum("ij,ij->i", nrm, T[:3, 3] - pts) > 0.0
+        args = (p_cam[facing], pts[facing], nrm[facing], spacing, 0.005)
+        expected = _self_hidden_by_tree(*args)
+        np.testing.assert_array_equal(vis._self_hidden(*args), expected)
+        hidden += int(expected.sum())
+    assert hidden > 50  # the test has hidden samples to find

@@ -19,8 +19,9 @@ __all__ = ["kernel_array", "njit", "pairwise_sum"]
 
 
 def njit(function: Callable) -> Callable:
-    """``@njit``: ``numba.njit(cache=True)`` of ``function``."""
-    return numba.njit(cache=True)(function)
+    """``@njit``: ``numba.njit(cache=True, nogil=True)`` of ``function`` (a kernel releases the
+    GIL, so independent calls run at once in threads: :func:`ssp.threads.thread_map`)."""
+    return numba.njit(cache=True, nogil=True)(function)
 
 
 def kernel_array(a) -> np.ndarray:

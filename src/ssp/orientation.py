@@ -58,7 +58,7 @@ built-in estimator) its mean rotation error 106 deg against the memoryless parse
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -71,6 +71,7 @@ from ssp.probability import pose_change
 from ssp.registration import icp_refine
 from ssp.segments import SegmentTrees, indices_by_label
 from ssp.static import RANKED_TURN
+from ssp.threads import thread_map
 from ssp.verification import Evidence, check_new, evidence
 
 if TYPE_CHECKING:
@@ -332,11 +333,10 @@ def decide_orientations(ctx: FrameContext) -> None:
         if distinct:
             # what a candidate must beat: the pose aligned as the candidates are (a candidate
             # decides an orientation, not the millimetres the settle put the pose off its data)
-            T_fit = own.aligned(oid, T)
+            T_fit, *aligned = own.aligned(oid, [T, *(U for U, _ in distinct)])
             ev_aligned = own.judged(oid, T_fit)
             if orientation_rank(ev_aligned) > bar:
                 bar, bar_ev = orientation_rank(ev_aligned), ev_aligned
-            aligned = [own.aligned(oid, U) for U, _ in distinct]
             distinct = distinct_orientations(T, aligned, model)  # ICP may bring one back to T
         if not distinct:
             ctx.orientations[oid] = Orientation(True, rank)
@@ -652,14 +652,18 @@ class OwnPoints:
             segments[oid] = pts[near]
         return cls(ctx, alone, segments, SegmentTrees(segments), False)
 
-    def aligned(self, oid: str, U: np.ndarray) -> np.ndarray:
-        """Candidate ``U`` of object ``oid`` aligned to its points (point-to-plane ICP, as the
-        polish aligns the pose it is compared with): an estimator's alternative is often some
-        millimetres off, and a thin part (a handle) a few degrees off is seen through."""
+    def aligned(self, oid: str, poses: Sequence[np.ndarray]) -> list[np.ndarray]:
+        """Poses ``(4, 4)`` of object ``oid`` aligned to its points (point-to-plane ICP, as the
+        polish aligns the pose they are compared with; in threads,
+        :func:`ssp.threads.thread_map`): an estimator's alternative is often some millimetres
+        off, and a thin part (a handle) a few degrees off is seen through."""
         segment = self.segments.get(oid)
         if segment is None or not len(segment):
-            return np.asarray(U, dtype=float)
-        return icp_refine(self.ctx.models[oid], U, segment, self.ctx.sim.camera_position)
+            return [np.asarray(U, dtype=float) for U in poses]
+        model, camera = self.ctx.models[oid], self.ctx.sim.camera_position
+        return thread_map(
+            lambda U: icp_refine(model, U, segment, camera), list(poses), name="ssp-icp"
+        )
 
     def judged(self, oid: str, T: np.ndarray) -> Evidence:
         """:func:`ssp.verification.evidence` of object ``oid`` at ``T`` on its points."""

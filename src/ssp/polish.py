@@ -21,6 +21,7 @@ from ssp.errors import PhysicsError
 from ssp.physics import World
 from ssp.registration import bounded_refit
 from ssp.search import Simulator
+from ssp.threads import thread_map
 from ssp.timing import StageTimer
 
 if TYPE_CHECKING:
@@ -44,11 +45,14 @@ def polish(
     sample may match). A settle that fails leaves the scene as it was, with a warning."""
     forces = sim.forces
     with timer("icp"):
-        for oid, seg in segments.items():
-            if not world.is_enabled(oid):
-                continue
-            T_icp = bounded_refit(world.model_of(oid), world.get_pose(oid), seg,
-                                  camera_position, config)  # fmt: skip
+        todo = [(oid, seg) for oid, seg in segments.items() if world.is_enabled(oid)]
+
+        def refit(job: tuple[str, np.ndarray]) -> np.ndarray | None:
+            oid, seg = job
+            return bounded_refit(world.model_of(oid), world.get_pose(oid), seg,
+                                 camera_position, config)  # fmt: skip
+
+        for (oid, _), T_icp in zip(todo, thread_map(refit, todo, name="ssp-icp"), strict=True):
             if T_icp is not None:
                 forces.set_pose_target(world.index(oid), T_icp)
     forces.reset()

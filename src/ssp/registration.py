@@ -10,6 +10,7 @@ import math
 
 import numpy as np
 
+from ssp.cells import OUTSIDE, cell_sort, nearest_in_cells
 from ssp.config import SSPConfig
 from ssp.jit import kernel_array, njit
 from ssp.library.model import ObjectModel
@@ -284,7 +285,7 @@ def _exact_icp(pts, nrm, T_init, seg, cam, use_cam, max_distance, iterations, mi
     live = np.flatnonzero(keep)
     if live.shape[0] < 3:
         return T
-    lo, dims, h, inv_h, start, order = _cell_sort(pts, live, max_distance, max_cells)
+    lo, dims, h, inv_h, start, order = cell_sort(pts, live, max_distance, max_cells)
     max2 = max_distance * max_distance
     h2 = h * h
     prev = np.full(seg.shape[0], -1, dtype=np.int64)  # each point's match of the last step
@@ -304,8 +305,8 @@ def _exact_icp(pts, nrm, T_init, seg, cam, use_cam, max_distance, iterations, mi
             q0 = R[0, 0] * d0 + R[1, 0] * d1 + R[2, 0] * d2
             q1 = R[0, 1] * d0 + R[1, 1] * d1 + R[2, 1] * d2
             q2 = R[0, 2] * d0 + R[1, 2] * d1 + R[2, 2] * d2
-            j = _nearest_sample(q0, q1, q2, prev[k], pts, lo, inv_h, dims, h2, max2, start, order)
-            if j == _OUTSIDE:
+            j = nearest_in_cells(q0, q1, q2, prev[k], pts, lo, inv_h, dims, h2, max2, start, order)
+            if j == OUTSIDE:
                 continue  # no sample within h (the last step's match is kept)
             prev[k] = j
             if j < 0:
@@ -319,92 +320,6 @@ def _exact_icp(pts, nrm, T_init, seg, cam, use_cam, max_distance, iterations, mi
         if _gauss_newton_step(T, GtG, Gtb, csum, m, tol2):
             break
     return T
-
-
-#: :func:`_nearest_sample` of a point outside the cells grown by one cell
-_OUTSIDE = -2
-
-
-@njit
-def _cell_sort(pts, live, max_distance, max_cells):
-    """The samples ``live`` of ``pts`` sorted into cubic cells of side ``h >= max_distance``
-    (doubled until at most ``max_cells`` cover them), a counting sort: ``(lo, dims, h, 1 / h,
-    start, order)``, the samples of cell ``c`` being ``order[start[c]:start[c + 1]]``; cell
-    ``(x, y, z)`` is ``(x * dims[1] + y) * dims[2] + z``, its corner ``lo + h (x, y, z)``."""
-    lo = np.empty(3)
-    hi = np.empty(3)
-    for a in range(3):
-        lo[a] = pts[live, a].min()
-        hi[a] = pts[live, a].max()
-    h = max_distance
-    dims = np.empty(3, dtype=np.int64)
-    while True:
-        for a in range(3):
-            dims[a] = int((hi[a] - lo[a]) / h) + 1
-        if dims[0] * dims[1] * dims[2] <= max_cells:
-            break
-        h *= 2.0
-    inv_h = 1.0 / h
-    n_cells = dims[0] * dims[1] * dims[2]
-    cell_of = np.empty(live.shape[0], dtype=np.int64)
-    start = np.zeros(n_cells + 1, dtype=np.int64)
-    for k in range(live.shape[0]):
-        j = live[k]
-        c0 = min(int((pts[j, 0] - lo[0]) * inv_h), dims[0] - 1)
-        c1 = min(int((pts[j, 1] - lo[1]) * inv_h), dims[1] - 1)
-        c2 = min(int((pts[j, 2] - lo[2]) * inv_h), dims[2] - 1)
-        cell_of[k] = (c0 * dims[1] + c1) * dims[2] + c2
-        start[cell_of[k] + 1] += 1
-    for c in range(n_cells):
-        start[c + 1] += start[c]
-    order = np.empty(live.shape[0], dtype=np.int64)
-    fill = start[:-1].copy()
-    for k in range(live.shape[0]):
-        order[fill[cell_of[k]]] = live[k]
-        fill[cell_of[k]] += 1
-    return lo, dims, h, inv_h, start, order
-
-
-@njit
-def _nearest_sample(q0, q1, q2, c, pts, lo, inv_h, dims, h2, max2, start, order):
-    """The sample of :func:`_cell_sort`'s cells nearest to the point ``(q0, q1, q2)`` (model
-    frame) within ``sqrt(max2)`` (the first of equals), searched from the sample ``c`` (the
-    point's last match, or -1) through the 27 cells around the point's, skipping the cells
-    farther than the nearest so far; -1 when none, :data:`_OUTSIDE` when the point lies
-    beyond the cells grown by one cell (``h2``: the squared cell side)."""
-    w0, w1, w2 = (q0 - lo[0]) * inv_h, (q1 - lo[1]) * inv_h, (q2 - lo[2]) * inv_h
-    f0, f1, f2 = math.floor(w0), math.floor(w1), math.floor(w2)
-    if f0 < -1 or f1 < -1 or f2 < -1:
-        return _OUTSIDE
-    if f0 > dims[0] or f1 > dims[1] or f2 > dims[2]:
-        return _OUTSIDE
-    i0, i1, i2 = int(f0), int(f1), int(f2)
-    r0, r1, r2 = w0 - f0, w1 - f1, w2 - f2  # where in its cell, 0 to 1
-    best = max2
-    j = -1
-    if c >= 0:
-        e0, e1, e2 = q0 - pts[c, 0], q1 - pts[c, 1], q2 - pts[c, 2]
-        dd = e0 * e0 + e1 * e1 + e2 * e2
-        if dd <= max2:
-            best = dd
-            j = c
-    for x in range(max(i0 - 1, 0), min(i0 + 2, dims[0])):
-        g0 = 0.0 if x == i0 else (1.0 - r0 if x > i0 else r0)
-        for y in range(max(i1 - 1, 0), min(i1 + 2, dims[1])):
-            g1 = 0.0 if y == i1 else (1.0 - r1 if y > i1 else r1)
-            for z in range(max(i2 - 1, 0), min(i2 + 2, dims[2])):
-                g2 = 0.0 if z == i2 else (1.0 - r2 if z > i2 else r2)
-                if (g0 * g0 + g1 * g1 + g2 * g2) * h2 > best:
-                    continue  # the whole cell is farther than the nearest so far
-                cell = (x * dims[1] + y) * dims[2] + z
-                for u in range(start[cell], start[cell + 1]):
-                    c = order[u]
-                    e0, e1, e2 = q0 - pts[c, 0], q1 - pts[c, 1], q2 - pts[c, 2]
-                    dd = e0 * e0 + e1 * e1 + e2 * e2
-                    if dd < best or (dd == best and j >= 0 and c < j):
-                        best = dd
-                        j = c
-    return j
 
 
 def grid_icp(

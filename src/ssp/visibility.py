@@ -56,11 +56,13 @@ Limits
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from ssp.geometry import invert, transform_points, validate_pose
+from ssp.jit import kernel_array, njit
 from ssp.kdtree import KDTree
 
 #: Smallest camera-frame depth (m) taken as "in front of the camera"; avoids dividing by ~0.
@@ -161,25 +163,113 @@ def _self_hidden(
 ) -> np.ndarray:
     """(F,) bool: which of one object's facing samples (camera frame ``p_cam`` (F, 3), world
     ``p_world`` and normals ``n_world``) lie behind another of them (module docstring,
-    "Self-occlusion"). ``spacing``: sample spacing on the surface (m); ``tol``: m."""
+    "Self-occlusion"). ``spacing``: sample spacing on the surface (m); ``tol``: m. A sample's
+    occluders are sought among its :data:`SELF_NEIGHBOURS` nearest other samples in the image
+    (:func:`_self_hidden_kernel`)."""
     n = len(p_cam)
     if n < 2 or spacing <= 0.0:
         return np.zeros(n, dtype=bool)
-    depth = p_cam[:, 2]
-    rays = p_cam[:, :2] / depth[:, None]
+    depth = np.ascontiguousarray(p_cam[:, 2])
+    rays = np.ascontiguousarray(p_cam[:, :2] / depth[:, None])
     cover = SELF_COVER * spacing / depth  # each sample's footprint radius in the image
-    k = min(SELF_NEIGHBOURS + 1, n)
-    rays = np.ascontiguousarray(rays)
-    dist, idx = KDTree(rays).query(rays, k=k, distance_upper_bound=float(cover.max()))
-    dist, idx = dist.reshape(n, k), idx.reshape(n, k).astype(np.intp)
-    ok = np.isfinite(dist)
-    j = np.where(ok, idx, 0)
-    ok &= dist <= cover[j]  # within the occluder's footprint
-    ok &= depth[j] < depth[:, None] - tol  # in front of the sample
     nrm = n_world / np.maximum(np.linalg.norm(n_world, axis=1, keepdims=True), 1e-12)
-    off_plane = np.einsum("ikd,id->ik", p_world[j] - p_world[:, None, :], nrm)
-    ok &= off_plane > tol  # not a neighbour on the sample's own smooth surface
-    return ok.any(axis=1)
+    return _self_hidden_kernel(
+        rays, depth, kernel_array(cover), kernel_array(p_world), kernel_array(nrm), float(tol),
+        min(SELF_NEIGHBOURS + 1, n), SELF_MAX_CELLS,
+    )  # fmt: skip
+
+
+#: :func:`_self_hidden_kernel` bins the rays in at most this many cells (larger cells beyond).
+SELF_MAX_CELLS = 1 << 16
+
+
+@njit
+def _self_hidden_kernel(rays, depth, cover, p_world, nrm, tol, k, max_cells):
+    """:func:`_self_hidden`, compiled: sample ``i`` (ray ``rays[i]`` (2,), normalised image
+    coordinates; optical depth ``depth[i]``, m) is hidden when one of its ``k`` nearest rays
+    (itself included; distance, then index) closer than ``b = max(cover)``, ray ``j``, lies
+    within ``cover[j]`` of it, ``j`` is in front of it by more than ``tol`` (m) and off its
+    tangent plane (world point ``p_world[i]``, unit normal ``nrm[i]``) by more than ``tol``
+    (what a KD-tree's ``k``-nearest query bounded by ``b`` finds; the same verdicts)."""
+    n = rays.shape[0]
+    out = np.zeros(n, dtype=np.bool_)
+    b = cover.max()
+    cx, cy, ny, first, order = _ray_cells(rays, b, max_cells)
+    near_d2 = np.empty(k)  # the k nearest: squared distances and indices, ascending
+    near_j = np.empty(k, dtype=np.int64)
+    for i in range(n):
+        m = _k_nearest(i, rays, cx, cy, ny, first, order, b * b, near_d2, near_j)
+        for q in range(m):
+            j = near_j[q]
+            if not math.sqrt(near_d2[q]) <= cover[j]:  # outside the occluder's footprint
+                continue
+            if not depth[j] < depth[i] - tol:  # not in front of the sample
+                continue
+            off = (
+                (p_world[j, 0] - p_world[i, 0]) * nrm[i, 0]
+                + (p_world[j, 1] - p_world[i, 1]) * nrm[i, 1]
+                + (p_world[j, 2] - p_world[i, 2]) * nrm[i, 2]
+            )
+            if off > tol:  # not a neighbour on the sample's own smooth surface
+                out[i] = True
+                break
+    return out
+
+
+@njit
+def _ray_cells(rays, b, max_cells):
+    """The rays ``(n, 2)`` binned in square cells of side ``h >= b`` (doubled until at most
+    ``max_cells`` cover them; a counting sort): ``(cx, cy, ny, first, order)``, ray ``i`` in
+    cell ``cx[i] * ny + cy[i]``, cell ``c`` holding ``order[first[c]:first[c + 1]]`` (in
+    index order). The rays closer than ``b`` to a ray lie in the 3 x 3 cells around its own."""
+    x0, x1 = rays[:, 0].min(), rays[:, 0].max()
+    y0, y1 = rays[:, 1].min(), rays[:, 1].max()
+    h = b
+    nx, ny = int((x1 - x0) / h) + 1, int((y1 - y0) / h) + 1
+    while nx * ny > max_cells:
+        h *= 2.0
+        nx, ny = int((x1 - x0) / h) + 1, int((y1 - y0) / h) + 1
+    cx = ((rays[:, 0] - x0) / h).astype(np.int64)
+    cy = ((rays[:, 1] - y0) / h).astype(np.int64)
+    first = np.zeros(nx * ny + 1, dtype=np.int64)
+    for i in range(rays.shape[0]):
+        first[cx[i] * ny + cy[i] + 1] += 1
+    for c in range(nx * ny):
+        first[c + 1] += first[c]
+    fill = first.copy()
+    order = np.empty(rays.shape[0], dtype=np.int64)
+    for i in range(rays.shape[0]):
+        c = cx[i] * ny + cy[i]
+        order[fill[c]] = i
+        fill[c] += 1
+    return cx, cy, ny, first, order
+
+
+@njit
+def _k_nearest(i, rays, cx, cy, ny, first, order, b2, near_d2, near_j):
+    """The ``k = len(near_j)`` rays of :func:`_ray_cells` nearest ray ``i`` closer than
+    ``sqrt(b2)`` (distance, then index), into ``near_d2`` (squared distances) and ``near_j``,
+    ascending; returns how many there are."""
+    k = near_j.shape[0]
+    nx = (first.shape[0] - 1) // ny
+    m = 0
+    for ax in range(max(cx[i] - 1, 0), min(cx[i] + 2, nx)):
+        for ay in range(max(cy[i] - 1, 0), min(cy[i] + 2, ny)):
+            c = ax * ny + ay
+            for s in range(first[c], first[c + 1]):
+                j = order[s]
+                dx, dy = rays[j, 0] - rays[i, 0], rays[j, 1] - rays[i, 1]
+                d2 = dx * dx + dy * dy
+                if not d2 < b2 or (m == k and (d2, j) > (near_d2[k - 1], near_j[k - 1])):
+                    continue
+                p = min(m, k - 1)  # insertion into the sorted k nearest
+                while p > 0 and (near_d2[p - 1], near_j[p - 1]) > (d2, j):
+                    if p < k:
+                        near_d2[p], near_j[p] = near_d2[p - 1], near_j[p - 1]
+                    p -= 1
+                near_d2[p], near_j[p] = d2, j
+                m = min(m + 1, k)
+    return m
 
 
 def estimate_angular_resolution(rays: np.ndarray, tree: KDTree | None = None) -> float:

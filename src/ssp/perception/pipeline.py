@@ -20,9 +20,7 @@ Segments and candidate classes:
 from __future__ import annotations
 
 import logging
-import os
 from collections.abc import Mapping, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -42,16 +40,13 @@ from ssp.perception.reuse import SegmentMemory, SegmentShape, confident
 from ssp.perception.segmentation import Segmentation, segment_cloud
 from ssp.perception.table import table_frame
 from ssp.scene import Frame, Hypothesis
+from ssp.threads import thread_map
 from ssp.timing import StageTimer
 
 __all__ = ["Perception", "PerceptionResult", "SegmentRequest", "check_camera_axes"]
 
 log = logging.getLogger(__name__)
 
-
-#: Threads cleaning a frame's instance segments at once (:meth:`Perception._clean`): one per
-#: core, at most 4.
-CLEANING_THREADS = max(1, min(4, os.cpu_count() or 1))
 
 #: A camera-frame cloud with fewer than this fraction of its points in front of the camera
 #: (z > 0, OpenCV axes) is in other axes.
@@ -383,8 +378,8 @@ class Perception:
     def _clean(self, pts: np.ndarray, segmentation: Segmentation, verdicts: dict[int, str]) -> None:
         """Drop each instance segment's flying pixels and stray pieces (:func:`clean_segment`:
         their labels become -1; ``verdicts`` says what went). The segments are cleaned in
-        :data:`CLEANING_THREADS` threads (the tree queries and sorts release the GIL), each
-        on its own: the same labels as one after another."""
+        threads (:func:`ssp.threads.thread_map`: the tree queries and sorts release the GIL),
+        each on its own: the same labels as one after another."""
         labels = segmentation.labels
         order = np.argsort(labels, kind="stable")
         ids, starts = np.unique(labels[order], return_index=True)
@@ -397,12 +392,7 @@ class Perception:
             return clean_segment(pts[idx], tolerance=self.cfg.cluster_tolerance,
                                  min_points=self.cfg.min_segment_points)  # fmt: skip
 
-        threads = min(CLEANING_THREADS, len(todo))
-        if threads > 1:
-            with ThreadPoolExecutor(threads, thread_name_prefix="ssp-clean") as pool:
-                cleaned = list(pool.map(one, todo))
-        else:
-            cleaned = [one(job) for job in todo]
+        cleaned = thread_map(one, todo, name="ssp-clean")
         for (label, idx), c in zip(todo, cleaned, strict=True):
             labels[idx[~c.keep]] = -1
             if c.describe():
