@@ -86,5 +86,6 @@ run tower-estimated-estimator results.json $SSP bench tower --trials 10 --seed 1
 run parser-compare compare.json $SSP bench parser --links ../shared/data/costar-links --compare 3d6b73d --processes 2 --rev-processes 2
 run frame-compare results.json $SSP bench frame --real-dev ../shared/data/real-dev --compare c436e9b --rounds 2
 run frame-processes results.json $SSP bench frame --processes 2
+run frame-threads results.json $SSP bench frame --real-dev ../shared/data/real-dev --compare ef47c46 --rounds 1
 
 $SSP bench docs-figures --collect "$W" --write --check --strict

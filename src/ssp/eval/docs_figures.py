@@ -66,6 +66,8 @@ PARSER_REV = "3d6b73d"
 REAL_DEV = "../shared/data/real-dev"
 #: The revision before issue 34's speed-ups, timed beside this code by ``ssp bench frame``.
 FRAME_REV = "c436e9b"
+#: The code before the ICPs in threads and the compiled self-occlusion test (frame-threads).
+THREADS_REV = "ef47c46"
 
 
 @dataclass(frozen=True)
@@ -156,6 +158,8 @@ def _sources() -> dict[str, Source]:
         Source("frame-compare",
                f"ssp bench frame --real-dev {REAL_DEV} --compare {FRAME_REV} --rounds 2"),
         Source("frame-processes", "ssp bench frame --processes 2"),
+        Source("frame-threads",
+               f"ssp bench frame --real-dev {REAL_DEV} --compare {THREADS_REV} --rounds 1"),
     ]  # fmt: skip
     return {s.name: s for s in out}
 
@@ -533,6 +537,7 @@ def _figures() -> dict[str, Figure]:
         Figure("frame-compare", ("frame-compare",), _frame_table("frame-compare", 0)),
         Figure("frame-targets", ("frame-compare",), _frame_table("frame-compare", 1)),
         Figure("frame-processes", ("frame-processes",), _frame_table("frame-processes", 0)),
+        Figure("frame-threads", ("frame-threads",), _frame_table("frame-threads", 0)),
         Figure("tower-rgb", ("tower-rgb",), _tower_report_table(("tower-rgb",))),
     ]  # fmt: skip
     for name, src in (("mug-estimated", "t1-isolated-mug"),
