@@ -333,18 +333,29 @@ def test_a_corrected_estimate_of_an_object_that_did_not_move_is_static():
     # the parser remembers cube a 10 mm off where it stands; the frame shows it where it is,
     # and its estimate goes there: motion in the world only if the data left the old place
     state, f1, a, there = _remembered_off(-0.04)
+    seen_where_it_is = np.asarray(a["seen_points"])
+    seen_where_it_was = seen_where_it_is + [0.01, 0.0, 0.0]  # had it stood at -0.04
     modes = {}
-    # the data there as it was, or (then) explained as well as at the right pose
-    for seen in ((there.fit, there.residual), (a["seen_fit"], a["seen_residual"])):
+    # the data there as it was; or (then) explained as well as at the right pose, and the
+    # points seen of it then where it is (a view that could not see the error) or 10 mm off
+    for case, seen, points in (
+        ("as it was", (there.fit, there.residual), seen_where_it_was),
+        ("seen where it is", (a["seen_fit"], a["seen_residual"]), seen_where_it_is),
+        ("seen where it was", (a["seen_fit"], a["seen_residual"]), seen_where_it_was),
+    ):
         a["seen_fit"], a["seen_residual"] = seen
+        a["seen_points"] = points.tolist()
         est = SceneParser.from_state(LIB, state).update(f1)
         (o,) = [o for o in est.objects if o.id == a["id"]]
         assert abs(o.T_world_obj[0, 3] + 0.05) < 0.003  # where it is
-        modes[seen[0] == there.fit] = o
-    assert modes[True].mode == TransitionMode.STATIC, modes[True].reason
-    assert "static in the world, its estimate corrected by 10 mm" in modes[True].reason
-    assert modes[False].mode == TransitionMode.PERTURBED
-    assert "static in the world" not in modes[False].reason
+        modes[case] = o
+    assert modes["as it was"].mode == TransitionMode.STATIC, modes["as it was"].reason
+    assert "static in the world, its estimate corrected by 10 mm" in modes["as it was"].reason
+    o = modes["seen where it is"]
+    assert o.mode == TransitionMode.STATIC, o.reason
+    assert "explains the points seen of it before as well" in o.reason
+    assert modes["seen where it was"].mode == TransitionMode.PERTURBED
+    assert "static in the world" not in modes["seen where it was"].reason
 
 
 @pytest.mark.parametrize("cls", ["cube", "block"])

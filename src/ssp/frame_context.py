@@ -71,6 +71,10 @@ class Known:
     #: frames it has been static in the world, its data where it was as they were
     #: (:func:`ssp.temporal.fuse_static`)
     still: int = 0
+    #: some of its segment's points in the frame that set it ((K, 3), world, m;
+    #: :func:`ssp.temporal.seen_points`; None: none known): a later estimate that explains
+    #: them as well is a correction, not a motion (:func:`ssp.temporal.explains_before`)
+    seen_points: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

@@ -30,7 +30,15 @@ from ssp.scene import TransitionMode
 from ssp.search import CandidateSource
 from ssp.segments import segment_verdicts
 from ssp.support import GROUND
-from ssp.temporal import at_rest, classify, moved_in_world, object_residual, snap_symmetric
+from ssp.temporal import (
+    at_rest,
+    classify,
+    explains_before,
+    moved_in_world,
+    object_residual,
+    seen_points,
+    snap_symmetric,
+)
 from ssp.verification import evidence
 
 if TYPE_CHECKING:
@@ -212,15 +220,17 @@ def _corrected(ctx: FrameContext, oid: str, prev: np.ndarray, T: np.ndarray) -> 
         segment_spacing=trees.spacing(oid),
     )  # fmt: skip
     residual = object_residual(ctx, oid, prev)
-    if moved_in_world(known.seen_fit, known.seen_residual, now, residual, ctx.config):
-        return None
     dt, dr = pose_change(prev, T, model.symmetry, model.center_of_mass)
-    return (
-        f"static in the world, its estimate corrected by {1000 * dt:.0f} mm / "
-        f"{np.degrees(dr):.0f} deg: the data where it was is as it was (explains "
-        f"{100 * now.fit:.0f} % of its visible surface there, {100 * known.seen_fit:.0f} % "
-        "in the frame before)"
-    )
+    change = f"static in the world, its estimate corrected by {1000 * dt:.0f} mm / "
+    change += f"{np.degrees(dr):.0f} deg: "
+    if not moved_in_world(known.seen_fit, known.seen_residual, now, residual, ctx.config):
+        return change + (
+            f"the data where it was is as it was (explains {100 * now.fit:.0f} % of its "
+            f"visible surface there, {100 * known.seen_fit:.0f} % in the frame before)"
+        )
+    if explains_before(known.seen_points, model, prev, T, ctx.config):
+        return change + "the new estimate explains the points seen of it before as well"
+    return None
 
 
 def _seen(ctx: FrameContext, oid: str, T: np.ndarray) -> dict[str, Any]:
@@ -229,7 +239,14 @@ def _seen(ctx: FrameContext, oid: str, T: np.ndarray) -> dict[str, Any]:
     ev = ctx.evidence.get(oid)
     if ev is None or ev.visible < ctx.config.verification.min_visible_samples:
         return {}
-    return {"seen_fit": float(ev.fit), "seen_residual": object_residual(ctx, oid, T)}
+    seen: dict[str, Any] = {
+        "seen_fit": float(ev.fit),
+        "seen_residual": object_residual(ctx, oid, T),
+    }
+    tree = ctx.segment_trees.tree(oid)
+    if tree is not None:
+        seen["seen_points"] = seen_points(tree.data)
+    return seen
 
 
 def _reason(ctx: FrameContext, oid: str, T: np.ndarray, prev: np.ndarray | None) -> str:

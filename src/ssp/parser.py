@@ -167,7 +167,7 @@ class SceneParser:
                     "held": k.held,
                     "doubt": k.doubt,
                     **orientations_state(k.alternatives, k.ranking),
-                    **seen_state(k.seen_fit, k.seen_residual, k.still),
+                    **seen_state(k.seen_fit, k.seen_residual, k.still, k.seen_points),
                 }
                 for oid, k in sorted(self._known.items())
             ],

@@ -357,23 +357,30 @@ def surface_residual(
     points: np.ndarray, model: ObjectModel, T_world_obj: np.ndarray, cap: float
 ) -> float:
     """Mean point-to-plane distance (m) of the ``points`` ``(K, 3)`` (world, m) within the
-    model's bounding sphere grown by ``cap`` to the model's surface at ``T_world_obj``: to the
-    tangent plane of the nearest surface sample, each distance capped at ``cap`` (a point
-    with no sample within ``cap`` counts ``cap``). Noise-level where the pose is right,
-    whatever part of it the camera sees; it grows with a pose error smaller than the inlier
-    radius that the data fit's counts do not see (a turn of a few degrees). NaN without such
-    points."""
+    model's bounding sphere grown by ``cap`` to the model's surface at ``T_world_obj``
+    (:func:`surface_distances`). Noise-level where the pose is right, whatever part of it the
+    camera sees; it grows with a pose error smaller than the inlier radius that the data
+    fit's counts do not see (a turn of a few degrees). NaN without such points."""
+    d = surface_distances(points, model, T_world_obj, cap)
+    return float(np.mean(d)) if len(d) else float("nan")
+
+
+def surface_distances(
+    points: np.ndarray, model: ObjectModel, T_world_obj: np.ndarray, cap: float
+) -> np.ndarray:
+    """(L,) the distance (m) of each of the ``points`` ``(K, 3)`` (world, m) within the model's
+    bounding sphere at ``T_world_obj`` grown by ``cap`` (m) to the tangent plane of its
+    nearest surface sample, capped at ``cap`` (a point with no sample within ``cap`` counts
+    ``cap``)."""
     points = np.asarray(points, dtype=float).reshape(-1, 3)
     local, dist, j = _near_surface(points, model, T_world_obj, cap)
-    if not len(local):
-        return float("nan")
     out = np.full(len(local), cap)
     hit = np.isfinite(dist)
     samples = np.asarray(model.surface_points, dtype=float)[j[hit]]
     normals = np.asarray(model.surface_normals, dtype=float)[j[hit]]
     plane = np.abs(np.einsum("ij,ij->i", local[hit] - samples, normals))
     out[hit] = np.minimum(plane, cap)
-    return float(np.mean(out))
+    return out
 
 
 def segment_frame(ctx: FrameContext) -> None:

@@ -36,11 +36,17 @@ from ssp.overlap import same_volume
 from ssp.probability import pose_change
 from ssp.retention import TriageState
 from ssp.scene import FrameError, Hypothesis, TransitionMode
-from ssp.segments import TABLE_CLEARANCE, explained_fraction, surface_residual
+from ssp.segments import (
+    TABLE_CLEARANCE,
+    explained_fraction,
+    surface_distances,
+    surface_residual,
+)
 from ssp.shared_volume import resolve_shared_volumes
 
 if TYPE_CHECKING:
     from ssp.frame_context import FrameContext
+    from ssp.library.model import ObjectModel
     from ssp.verification import Evidence
 
 __all__ = [
@@ -55,14 +61,17 @@ __all__ = [
     "counted_id_factory",
     "default_id_factory",
     "duplicates_of_undetected",
+    "explains_before",
     "fuse_static",
     "moved_in_world",
     "object_residual",
     "one_object_per_segment",
+    "points_residual",
     "reidentify",
     "reidentify_moved",
     "same_volume_test",
     "seen_from_state",
+    "seen_points",
     "seen_state",
     "snap_symmetric",
 ]
@@ -584,6 +593,58 @@ def moved_in_world(
     return bool(residual - seen_residual > t.moved_residual_rise)  # NaN: not known, False
 
 
+#: Points of an object's segment kept for the next frame's motion test (evenly strided;
+#: :attr:`ssp.frame_context.Known.seen_points`, :func:`explains_before`).
+SEEN_POINTS = 128
+
+
+def seen_points(points: np.ndarray) -> np.ndarray:
+    """At most :data:`SEEN_POINTS` of an object's segment points ``(K, 3)`` (world, m), evenly
+    strided, rounded to the micrometre (the scene state holds them in few digits, and a
+    resumed parser reads back exactly these): what :func:`explains_before` compares a later
+    estimate with."""
+    pts = np.asarray(points, dtype=float).reshape(-1, 3)
+    if len(pts) > SEEN_POINTS:
+        pts = pts[np.linspace(0, len(pts) - 1, SEEN_POINTS).astype(int)]
+    return np.round(pts, 6)
+
+
+def explains_before(
+    points: np.ndarray | None,
+    model: ObjectModel,
+    T_prev: np.ndarray,
+    T: np.ndarray,
+    config: SSPConfig,
+) -> bool:
+    """Whether an object's new estimate ``T`` explains the points its segment had in the frame
+    that set its previous pose ``T_prev`` (4x4, m; ``points`` (K, 3), world, m:
+    :func:`seen_points`) about as well as that pose did: their mean point-to-plane distance
+    (:func:`points_residual`) at most ``temporal.moved_residual_rise`` larger at ``T``. An
+    object that moved has left those points (a 10 mm slide or a 10 deg turn put them 0.5-0.8
+    mm farther on average, :func:`moved_in_world`); an estimate that was corrected explains
+    them as well as before or better: a moving camera's new view showed a face the old one
+    could not, and the data at the previous pose changed though nothing moved (a cube
+    estimated 8 deg off from one view, right from the next: the orbiting camera's report
+    seeds). False without such points (the data cannot say)."""
+    if points is None or not len(points):
+        return False
+    cap = RESIDUAL_CAP * config.data.inlier_radius
+    before = points_residual(points, model, T_prev, cap)
+    now = points_residual(points, model, T, cap)
+    return bool(now - before <= config.temporal.moved_residual_rise)
+
+
+def points_residual(points: np.ndarray, model: ObjectModel, T: np.ndarray, cap: float) -> float:
+    """Mean point-to-plane distance (m) of ``points`` ``(K, 3)`` (world, m) to the model's
+    surface at ``T`` (4x4), each capped at ``cap`` (m), a point with no surface sample within
+    ``cap`` (or outside the model's reach) counting ``cap``: unlike
+    :func:`ssp.segments.surface_residual`, every point counts, so a pose that left the points
+    cannot score on the few still near it."""
+    pts = np.asarray(points, dtype=float).reshape(-1, 3)
+    near = surface_distances(pts, model, T, cap)
+    return float((near.sum() + cap * (len(pts) - len(near))) / len(pts))
+
+
 def fuse_static(T_prev: np.ndarray, T_cur: np.ndarray, still: int, frames: int) -> np.ndarray:
     """The output pose of an object static in the world for ``still`` frames before this one
     (its data where it was as they were, :func:`moved_in_world`): this frame's estimate
@@ -654,24 +715,41 @@ def at_rest(ctx: FrameContext, oid: str, T: np.ndarray) -> np.ndarray | None:
     return fuse_static(prev, T, known.still, t.static_fusion_frames)
 
 
-def seen_state(seen_fit: float | None, seen_residual: float, still: int) -> dict[str, Any]:
-    """A scene state object's ``seen_fit``, ``seen_residual`` and ``still`` entries (null:
-    not known; :attr:`ssp.frame_context.Known.seen_fit`)."""
+def seen_state(
+    seen_fit: float | None, seen_residual: float, still: int, points: np.ndarray | None = None
+) -> dict[str, Any]:
+    """A scene state object's ``seen_fit``, ``seen_residual``, ``still`` and ``seen_points``
+    entries (null: not known; :attr:`ssp.frame_context.Known.seen_fit`)."""
     return {
         "seen_fit": seen_fit,
         "seen_residual": None if math.isnan(seen_residual) else float(seen_residual),
         "still": int(still),
+        "seen_points": None if points is None else np.asarray(points, dtype=float).tolist(),
     }
 
 
 def seen_from_state(entry: Mapping[str, Any]) -> dict[str, Any]:
-    """The :class:`~ssp.frame_context.Known` fields ``seen_fit``, ``seen_residual`` and
-    ``still`` of a scene state object ``entry`` (none in older states: None, NaN and 0)."""
+    """The :class:`~ssp.frame_context.Known` fields ``seen_fit``, ``seen_residual``, ``still``
+    and ``seen_points`` of a scene state object ``entry`` (none in older states: None, NaN, 0
+    and None).
+
+    Raises:
+        SSPError: ``seen_points`` is not a list of finite 3D points.
+    """
     fit, residual = entry.get("seen_fit"), entry.get("seen_residual")
+    points = entry.get("seen_points")
+    if points is not None:
+        try:
+            points = np.asarray(points, dtype=float).reshape(-1, 3)
+        except (TypeError, ValueError) as exc:
+            raise SSPError(f"scene state: seen_points is not a list of 3D points ({exc})") from exc
+        if not np.all(np.isfinite(points)):
+            raise SSPError("scene state: seen_points has NaN or infinite coordinates")
     return {
         "seen_fit": None if fit is None else float(fit),
         "seen_residual": float("nan") if residual is None else float(residual),
         "still": int(entry.get("still", 0)),
+        "seen_points": points,
     }
 
 
