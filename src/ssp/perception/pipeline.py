@@ -527,11 +527,13 @@ def _checked_cloud(points: object, labels: object) -> tuple[np.ndarray, np.ndarr
         raise InputError(f"points must be an (N, 3) array of numbers (m): {exc}") from exc
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise InputError(f"points must have shape (N, 3) (x, y, z in m), got {pts.shape}")
-    finite = np.all(np.isfinite(pts), axis=1)
-    if not finite.any():
+    ok = np.isfinite(pts)
+    # every row finite (the common case): copies, without a row-wise reduction and a masked copy
+    finite = None if ok.all() and len(pts) else ok.all(axis=1)
+    if finite is not None and not finite.any():
         raise InputError(f"empty cloud: no finite points (of {len(pts)})")
     if labels is None:
-        return pts[finite], None
+        return (pts.copy() if finite is None else pts[finite]), None
     lab = np.asarray(labels)
     if lab.shape not in ((len(pts),), (len(pts), 1)):
         raise InputError(
@@ -549,4 +551,6 @@ def _checked_cloud(points: object, labels: object) -> tuple[np.ndarray, np.ndarr
                 f"labels must be integers (negative: background): label {k} is {lab[k].item()!r} "
                 f"({int(bad.sum())} of {len(lab)} are not)"
             )
+    if finite is None:
+        return pts.copy(), lab.astype(np.int64)
     return pts[finite], lab[finite].astype(np.int64)
