@@ -16,6 +16,7 @@ from scipy.spatial.transform import Rotation
 from ssp.config import SSPConfig
 from ssp.geometry import make_pose, transform_points
 from ssp.library import ObjectInstance, ObjectLibrary
+from ssp.motion import RESIDUAL_CAP
 from ssp.parser import SceneEstimate, SceneParser, parse_sequence
 from ssp.physics import World
 from ssp.probability import pose_change
@@ -24,7 +25,6 @@ from ssp.scoring import SceneScorer
 from ssp.segments import surface_residual
 from ssp.sim.frames import synthetic_frame
 from ssp.sim.render import look_at
-from ssp.temporal import RESIDUAL_CAP
 from ssp.verification import evidence
 from ssp.visibility import CameraView
 

@@ -13,19 +13,21 @@ from ssp.config import SSPConfig, TemporalConfig
 from ssp.errors import DuplicateObjectError, SSPError
 from ssp.geometry import make_pose, rotation_angle
 from ssp.library.symmetry import ContinuousSymmetry, Symmetry
+from ssp.motion import (
+    explains_before,
+    fuse_static,
+    moved_in_world,
+    points_residual,
+    seen_from_state,
+    seen_points,
+    seen_state,
+)
 from ssp.scene import Hypothesis, TransitionMode
 from ssp.temporal import (
     associate,
     classify,
     default_id_factory,
-    explains_before,
-    fuse_static,
-    moved_in_world,
-    points_residual,
     same_volume_test,
-    seen_from_state,
-    seen_points,
-    seen_state,
     snap_symmetric,
 )
 from ssp.verification import Evidence

@@ -331,7 +331,7 @@ class TemporalConfig(_Section):
             "world only if the data where it was changed: its previous pose is now seen "
             "empty, explains this much less of its visible surface than in the frame that "
             "set it, or its data lie temporal.moved_residual_rise farther from it; otherwise "
-            "the estimate was corrected and the object is static (ssp.temporal.moved_in_world)."
+            "the estimate was corrected and the object is static (ssp.motion.moved_in_world)."
         ),
     )
     moved_residual_rise: float = Field(
@@ -340,7 +340,7 @@ class TemporalConfig(_Section):
         description=(
             "A changed estimate is motion when the object's segment lies this much farther "
             "from its previous pose than in the frame that set it (mean point-to-plane "
-            "distance, the evidence's residual, m; ssp.temporal.moved_in_world)."
+            "distance, the evidence's residual, m; ssp.motion.moved_in_world)."
         ),
     )
     static_fusion_frames: int = Field(
@@ -349,7 +349,7 @@ class TemporalConfig(_Section):
         description=(
             "A static object whose data where it was are as they were is output at the "
             "running mean of its estimates since it came to rest, over at most this many "
-            "frames (ssp.temporal.fuse_static); 1: each frame's estimate as it is."
+            "frames (ssp.motion.fuse_static); 1: each frame's estimate as it is."
         ),
     )
     association_distance: float = Field(

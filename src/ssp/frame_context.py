@@ -62,18 +62,18 @@ class Known:
     ranking: Ranking | None = None
     #: the fraction of its visible surface its data explained at ``T_world_obj`` in the frame
     #: that set it (:class:`ssp.verification.Evidence`'s ``fit``; None: too little of it was
-    #: visible to say): what :func:`ssp.temporal.moved_in_world` compares the next frame with,
+    #: visible to say): what :func:`ssp.motion.moved_in_world` compares the next frame with,
     #: with the residual below
     seen_fit: float | None = None
     #: its segment's mean point-to-plane distance to it there (m,
-    #: :func:`ssp.temporal.object_residual`; NaN: not known)
+    #: :func:`ssp.motion.object_residual`; NaN: not known)
     seen_residual: float = float("nan")
     #: frames it has been static in the world, its data where it was as they were
-    #: (:func:`ssp.temporal.fuse_static`)
+    #: (:func:`ssp.motion.fuse_static`)
     still: int = 0
     #: some of its segment's points in the frame that set it ((K, 3), world, m;
-    #: :func:`ssp.temporal.seen_points`; None: none known): a later estimate that explains
-    #: them as well is a correction, not a motion (:func:`ssp.temporal.explains_before`)
+    #: :func:`ssp.motion.seen_points`; None: none known): a later estimate that explains
+    #: them as well is a correction, not a motion (:func:`ssp.motion.explains_before`)
     seen_points: np.ndarray | None = None
 
 
@@ -214,7 +214,7 @@ class FrameContext:
     #: every object's evidence at its final pose
     evidence: dict[str, Evidence] = _dict()
 
-    # ---- static fusion (ssp.temporal.fuse_at_rest)
+    # ---- static fusion (ssp.outcome.fuse_at_rest)
     #: object at rest -> its output pose, the mean of its estimates since it came to rest
     fused: dict[str, np.ndarray] = _dict()
 

@@ -1,7 +1,7 @@
 """The frame's outcome: each object's transition mode and reason, and the scene estimate.
 
 The last stages of :meth:`ssp.parser.SceneParser.update`. :func:`fuse_at_rest` gives each
-object at rest the mean of its estimates since it came to rest (:func:`ssp.temporal.at_rest`)
+object at rest the mean of its estimates since it came to rest (:func:`ssp.motion.at_rest`)
 where that mean stays clear of its neighbours; :func:`transition_modes` gives every
 object that stays its output pose (the symmetric equivalent closest to its previous one,
 :func:`ssp.temporal.snap_symmetric`), its transition mode (paper section IV-C:
@@ -23,6 +23,7 @@ import numpy as np
 from ssp.correction import correction_note, correction_of
 from ssp.estimate import ObjectEstimate, SceneEstimate, SupportEdge
 from ssp.frame_context import Known
+from ssp.motion import at_rest, explains_before, moved_in_world, object_residual, seen_points
 from ssp.orientation import Orientation, Ranking
 from ssp.probability import pose_change
 from ssp.retention import TriageState
@@ -30,15 +31,7 @@ from ssp.scene import TransitionMode
 from ssp.search import CandidateSource
 from ssp.segments import segment_verdicts
 from ssp.support import GROUND
-from ssp.temporal import (
-    at_rest,
-    classify,
-    explains_before,
-    moved_in_world,
-    object_residual,
-    seen_points,
-    snap_symmetric,
-)
+from ssp.temporal import classify, snap_symmetric
 from ssp.verification import evidence
 
 if TYPE_CHECKING:
@@ -65,8 +58,8 @@ FUSION_DEPTH_SLACK = 1e-4
 
 
 def fuse_at_rest(ctx: FrameContext) -> None:
-    """Stage *static fusion*: every known object at rest (:func:`at_rest`) is output at the
-    mean of its estimates since it came to rest, unless that mean would push it into another
+    """Stage *static fusion*: every known object at rest (:func:`ssp.motion.at_rest`) is output
+    at the mean of its estimates since it came to rest, unless that mean would push it into another
     object or the table (its deepest contact more than :data:`FUSION_DEPTH_SLACK` deeper than
     at its estimate; tested in the frame's world, left as it was): output means of stacked
     blocks put them up to 1.2 mm into each other on development seeds.
@@ -209,7 +202,7 @@ def _with_correction(ctx: FrameContext, oid: str, reason: str, corrected: str | 
 
 def _corrected(ctx: FrameContext, oid: str, prev: np.ndarray, T: np.ndarray) -> str | None:
     """Why known object ``oid``, whose estimate changed from ``prev`` to ``T`` (4x4, m) beyond
-    the static thresholds, did not move in the world (:func:`ssp.temporal.moved_in_world`:
+    the static thresholds, did not move in the world (:func:`ssp.motion.moved_in_world`:
     the data at ``prev`` is as it was), in words; None: it moved, or the data cannot say."""
     known = ctx.known.get(oid)
     if known is None or known.seen_fit is None:

@@ -67,6 +67,7 @@ from ssp.frame_context import FrameContext, Known, Stage
 from ssp.geometry import validate_pose
 from ssp.library.library import ObjectLibrary
 from ssp.library.model import ObjectInstance
+from ssp.motion import seen_from_state, seen_state
 from ssp.orientation import decide_orientations, orientations_from_state, orientations_state
 from ssp.outcome import fuse_at_rest, report_moved, scene_estimate, transition_modes
 from ssp.physics import World
@@ -77,7 +78,7 @@ from ssp.scene import Frame, FrameError
 from ssp.search import prepare_world, search_scene
 from ssp.segments import segment_frame
 from ssp.static import find_static, keep_unchanged
-from ssp.temporal import associate_frame, reidentify_moved, seen_from_state, seen_state
+from ssp.temporal import associate_frame, reidentify_moved
 from ssp.timing import StageTimer
 from ssp.verification import (
     doubt_known,
