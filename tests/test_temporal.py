@@ -399,6 +399,7 @@ def test_an_estimate_that_explains_the_points_seen_before_is_a_correction_not_a_
     assert points_residual(seen, block, far, cap) == pytest.approx(cap)
     assert not explains_before(seen, block, T_true, far, cfg)
     assert not explains_before(None, block, off, T_true, cfg)  # nothing known: cannot say
+    assert math.isnan(points_residual(np.zeros((0, 3)), block, T_true, cap))
 
 
 def test_seen_points_go_through_the_scene_state():

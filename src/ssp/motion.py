@@ -130,8 +130,10 @@ def points_residual(points: np.ndarray, model: ObjectModel, T: np.ndarray, cap: 
     surface at ``T`` (4x4), each capped at ``cap`` (m), a point with no surface sample within
     ``cap`` (or outside the model's reach) counting ``cap``: unlike
     :func:`ssp.segments.surface_residual`, every point counts, so a pose that left the points
-    cannot score on the few still near it."""
+    cannot score on the few still near it. NaN without points."""
     pts = np.asarray(points, dtype=float).reshape(-1, 3)
+    if not len(pts):
+        return float("nan")
     near = surface_distances(pts, model, T, cap)
     return float((near.sum() + cap * (len(pts) - len(near))) / len(pts))
 
