@@ -171,3 +171,38 @@ def test_an_interrupt_a_library_swallows_stops_the_run_at_the_next_frame():
     finally:
         restore_signals(previous)
     assert signal.getsignal(signal.SIGINT) == before
+
+
+def test_run_reads_a_bop_scene_with_its_datasets_models(lib, tmp_path):
+    """A BOP scene whose dataset names objects the built-in library lacks is run with the
+    dataset's models/ folder when no --models is given (as ssp refine reads it); before, the
+    scene was refused ("classes not in the library")."""
+    from ssp.sim.bop import simulate_to_disk
+
+    (scene,) = simulate_to_disk("isolated", 1, 3, None, tmp_path / "ds", library=lib, stages=1,
+                                frames_per_stage=1, stride=4, objects_per_stage=2)  # fmt: skip
+    root = scene.parent.parent
+    rename = {name: f"widget_{name}" for name in lib.names}
+
+    def renamed(path, fix):
+        path.write_text(json.dumps(fix(json.loads(path.read_text()))))
+
+    def models_json(d):
+        d["obj_ids"] = {k: rename[v] for k, v in d["obj_ids"].items()}
+        for inst in d.get("instances", []):
+            inst["class"] = rename[inst["class"]]
+        return d
+
+    for folder in (root, scene):
+        if (folder / "models.json").exists():
+            renamed(folder / "models.json", models_json)
+    renamed(scene / "hypotheses.json", lambda d: {
+        k: [{**h, "class": rename[h["class"]]} for h in v] for k, v in d.items()})  # fmt: skip
+    renamed(scene / "sequence.json", lambda d: {**d, "models": [rename[m] for m in d["models"]]})
+    r = runner.invoke(app, ["run", str(scene), "--out", str(tmp_path / "out")])
+    assert r.exit_code == 0, r.output
+    assert "models: the dataset's" in r.output
+    run = json.loads((tmp_path / "out" / "run.json").read_text())
+    assert run["models"] is not None and run["models"].endswith("models")
+    frame = json.loads(next((tmp_path / "out" / "frames").glob("*.json")).read_text())
+    assert frame["objects"] and all(o["class"].startswith("obj_") for o in frame["objects"])

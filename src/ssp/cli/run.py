@@ -3,6 +3,7 @@ input or many (:mod:`ssp.pipeline.batch`)."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -14,7 +15,6 @@ from ssp.cli.common import (
     CacheOption,
     ConfigOption,
     ExecutorOption,
-    ModelsOption,
     ProcessesOption,
     RayAddressOption,
     WorkersOption,
@@ -181,7 +181,15 @@ RecordOption = typer.Option(
 @friendly
 def run_cmd(
     inputs: list[Path] | None = InputsArg,
-    models: Path | None = ModelsOption,
+    models: Path | None = typer.Option(
+        None,
+        "--models",
+        "-m",
+        help=(
+            "Model folder (default: the built-in models; for BOP scenes, their dataset's "
+            "models/ when its models.json names classes the built-in models lack)."
+        ),
+    ),
     out: Path | None = OutOption,
     resume: Path | None = ResumeOption,
     overwrite: bool = OverwriteOption,
@@ -233,6 +241,8 @@ def run_cmd(
     given = RunOptions(inputs[0] if inputs else None, models, hypotheses, method, names,
                        bag_given, masks, period, scene_id, obj_ids)  # fmt: skip
     out, opts, cfg = _resolve(given, out, resume, overwrite, config)
+    if resume is None and opts.models is None:
+        opts = replace(opts, models=_input_models([opts.input]))
     if processes is not None:
         cfg.search.processes = cfg.perception.processes = processes
     bag_opts = _bag_options(opts, results_bag)
@@ -324,6 +334,30 @@ def _resolve(
     opts = given.resumed(rec)
     cfg = load_config(config) if config is not None else SSPConfig.from_dict(rec["config"])
     return resume, opts, cfg
+
+
+def _input_models(inputs) -> Path | None:
+    """The model folder of BOP scenes run without ``--models``: their dataset's
+    (:func:`ssp.pipeline.refine.dataset_models`, as ``ssp refine`` and ``ssp estimate`` read
+    a dataset), when every input is a BOP scene and they agree on it; None (the built-in
+    models) for a dataset that names its objects after them, one without a ``models/``
+    folder (its scene's error then says what to give) or inputs of another kind. Said on
+    the console."""
+    from ssp.io.bop import is_bop_scene
+    from ssp.pipeline.refine import DatasetModelsError, dataset_models
+
+    found = set()
+    for p in inputs:
+        if p is None or not is_bop_scene(p):
+            return None
+        try:
+            found.add(dataset_models(p))
+        except DatasetModelsError:
+            return None
+    folder = found.pop() if len(found) == 1 else None
+    if folder is not None:
+        console.print(f"models: the dataset's ({escape(str(folder))}); --models to give others")
+    return folder
 
 
 def _bag_options(opts: RunOptions, results_bag: Path | None) -> dict | None:
@@ -468,6 +502,8 @@ def _run_many(
     bop_csv_name("input", method)  # a bad method name fails before the models load
     for d in input_out_dirs(inputs, out):
         check_out_dir(d, overwrite)
+    if models is None:
+        models = _input_models(inputs)
     lib = load_library(models, config, cache)
     previous = stop_on_sigterm()
     try:
