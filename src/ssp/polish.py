@@ -45,14 +45,13 @@ def polish(
     sample may match). A settle that fails leaves the scene as it was, with a warning."""
     forces = sim.forces
     with timer("icp"):
-        todo = [(oid, seg) for oid, seg in segments.items() if world.is_enabled(oid)]
-
-        def refit(job: tuple[str, np.ndarray]) -> np.ndarray | None:
-            oid, seg = job
-            return bounded_refit(world.model_of(oid), world.get_pose(oid), seg,
-                                 camera_position, config)  # fmt: skip
-
-        for (oid, _), T_icp in zip(todo, thread_map(refit, todo, name="ssp-icp"), strict=True):
+        # the world is read here; the threads get only arrays and models to align
+        todo = [(oid, world.model_of(oid), world.get_pose(oid), seg)
+                for oid, seg in segments.items() if world.is_enabled(oid)]  # fmt: skip
+        refits = thread_map(
+            lambda job: bounded_refit(*job[1:], camera_position, config), todo, name="ssp-icp"
+        )
+        for (oid, *_), T_icp in zip(todo, refits, strict=True):
             if T_icp is not None:
                 forces.set_pose_target(world.index(oid), T_icp)
     forces.reset()

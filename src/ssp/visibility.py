@@ -61,6 +61,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ssp.cells import cell_sort
 from ssp.geometry import invert, transform_points, validate_pose
 from ssp.jit import kernel_array, njit
 from ssp.kdtree import KDTree
@@ -170,7 +171,8 @@ def _self_hidden(
     if n < 2 or spacing <= 0.0:
         return np.zeros(n, dtype=bool)
     depth = np.ascontiguousarray(p_cam[:, 2])
-    rays = np.ascontiguousarray(p_cam[:, :2] / depth[:, None])
+    rays = np.zeros((n, 3))  # in the plane z = 0, for ssp.cells' sort
+    rays[:, :2] = p_cam[:, :2] / depth[:, None]
     cover = SELF_COVER * spacing / depth  # each sample's footprint radius in the image
     nrm = n_world / np.maximum(np.linalg.norm(n_world, axis=1, keepdims=True), 1e-12)
     return _self_hidden_kernel(
@@ -185,20 +187,22 @@ SELF_MAX_CELLS = 1 << 16
 
 @njit
 def _self_hidden_kernel(rays, depth, cover, p_world, nrm, tol, k, max_cells):
-    """:func:`_self_hidden`, compiled: sample ``i`` (ray ``rays[i]`` (2,), normalised image
-    coordinates; optical depth ``depth[i]``, m) is hidden when one of its ``k`` nearest rays
-    (itself included; distance, then index) closer than ``b = max(cover)``, ray ``j``, lies
-    within ``cover[j]`` of it, ``j`` is in front of it by more than ``tol`` (m) and off its
-    tangent plane (world point ``p_world[i]``, unit normal ``nrm[i]``) by more than ``tol``
-    (what a KD-tree's ``k``-nearest query bounded by ``b`` finds; the same verdicts)."""
+    """:func:`_self_hidden`, compiled: sample ``i`` (ray ``rays[i, :2]``, normalised image
+    coordinates, ``rays[i, 2] = 0``; optical depth ``depth[i]``, m) is hidden when one of its
+    ``k`` nearest rays (itself included; distance, then index) closer than ``b = max(cover)``,
+    ray ``j``, lies within ``cover[j]`` of it, ``j`` is in front of it by more than ``tol``
+    (m) and off its tangent plane (world point ``p_world[i]``, unit normal ``nrm[i]``) by more
+    than ``tol`` (what a KD-tree's ``k``-nearest query bounded by ``b`` finds; the same
+    verdicts). The rays are sorted into cells of side at least ``b``
+    (:func:`ssp.cells.cell_sort`), so those closer than ``b`` lie in the 3 x 3 around a ray's."""
     n = rays.shape[0]
     out = np.zeros(n, dtype=np.bool_)
     b = cover.max()
-    cx, cy, ny, first, order = _ray_cells(rays, b, max_cells)
+    cells = cell_sort(rays, np.arange(n), b, max_cells)
     near_d2 = np.empty(k)  # the k nearest: squared distances and indices, ascending
     near_j = np.empty(k, dtype=np.int64)
     for i in range(n):
-        m = _k_nearest(i, rays, cx, cy, ny, first, order, b * b, near_d2, near_j)
+        m = _k_nearest(i, rays, cells, b * b, near_d2, near_j)
         for q in range(m):
             j = near_j[q]
             if not math.sqrt(near_d2[q]) <= cover[j]:  # outside the occluder's footprint
@@ -217,46 +221,19 @@ def _self_hidden_kernel(rays, depth, cover, p_world, nrm, tol, k, max_cells):
 
 
 @njit
-def _ray_cells(rays, b, max_cells):
-    """The rays ``(n, 2)`` binned in square cells of side ``h >= b`` (doubled until at most
-    ``max_cells`` cover them; a counting sort): ``(cx, cy, ny, first, order)``, ray ``i`` in
-    cell ``cx[i] * ny + cy[i]``, cell ``c`` holding ``order[first[c]:first[c + 1]]`` (in
-    index order). The rays closer than ``b`` to a ray lie in the 3 x 3 cells around its own."""
-    x0, x1 = rays[:, 0].min(), rays[:, 0].max()
-    y0, y1 = rays[:, 1].min(), rays[:, 1].max()
-    h = b
-    nx, ny = int((x1 - x0) / h) + 1, int((y1 - y0) / h) + 1
-    while nx * ny > max_cells:
-        h *= 2.0
-        nx, ny = int((x1 - x0) / h) + 1, int((y1 - y0) / h) + 1
-    cx = ((rays[:, 0] - x0) / h).astype(np.int64)
-    cy = ((rays[:, 1] - y0) / h).astype(np.int64)
-    first = np.zeros(nx * ny + 1, dtype=np.int64)
-    for i in range(rays.shape[0]):
-        first[cx[i] * ny + cy[i] + 1] += 1
-    for c in range(nx * ny):
-        first[c + 1] += first[c]
-    fill = first.copy()
-    order = np.empty(rays.shape[0], dtype=np.int64)
-    for i in range(rays.shape[0]):
-        c = cx[i] * ny + cy[i]
-        order[fill[c]] = i
-        fill[c] += 1
-    return cx, cy, ny, first, order
-
-
-@njit
-def _k_nearest(i, rays, cx, cy, ny, first, order, b2, near_d2, near_j):
-    """The ``k = len(near_j)`` rays of :func:`_ray_cells` nearest ray ``i`` closer than
-    ``sqrt(b2)`` (distance, then index), into ``near_d2`` (squared distances) and ``near_j``,
-    ascending; returns how many there are."""
+def _k_nearest(i, rays, cells, b2, near_d2, near_j):
+    """The ``k = len(near_j)`` rays nearest ray ``i`` closer than ``sqrt(b2)`` (distance, then
+    index), searched in the 3 x 3 cells of :func:`ssp.cells.cell_sort` (``cells``) around its
+    own, into ``near_d2`` (squared distances) and ``near_j``, ascending; returns how many."""
+    lo, dims, _, inv_h, start, order = cells
     k = near_j.shape[0]
-    nx = (first.shape[0] - 1) // ny
+    ix = min(int((rays[i, 0] - lo[0]) * inv_h), dims[0] - 1)
+    iy = min(int((rays[i, 1] - lo[1]) * inv_h), dims[1] - 1)
     m = 0
-    for ax in range(max(cx[i] - 1, 0), min(cx[i] + 2, nx)):
-        for ay in range(max(cy[i] - 1, 0), min(cy[i] + 2, ny)):
-            c = ax * ny + ay
-            for s in range(first[c], first[c + 1]):
+    for ax in range(max(ix - 1, 0), min(ix + 2, dims[0])):
+        for ay in range(max(iy - 1, 0), min(iy + 2, dims[1])):
+            c = (ax * dims[1] + ay) * dims[2]  # the one cell of z = 0
+            for s in range(start[c], start[c + 1]):
                 j = order[s]
                 dx, dy = rays[j, 0] - rays[i, 0], rays[j, 1] - rays[i, 1]
                 d2 = dx * dx + dy * dy
