@@ -1,7 +1,8 @@
 """Exact nearest neighbours within a distance, from points sorted into cubic cells.
 
 Used where a KD-tree would be built for a few queries (the ICP's samples of each call,
-:mod:`ssp.registration`; the label votes' scene points of each frame, :mod:`ssp.segments`):
+:mod:`ssp.registration`; the label votes' scene points of each frame, :mod:`ssp.segments`;
+an object's sample rays in each self-occlusion test, :mod:`ssp.visibility`, in the plane z = 0):
 a counting sort of the points into cells of side at least the search distance builds in a
 fraction of a tree's time, and a query searches the 27 cells around its own, which hold
 every point within that distance of it. Exact: the nearest point closer than the distance
