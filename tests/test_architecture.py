@@ -407,3 +407,19 @@ def test_no_private_names_across_modules() -> None:
         "private names used from another ssp module (make them public, or move them to a "
         "private module such as ssp.io._files):\n" + "\n".join(problems)
     )
+
+
+def test_the_kernel_cache_is_keyed_by_every_module_that_defines_kernels() -> None:
+    # ssp.jit.kernel_cache_dir digests KERNEL_MODULES: a module with kernels left out would
+    # let a caller keep a stale copy of its kernels (numba keys a cache by one file)
+    from ssp.jit import KERNEL_MODULES
+
+    pkg = SRC / "ssp"
+    users = set()
+    for path in pkg.rglob("*.py"):
+        tree = ast.parse(path.read_text())
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and node.module == "ssp.jit":
+                if any(a.name == "njit" for a in node.names):
+                    users.add(path.relative_to(pkg).as_posix())
+    assert users | {"jit.py"} == set(KERNEL_MODULES)

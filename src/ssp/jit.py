@@ -3,25 +3,68 @@ the sample grids, the data forces), the one array type they are compiled for, an
 summation order.
 
 Compiled with ``cache=True``: the first call of a process compiles, or loads the machine code
-cached beside the module by an earlier process. Numba compiles one machine code per argument
-type, and a strided or read-only array is another type: float arrays go to a kernel through
-:func:`kernel_array`.
+an earlier process cached, in :func:`kernel_cache_dir`. Numba compiles one machine code per
+argument type, and a strided or read-only array is another type: float arrays go to a kernel
+through :func:`kernel_array`.
 """
 
 from __future__ import annotations
 
+import functools
+import hashlib
 from collections.abc import Callable
+from pathlib import Path
 
 import numba
 import numpy as np
 
-__all__ = ["kernel_array", "njit", "pairwise_sum"]
+from ssp.caches import cache_base
+
+__all__ = ["KERNEL_MODULES", "kernel_array", "kernel_cache_dir", "njit", "pairwise_sum"]
+
+#: The modules (paths under ``ssp/``) that define compiled kernels; a kernel calls kernels of
+#: other modules (the cells, the pairwise sum), so their cache is keyed by all of them.
+KERNEL_MODULES = (
+    "cells.py",
+    "forces.py",
+    "jit.py",
+    "perception/estimator.py",
+    "registration.py",
+    "sample_grid.py",
+    "visibility.py",
+)
+
+
+@functools.cache
+def kernel_cache_dir(root: Path = Path(__file__).parent) -> Path:
+    """The folder of the compiled kernels' cache: ``kernels/`` of :func:`ssp.caches.cache_base`,
+    one subfolder per digest of the sources of :data:`KERNEL_MODULES` (under ``root``, the
+    package folder).
+
+    Numba keys a kernel's cache by its own file only: a kernel that calls a kernel of another
+    file (the ICP and the self-occlusion test call :func:`ssp.cells.cell_sort`) kept the machine
+    code of the callee it was compiled with after that file changed, and a process that loaded
+    both failed at the callee's call from Python ("'descr' is NULL", every frame skipped, after
+    a checkout that changed cells.py). Keyed by every kernel module, a change of any compiles
+    them all anew in a folder of their own (numba's own subfolders there keep copies of the
+    package at other paths apart)."""
+    digest = hashlib.sha256()
+    for name in KERNEL_MODULES:
+        digest.update(name.encode() + b"\0" + (root / name).read_bytes() + b"\0")
+    return cache_base() / "kernels" / digest.hexdigest()[:16]
 
 
 def njit(function: Callable) -> Callable:
-    """``@njit``: ``numba.njit(cache=True, nogil=True)`` of ``function`` (a kernel releases the
-    GIL, so independent calls run at once in threads: :func:`ssp.threads.thread_map`)."""
-    return numba.njit(cache=True, nogil=True)(function)
+    """``@njit``: ``numba.njit(cache=True, nogil=True)`` of ``function``, cached in
+    :func:`kernel_cache_dir` (where numba cannot write there, beside the module as numba
+    does). A kernel releases the GIL, so independent calls run at once in threads
+    (:func:`ssp.threads.thread_map`)."""
+    before = numba.config.CACHE_DIR
+    numba.config.CACHE_DIR = str(kernel_cache_dir())  # read when the dispatcher is made
+    try:
+        return numba.njit(cache=True, nogil=True)(function)
+    finally:
+        numba.config.CACHE_DIR = before
 
 
 def kernel_array(a) -> np.ndarray:

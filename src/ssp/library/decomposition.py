@@ -67,6 +67,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
+from ssp.caches import cache_base
 from ssp.config import DecompositionConfig, LibraryConfig
 from ssp.errors import DecompositionError
 from ssp.library.model import DecompositionInfo
@@ -100,14 +101,8 @@ def default_cache_dir(config: LibraryConfig | None = None) -> Path:
     """Hull cache folder: ``config.cache_dir``, else ``$SSP_CACHE_DIR``, else
     ``$XDG_CACHE_HOME/ssp`` or ``~/.cache/ssp``; with ``/hulls`` appended."""
     if config is not None and config.cache_dir is not None:
-        base = Path(config.cache_dir)
-    elif os.environ.get("SSP_CACHE_DIR"):
-        base = Path(os.environ["SSP_CACHE_DIR"])
-    elif os.environ.get("XDG_CACHE_HOME"):
-        base = Path(os.environ["XDG_CACHE_HOME"]) / "ssp"
-    else:
-        base = Path.home() / ".cache" / "ssp"
-    return base.expanduser() / "hulls"
+        return Path(config.cache_dir).expanduser() / "hulls"
+    return cache_base() / "hulls"
 
 
 def _coacd_params(config: DecompositionConfig) -> dict:
