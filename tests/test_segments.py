@@ -9,7 +9,7 @@ import numpy as np
 from ssp.cells import PointCells
 from ssp.geometry import make_pose, transform_points
 from ssp.scene import Frame
-from ssp.segments import _label_votes, explained_fraction, object_segments
+from ssp.segments import _label_votes, _labels_present, explained_fraction, object_segments
 
 
 def _two_cubes(lib):
@@ -150,3 +150,17 @@ def test_the_surface_queries_find_what_the_models_own_tree_finds():
         np.testing.assert_array_equal(np.isfinite(dist), hit)
         np.testing.assert_array_equal(dist[hit], d_ref[hit])
         np.testing.assert_array_equal(idx[hit], i_ref[hit])
+
+
+def test_the_labels_present_are_np_uniques_nonnegative_ones():
+    rng = np.random.default_rng(4)
+    cases = [
+        rng.integers(-1, 12, 5000),
+        rng.integers(-5, 3, 40),
+        np.array([-1, -1]),
+        np.zeros(0, dtype=np.int64),
+        np.array([5, 10**12, 5, -3]),  # sparse: not counted into a 10**12-long array
+    ]
+    for labels in cases:
+        want = np.unique(labels)
+        assert _labels_present(labels).tolist() == want[want >= 0].tolist()

@@ -253,7 +253,10 @@ def _vote_cells(
         c_local, r = _bounding_sphere(model)
         c = T[:3, :3] @ c_local + T[:3, 3]
         lo, hi = np.minimum(lo, c - r - radius), np.maximum(hi, c + r + radius)
-    near = np.flatnonzero(np.all((points >= lo) & (points <= hi), axis=1))
+    inside = (points[:, 0] >= lo[0]) & (points[:, 0] <= hi[0])  # column by column: a fifth
+    for k in (1, 2):  # of the time of the row-wise reduction of an (N, 3) comparison
+        inside &= (points[:, k] >= lo[k]) & (points[:, k] <= hi[k])
+    near = np.flatnonzero(inside)
     if not len(near):
         return None
     return PointCells(points, radius, live=near)
@@ -438,7 +441,16 @@ def segment_verdicts(ctx: FrameContext, kept: set[str]) -> dict[int, str]:
         if its is not None and int(its) not in out:
             said.setdefault(int(its), []).append(f"rejected {r.class_name} {r.id}: {r.reason}")
     out.update({label: "; ".join(texts) for label, texts in said.items()})
-    for label in np.unique(np.asarray(frame.labels)):
-        if label >= 0 and int(label) not in out:
+    for label in _labels_present(np.asarray(frame.labels)):
+        if int(label) not in out:
             out[int(label)] = "no object: no hypothesis was given for it"
     return dict(sorted(out.items()))
+
+
+def _labels_present(labels: np.ndarray) -> np.ndarray:
+    """The distinct instance labels ``>= 0`` of ``labels`` (integers), ascending: counted, as
+    ``np.unique`` finds them by sorting every point's label (5 ms for a 640 x 480 frame)."""
+    labels = labels[labels >= 0]
+    if not len(labels) or labels.max() > len(labels) + (1 << 16):  # sparse: sorting is cheaper
+        return np.unique(labels)
+    return np.flatnonzero(np.bincount(labels))
