@@ -8,6 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from ssp.errors import InvalidPoseError
 from ssp.geometry import (
+    in_box,
     invert,
     make_pose,
     pose_from_xyz_quat,
@@ -75,3 +76,13 @@ def test_validate_pose_reorthonormalises_small_error():
     T = make_pose(np.round(R, 7), [0, 0, 1])
     out = validate_pose(T)
     assert np.allclose(out[:3, :3] @ out[:3, :3].T, np.eye(3), atol=1e-12)
+
+
+def test_in_box_is_the_row_wise_test_bounds_included():
+    rng = np.random.default_rng(2)
+    points = np.round(rng.uniform(-1, 1, (4000, 3)), 1)  # many on the bounds
+    lo, hi = np.array([-0.5, -0.2, 0.0]), np.array([0.3, 0.5, 0.4])
+    want = np.all((points >= lo) & (points <= hi), axis=1)
+    assert want.any() and not want.all()
+    assert np.array_equal(in_box(points, lo, hi), want)
+    assert not in_box(points[:0], lo, hi).size

@@ -36,7 +36,7 @@ from scipy.spatial import cKDTree
 
 from ssp.cells import PointCells
 from ssp.correction import camera_view
-from ssp.geometry import transform_points
+from ssp.geometry import in_box, transform_points
 from ssp.kdtree import KDTree
 from ssp.library.model import ObjectModel
 from ssp.scene import Frame
@@ -253,10 +253,7 @@ def _vote_cells(
         c_local, r = _bounding_sphere(model)
         c = T[:3, :3] @ c_local + T[:3, 3]
         lo, hi = np.minimum(lo, c - r - radius), np.maximum(hi, c + r + radius)
-    inside = (points[:, 0] >= lo[0]) & (points[:, 0] <= hi[0])  # column by column: a fifth
-    for k in (1, 2):  # of the time of the row-wise reduction of an (N, 3) comparison
-        inside &= (points[:, k] >= lo[k]) & (points[:, k] <= hi[k])
-    near = np.flatnonzero(inside)
+    near = np.flatnonzero(in_box(points, lo, hi))
     if not len(near):
         return None
     return PointCells(points, radius, live=near)

@@ -46,6 +46,7 @@ from scipy.spatial import cKDTree
 
 from ssp.config import SSPConfig
 from ssp.estimate import Rejected
+from ssp.geometry import in_box
 from ssp.library.model import ObjectModel
 from ssp.overlap import overlap_fractions
 from ssp.scene import Hypothesis
@@ -96,7 +97,7 @@ def local_points(
         c = T[:3, :3] @ np.asarray(model.center_of_mass, dtype=float) + T[:3, 3]
         r = model.d_max + margin
         lo, hi = np.minimum(lo, c - r), np.maximum(hi, c + r)
-    return points[np.all((points >= lo) & (points <= hi), axis=1)]
+    return points[in_box(points, lo, hi)]
 
 
 def thin(points: np.ndarray, voxel: float) -> np.ndarray:
@@ -148,11 +149,14 @@ def data_rank(
     surface) within ``radius`` (m) of any of their surfaces. 0 without shared points."""
     if not shared.any() or not objects:
         return 0.0
+    return _f1(fits, [near_surface(points[shared], m, T, radius) for m, T in objects])
+
+
+def _f1(fits: Sequence[float], near: Sequence[np.ndarray]) -> float:
+    """:func:`data_rank` from the objects' ``fits`` and, for each, the mask of the shared
+    points within the radius of its surface (at least one object and one shared point)."""
     fit = float(np.mean(fits))
-    near = np.zeros(int(shared.sum()), dtype=bool)
-    for m, T in objects:
-        near |= near_surface(points[shared], m, T, radius)
-    cover = float(near.mean())
+    cover = float(np.logical_or.reduce(near).mean())
     return 0.0 if fit + cover == 0 else 2 * fit * cover / (fit + cover)
 
 
@@ -337,18 +341,24 @@ class _Rules:
             self.cloud()[0], [model, *(m for m, _ in others)], [T, *(U for _, U in others)],
             cfg.forces.max_distance,
         )  # fmt: skip
-        shared = near_surface(local, model, T, radius)
-        for m, U in others:
-            shared |= near_surface(local, m, U, radius)
-        mine = data_rank([(model, T)], [self.fit(model, T)], local, shared, radius)
-        best = []  # each known object at its better pose
-        for k in ks:
-            m = self.library[self.known[k][0]]
-            ranked = [(data_rank([(m, U)], [self.fit(m, U)], local, shared, radius), U)
-                      for U in self.where[k]]  # fmt: skip
-            best.append((m, max(ranked, key=lambda r: r[0])[1]))
-        fits = [self.fit(m, U) for m, U in best]
-        theirs = data_rank(best, fits, local, shared, radius)
+        # each surface's near points are found once (data_rank of the shared ones, the same)
+        near = [near_surface(local, m, U, radius) for m, U in [(model, T), *others]]
+        shared = np.logical_or.reduce(near)
+
+        def rank(i: list[int]) -> float:  # data_rank of these of [(model, T), *others]
+            if not shared.any():
+                return 0.0
+            pairs = [(model, T), *others]
+            fits = [self.fit(*pairs[j]) for j in i]
+            return _f1(fits, [near[j][shared] for j in i])
+
+        mine = rank([0])
+        best = []  # each known object at its better pose (its index in near)
+        for n, k in enumerate(ks):
+            first = 1 + sum(len(self.where[q]) for q in ks[:n])
+            i = range(first, first + len(self.where[k]))
+            best.append(max(i, key=lambda j: rank([j])))
+        theirs = rank(best)
         names = ", ".join(ks)
         if mine > theirs + self.class_margin:
             why = (

@@ -70,6 +70,7 @@ from scipy.spatial import ConvexHull, QhullError, cKDTree
 from ssp.caches import cache_base
 from ssp.config import DecompositionConfig, LibraryConfig
 from ssp.errors import DecompositionError
+from ssp.geometry import in_box
 from ssp.library.model import DecompositionInfo
 
 log = logging.getLogger(__name__)
@@ -212,7 +213,7 @@ def inside_union(points: np.ndarray, parts: Sequence[trimesh.Trimesh]) -> np.nda
         if eq is None:
             continue
         lo, hi = part.bounds
-        cand = np.flatnonzero(~inside & np.all((points >= lo) & (points <= hi), axis=1))
+        cand = np.flatnonzero(~inside & in_box(points, lo, hi))
         if len(cand) == 0:
             continue
         if len(eq) > RAY_TEST_FACETS:
@@ -257,7 +258,7 @@ def inside_mesh(mesh: trimesh.Trimesh, points: np.ndarray) -> np.ndarray:
     inside = np.zeros(len(points), dtype=bool)
     for body in bodies:
         lo, hi = body.bounds
-        cand = np.flatnonzero(~inside & np.all((points >= lo) & (points <= hi), axis=1))
+        cand = np.flatnonzero(~inside & in_box(points, lo, hi))
         for a in range(0, len(cand), CONTAINS_CHUNK):
             idx = cand[a : a + CONTAINS_CHUNK]
             inside[idx] = body.contains(points[idx])
