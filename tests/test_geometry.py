@@ -14,6 +14,7 @@ from ssp.geometry import (
     pose_from_xyz_quat,
     quat_xyzw,
     rotation_angle,
+    squared_distances,
     transform_points,
     validate_pose,
 )
@@ -86,3 +87,12 @@ def test_in_box_is_the_row_wise_test_bounds_included():
     assert want.any() and not want.all()
     assert np.array_equal(in_box(points, lo, hi), want)
     assert not in_box(points[:0], lo, hi).size
+
+
+def test_squared_distances_are_the_row_wise_sums_bit_for_bit():
+    rng = np.random.default_rng(3)
+    for scale in (1e-3, 1.0, 1e3):
+        points, centre = rng.normal(0, scale, (20000, 3)), rng.normal(0, scale, 3)
+        assert np.array_equal(
+            squared_distances(points, centre), ((points - centre) ** 2).sum(axis=1)
+        )

@@ -65,7 +65,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ssp.errors import PhysicsError
-from ssp.geometry import same_camera_pose, validate_pose
+from ssp.geometry import same_camera_pose, squared_distances, validate_pose
 from ssp.library.model import ObjectModel
 from ssp.probability import pose_change
 from ssp.registration import icp_refine
@@ -648,7 +648,7 @@ class OwnPoints:
             pts = frame.points[of_label[label]]
             model, T = ctx.models[oid], np.asarray(ctx.sim.world.get_pose(oid), dtype=float)
             centre = T[:3, :3] @ np.asarray(model.center_of_mass, dtype=float) + T[:3, 3]
-            near = np.sum((pts - centre) ** 2, axis=1) <= (model.d_max + reach) ** 2
+            near = squared_distances(pts, centre) <= (model.d_max + reach) ** 2
             segments[oid] = pts[near]
         return cls(ctx, alone, segments, SegmentTrees(segments), False)
 

@@ -30,6 +30,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
+from ssp.geometry import squared_distances
+
 if TYPE_CHECKING:
     import trimesh
 
@@ -127,7 +129,7 @@ class HullSet:
             return inside
         # broad phase: the whole model's bounding sphere
         near = np.flatnonzero(
-            ((p - self.centre) ** 2).sum(axis=1) <= (self.radius + max(tol, 0.0)) ** 2
+            squared_distances(p, self.centre) <= (self.radius + max(tol, 0.0)) ** 2
         )
         if len(near) == 0:
             return inside
@@ -135,7 +137,7 @@ class HullSet:
         hit = np.zeros(len(q), dtype=bool)
         for eq, c, r in zip(self.planes, self.part_centres, self.part_radii, strict=True):
             # per part: points not yet inside and within its bounding sphere
-            cand = np.flatnonzero(~hit & (((q - c) ** 2).sum(axis=1) <= (r + max(tol, 0.0)) ** 2))
+            cand = np.flatnonzero(~hit & (squared_distances(q, c) <= (r + max(tol, 0.0)) ** 2))
             if len(cand) == 0:
                 continue
             s = eq[:, :3] @ q[cand].T + eq[:, 3:4]  # (F, m) signed plane distances

@@ -46,7 +46,7 @@ from scipy.spatial import cKDTree
 
 from ssp.config import SSPConfig
 from ssp.estimate import Rejected
-from ssp.geometry import in_box
+from ssp.geometry import in_box, squared_distances
 from ssp.library.model import ObjectModel
 from ssp.overlap import overlap_fractions
 from ssp.scene import Hypothesis
@@ -124,7 +124,7 @@ def near_surface(
     if not len(points):
         return out
     c = T[:3, :3] @ np.asarray(model.center_of_mass, dtype=float) + T[:3, 3]
-    near = np.flatnonzero(np.sum((points - c) ** 2, axis=1) <= (model.d_max + radius) ** 2)
+    near = np.flatnonzero(squared_distances(points, c) <= (model.d_max + radius) ** 2)
     if not len(near):
         return out
     local = (points[near] - T[:3, 3]) @ T[:3, :3]  # R^T (p - t)
