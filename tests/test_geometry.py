@@ -93,6 +93,6 @@ def test_squared_distances_are_the_row_wise_sums_bit_for_bit():
     rng = np.random.default_rng(3)
     for scale in (1e-3, 1.0, 1e3):
         points, centre = rng.normal(0, scale, (20000, 3)), rng.normal(0, scale, 3)
-        assert np.array_equal(
-            squared_distances(points, centre), ((points - centre) ** 2).sum(axis=1)
-        )
+        d2 = squared_distances(points, centre)
+        assert np.array_equal(d2, ((points - centre) ** 2).sum(axis=1))
+        assert np.array_equal(np.sqrt(d2), np.linalg.norm(points - centre, axis=1))

@@ -36,7 +36,7 @@ from scipy.spatial import cKDTree
 
 from ssp.cells import PointCells
 from ssp.correction import camera_view
-from ssp.geometry import in_box, transform_points
+from ssp.geometry import in_box, squared_distances, transform_points
 from ssp.kdtree import KDTree
 from ssp.library.model import ObjectModel
 from ssp.scene import Frame
@@ -327,7 +327,7 @@ def _near_surface(
     index."""
     c_local, r = _bounding_sphere(model)
     R, t = T_world_obj[:3, :3], T_world_obj[:3, 3]
-    near = np.linalg.norm(points - (R @ c_local + t), axis=1) <= r + radius
+    near = np.sqrt(squared_distances(points, R @ c_local + t)) <= r + radius  # = the norms
     local = np.ascontiguousarray((points[near] - t) @ R)  # R^T (p - t)
     if not len(local):
         return local, np.zeros(0), np.zeros(0, dtype=np.int64)
