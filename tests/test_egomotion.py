@@ -247,3 +247,33 @@ def test_a_moving_camera_is_located_where_objects_were_taken_away_and_forgets_th
     for f, q in ((second, _cloud(seq, 1)), (fix, p)):
         resumed.accept(f.T_world_cam, q, True)
     np.testing.assert_array_equal(resumed._map, tr._map)
+
+
+@pytest.mark.parametrize(("share", "located"), [(0.5, True), (0.7, False)])
+def test_a_tracked_camera_is_located_where_much_of_the_map_was_taken_away(lib, share, located):
+    """Half of the objects taken away while the camera orbits: at the right pose it sees
+    through 39 % of the map in view (over MAX_SEEN_THROUGH), but the fit lies at the
+    prediction and registers the points that are left: located, not restarted (a restart
+    forgets the scene). Seven tenths taken away (62 % seen through, over
+    MOVED_SEEN_THROUGH): refused."""
+    from ssp.perception.camera_search import MAX_SEEN_THROUGH, free_space_view, seen_through
+    from ssp.perception.egomotion import MOVED_SEEN_THROUGH, CameraNotLocatedError, _thinned
+
+    seq = generate_sequence("structure", 3, lib, camera_path="orbit",
+                            **{**SMALL, "frames_per_stage": 3})  # fmt: skip
+    tr = CameraTracker()
+    first = tr.update(_cloud(seq, 0)).T_world_cam
+    align = seq.camera_pose(0) @ np.linalg.inv(first)
+    tr.update(_cloud(seq, 1))
+    T_true = np.linalg.inv(align) @ seq.camera_pose(2)
+    p = _taken_away(_cloud(seq, 2), T_true, share=share)
+    through = seen_through(free_space_view(_thinned(p)), T_true, tr._map, tr._map_normals)[0]
+    assert through > MAX_SEEN_THROUGH
+    if located:
+        fix = tr.update(p)
+        assert fix.how == "tracked"
+        assert _scene_error(align @ fix.T_world_cam, seq.camera_pose(2), seq.frames[2].gt) < 0.003
+    else:
+        assert through > MOVED_SEEN_THROUGH
+        with pytest.raises(CameraNotLocatedError):
+            tr.update(p)
