@@ -37,5 +37,5 @@ typecheck: $(STAMP)  ## mypy on the scene-parsing core ([tool.mypy] in pyproject
 bench: $(STAMP)  ## physics benchmark (writes bench-out/physics/results.json)
 	$(VENV)/bin/ssp bench physics --out bench-out/physics
 
-clean:  ## remove the venv and caches (not the hull cache in ~/.cache/ssp)
+clean:  ## remove the venv and caches (not the hull and kernel caches in ~/.cache/ssp)
 	rm -rf $(VENV) .pytest_cache .ruff_cache .mypy_cache

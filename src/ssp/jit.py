@@ -14,6 +14,7 @@ import functools
 import hashlib
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numba
 import numpy as np
@@ -59,12 +60,13 @@ def njit(function: Callable) -> Callable:
     :func:`kernel_cache_dir` (where numba cannot write there, beside the module as numba
     does). A kernel releases the GIL, so independent calls run at once in threads
     (:func:`ssp.threads.thread_map`)."""
-    before = numba.config.CACHE_DIR
-    numba.config.CACHE_DIR = str(kernel_cache_dir())  # read when the dispatcher is made
+    config: Any = numba.config  # its settings are set at import, unknown to type checkers
+    before = config.CACHE_DIR
+    config.CACHE_DIR = str(kernel_cache_dir())  # read when the dispatcher is made
     try:
         return numba.njit(cache=True, nogil=True)(function)
     finally:
-        numba.config.CACHE_DIR = before
+        config.CACHE_DIR = before
 
 
 def kernel_array(a) -> np.ndarray:
