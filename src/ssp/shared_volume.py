@@ -336,28 +336,28 @@ class _Rules:
         cfg, radius = self.config, self.radius
         model = self.library[h.class_name]
         T = np.asarray(h.T_world_obj, dtype=float)
-        others = [(self.library[self.known[k][0]], U) for k in ks for U in self.where[k]]
+        surfaces = [(model, T)]  # h's, then each pose of each known object
+        of: dict[str, list[int]] = {}  # known object -> the indices of its poses
+        for k in ks:
+            m = self.library[self.known[k][0]]
+            for U in self.where[k]:
+                of.setdefault(k, []).append(len(surfaces))
+                surfaces.append((m, U))
         local = local_points(
-            self.cloud()[0], [model, *(m for m, _ in others)], [T, *(U for _, U in others)],
+            self.cloud()[0], [m for m, _ in surfaces], [U for _, U in surfaces],
             cfg.forces.max_distance,
         )  # fmt: skip
         # each surface's near points are found once (data_rank of the shared ones, the same)
-        near = [near_surface(local, m, U, radius) for m, U in [(model, T), *others]]
+        near = [near_surface(local, m, U, radius) for m, U in surfaces]
         shared = np.logical_or.reduce(near)
 
-        def rank(i: list[int]) -> float:  # data_rank of these of [(model, T), *others]
+        def rank(i: list[int]) -> float:  # data_rank of these surfaces
             if not shared.any():
                 return 0.0
-            pairs = [(model, T), *others]
-            fits = [self.fit(*pairs[j]) for j in i]
-            return _f1(fits, [near[j][shared] for j in i])
+            return _f1([self.fit(*surfaces[j]) for j in i], [near[j][shared] for j in i])
 
         mine = rank([0])
-        best = []  # each known object at its better pose (its index in near)
-        for n, k in enumerate(ks):
-            first = 1 + sum(len(self.where[q]) for q in ks[:n])
-            i = range(first, first + len(self.where[k]))
-            best.append(max(i, key=lambda j: rank([j])))
+        best = [max(of[k], key=lambda j: rank([j])) for k in ks]  # each at its better pose
         theirs = rank(best)
         names = ", ".join(ks)
         if mine > theirs + self.class_margin:

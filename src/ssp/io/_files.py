@@ -166,9 +166,10 @@ def to_jsonable(obj: Any) -> Any:
             str(k.value if isinstance(k, enum.Enum) else k): to_jsonable(v) for k, v in obj.items()
         }
     if isinstance(obj, np.ndarray):
+        # a finite numeric array's list holds JSON types already: no second pass over it
         if obj.dtype.kind in "biu" or (obj.dtype.kind == "f" and np.isfinite(obj).all()):
-            return obj.tolist()  # JSON types already (a frame's points: element by element
-        return to_jsonable(obj.tolist())  # below took a tenth of a tools frame's writing)
+            return obj.tolist()
+        return to_jsonable(obj.tolist())
     if isinstance(obj, np.generic):
         return to_jsonable(obj.item())
     if isinstance(obj, enum.Enum):
