@@ -592,13 +592,17 @@ class CameraTracker:
         ok = [f for f in fits if f.tracks(n, MIN_INLIERS) and clear(f, True) <= MAX_SEEN_THROUGH]
         if not ok:  # no start reached a clear solution: each that registers, turned a little
             c = tree.data.mean(axis=0)
-            fits += [self._register(q, tree, normals, _turned(f.G, deg, c))
-                     for f in fits if f.tracks(n, MIN_INLIERS) for deg in LOCAL_TURNS[1:]]  # fmt: skip
+            turned = [_turned(f.G, deg, c) for f in fits if f.tracks(n, MIN_INLIERS)
+                      for deg in LOCAL_TURNS[1:]]  # fmt: skip
+            fits += [self._register(q, tree, normals, G0) for G0 in turned]
             # an event frame's map holds surfaces moved since: judged by the rays around each
             # map point, a solution that registers SEARCH_TRUSTED_INLIERS may pass as well
             rivals = [f for f in fits if f.tracks(n, MIN_INLIERS) and clear(f) <= MAX_SEEN_THROUGH]
-            ok = [f for f in rivals
-                  if f.inliers >= SEARCH_TRUSTED_INLIERS or clear(f, True) <= MAX_SEEN_THROUGH]  # fmt: skip
+            ok = [
+                f
+                for f in rivals
+                if f.inliers >= SEARCH_TRUSTED_INLIERS or clear(f, True) <= MAX_SEEN_THROUGH
+            ]
         else:
             rivals = ok
         if not ok:
