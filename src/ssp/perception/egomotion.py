@@ -37,13 +37,14 @@ where the camera was heading (a jump: BOP-style keyframes 10-30 deg apart), is s
 globally: the starts of a footprint correlation over every turn and shift
 (:func:`ssp.perception.camera_search.correlated_starts`), each registered, those passing the
 free-space check compared (the lowest cost, unless another turned :data:`DISTINCT_YAW` away
-registers about as many points). When none passes, the starts are also registered turned by
-:data:`LOCAL_TURNS` (the correlation's turns are 4 deg apart and an ICP from one may stop a few
-millimetres off), and at an event frame, whose map still holds the surfaces of objects just
-moved, a solution registering :data:`SEARCH_TRUSTED_INLIERS` is judged by the rays around each
-map point (:meth:`CameraTracker._search`). A frame whose camera is not located so is refused
-(:class:`CameraNotLocatedError`), not guessed (``ssp run`` then starts the world frame again:
-:mod:`ssp.pipeline.world`).
+registers about as many points). When none passes, or none that passes registers
+:data:`SEARCH_TRUSTED_INLIERS` of the points, the starts are also registered turned by
+:data:`LOCAL_TURNS` (the correlation's turns are 4 deg apart and an ICP from one may stop a
+few degrees short, centimetres off), and at an event frame, whose map still holds the surfaces
+of objects just moved, a solution registering :data:`SEARCH_TRUSTED_INLIERS` is judged by the
+rays around each map point (:meth:`CameraTracker._search`). A frame whose camera is not
+located so is refused (:class:`CameraNotLocatedError`), not guessed (``ssp run`` then starts
+the world frame again: :mod:`ssp.pipeline.world`).
 
 The last pose is kept bit for bit (:attr:`CameraFix.how` ``"kept"``) when the registration
 moves the points above the table by less than :data:`KEEP_SHIFT` on average from where the last
@@ -146,12 +147,14 @@ pose on average, m; farther (a jump, BOP keyframes: perhaps a wrong minimum) it 
 and with ``search`` it competes with the global search's solution."""
 SEARCH_TRUSTED_INLIERS = 0.7
 """A global search's solution that registers at least this fraction of the points above the
-table, when none passes the free-space check by each map point's nearest ray, is judged by the
-rays around each point (the tracked fits' check; :meth:`CameraTracker._search`): at an event
-frame the map holds the surfaces of objects just moved, which the right view sees through, and
-the nearest ray sees through 20-38 % of the map at the right poses (the realistic keyframes,
-development seeds 0-9: 6 of their 8 restarts, every one whose starts reached the right pose);
-the wrong solutions of those frames register at most 57 %."""
+table is trusted (:meth:`CameraTracker._search`). When none that passes the free-space check
+by each map point's nearest ray is, the starts are also registered turned by
+:data:`LOCAL_TURNS`, and a trusted solution may pass by the rays around each point (the
+tracked fits' check): at an event frame the map holds the surfaces of objects just moved,
+which the right view sees through, and the nearest ray sees through 20-38 % of the map at
+the right poses (the realistic keyframes, development seeds 0-9: 6 of their 8 restarts, every
+one whose starts reached the right pose); the solutions more than 5 mm off in those frames
+register at most 57 %."""
 SEARCH_MARGIN = 0.15
 """A global solution is ambiguous when another this close in inlier fraction ..."""
 DISTINCT_YAW = 20.0
@@ -581,16 +584,19 @@ class CameraTracker:
         win where objects had moved) compared: the lowest cost, unless another turned
         :data:`DISTINCT_YAW` or more from it registers within :data:`SEARCH_MARGIN` of its
         inliers (a scene of a few cubes looks alike from several sides): then None. When none
-        passes, each start that registers :data:`MIN_INLIERS` is also registered turned by
-        :data:`LOCAL_TURNS`, and every solution that passes the check by the rays around each
-        map point (``clear(fit)``, as the tracked fits') is a rival; those of them that pass
-        by the nearest ray too, or register :data:`SEARCH_TRUSTED_INLIERS` of the points, are
-        compared so (an event frame's map holds surfaces of objects moved since, which the
-        right view sees through)."""
+        passes, or none that passes registers :data:`SEARCH_TRUSTED_INLIERS` of the points (a
+        minimum a few degrees from the right pose), each start that registers
+        :data:`MIN_INLIERS` is also registered turned by :data:`LOCAL_TURNS`, and every
+        solution that passes the check by the rays around each map point (``clear(fit)``, as
+        the tracked fits') is a rival; those of them that pass by the nearest ray too, or
+        register :data:`SEARCH_TRUSTED_INLIERS` of the points, are compared so (an event
+        frame's map holds surfaces of objects moved since, which the right view sees through)."""
         n = len(q)
         fits = [self._register(q, tree, normals, G0) for G0 in correlated_starts(tree.data, q)]
         ok = [f for f in fits if f.tracks(n, MIN_INLIERS) and clear(f, True) <= MAX_SEEN_THROUGH]
-        if not ok:  # no start reached a clear solution: each that registers, turned a little
+        if all(f.inliers < SEARCH_TRUSTED_INLIERS for f in ok):
+            # no clear solution, or only doubtful ones (perhaps a minimum a few degrees off):
+            # each start that registers, turned a little
             c = tree.data.mean(axis=0)
             turned = [_turned(f.G, deg, c) for f in fits if f.tracks(n, MIN_INLIERS)
                       for deg in LOCAL_TURNS[1:]]  # fmt: skip
