@@ -307,3 +307,32 @@ def test_a_keyframe_is_located_where_objects_were_taken_away(lib, share, located
         assert around > MAX_SEEN_THROUGH
         with pytest.raises(CameraNotLocatedError):
             tr.update(p)
+
+
+def test_the_search_tries_turned_starts_when_its_solutions_are_doubtful(lib, monkeypatch):
+    """The global search's ICP can stop a few degrees short of the right pose (a doubtful
+    solution: under SEARCH_TRUSTED_INLIERS registered, yet passing the free-space check). With
+    the ICP held where it starts and the correlation's one start 8 deg from the true pose,
+    the search also registers the start turned by LOCAL_TURNS, and the turn that lands on the
+    true pose wins by its lower cost: the frame is located there, not 8 deg off."""
+    from ssp.perception import egomotion as ego
+
+    seq = generate_sequence("structure", 3, lib, camera_path="keyframes", **SMALL)
+    tr = CameraTracker()
+    first = tr.update(_cloud(seq, 0)).T_world_cam
+    align = seq.camera_pose(0) @ np.linalg.inv(first)
+    T_true = np.linalg.inv(align) @ seq.camera_pose(1)
+    p = _cloud(seq, 1)
+    T_plane = ego.table_pose(p, tr.table_distance)
+    q, _ = ego._registered(p, T_plane)
+    tree = cKDTree(tr._map)
+    G_true = ego._snap(T_true, T_plane) @ np.linalg.inv(T_plane)
+    start = ego._turned(G_true, 8.0, tree.data.mean(axis=0))
+    doubtful = ego._fit(q, tree, tr._map_normals, start)
+    assert doubtful.inliers < ego.SEARCH_TRUSTED_INLIERS
+    assert doubtful.cost > ego._fit(q, tree, tr._map_normals, G_true).cost
+    monkeypatch.setattr(ego, "correlated_starts", lambda *a: [start])
+    monkeypatch.setattr(ego, "planar_icp", lambda q, tree, normals, G0, scales=None: G0)
+    found = tr._search(q, tree, tr._map_normals, lambda f, nearest=False: 0.0)
+    assert found is not None
+    np.testing.assert_allclose(found.G, G_true, atol=1e-9)
