@@ -147,8 +147,8 @@ pose on average, m; farther (a jump, BOP keyframes: perhaps a wrong minimum) it 
 and with ``search`` it competes with the global search's solution."""
 SEARCH_TRUSTED_INLIERS = 0.7
 """A global search's solution that registers at least this fraction of the points above the
-table is trusted (:meth:`CameraTracker._search`). When none that passes the free-space check
-by each map point's nearest ray is, the starts are also registered turned by
+table is trusted (:meth:`CameraTracker._search`). When no solution that passes the free-space
+check by each map point's nearest ray is trusted, the starts are also registered turned by
 :data:`LOCAL_TURNS`, and a trusted solution may pass by the rays around each point (the
 tracked fits' check): at an event frame the map holds the surfaces of objects just moved,
 which the right view sees through, and the nearest ray sees through 20-38 % of the map at
