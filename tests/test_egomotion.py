@@ -257,7 +257,7 @@ def test_a_tracked_camera_is_located_where_much_of_the_map_was_taken_away(lib, s
     forgets the scene). Seven tenths taken away (62 % seen through, over
     MOVED_SEEN_THROUGH): refused."""
     from ssp.perception.camera_search import MAX_SEEN_THROUGH, free_space_view, seen_through
-    from ssp.perception.egomotion import MOVED_SEEN_THROUGH, CameraNotLocatedError, _thinned
+    from ssp.perception.egomotion import MOVED_SEEN_THROUGH, _thinned
 
     seq = generate_sequence("structure", 3, lib, camera_path="orbit",
                             **{**SMALL, "frames_per_stage": 3})  # fmt: skip
@@ -269,12 +269,18 @@ def test_a_tracked_camera_is_located_where_much_of_the_map_was_taken_away(lib, s
     p = _taken_away(_cloud(seq, 2), T_true, share=share)
     through = seen_through(free_space_view(_thinned(p)), T_true, tr._map, tr._map_normals)[0]
     assert through > MAX_SEEN_THROUGH
+    assert located or through > MOVED_SEEN_THROUGH
+    _located_or_refused(tr, p, align, seq, 2, "tracked", located)
+
+
+def _located_or_refused(tr, p, align, seq, i: int, how: str, located: bool) -> None:
+    """The tracker ``tr`` given frame ``i``'s cloud ``p``: located (``how``, within 3 mm at
+    the objects through ``align``) when ``located``, else refused."""
     if located:
         fix = tr.update(p)
-        assert fix.how == "tracked"
-        assert _scene_error(align @ fix.T_world_cam, seq.camera_pose(2), seq.frames[2].gt) < 0.003
+        assert fix.how == how
+        assert _scene_error(align @ fix.T_world_cam, seq.camera_pose(i), seq.frames[i].gt) < 0.003
     else:
-        assert through > MOVED_SEEN_THROUGH
         with pytest.raises(CameraNotLocatedError):
             tr.update(p)
 
@@ -298,15 +304,8 @@ def test_a_keyframe_is_located_where_objects_were_taken_away(lib, share, located
     view = free_space_view(_thinned(p))
     assert seen_through(view, T_true, tr._map, tr._map_normals, around=False)[0] > MAX_SEEN_THROUGH
     around = seen_through(view, T_true, tr._map, tr._map_normals)[0]
-    if located:
-        assert around <= MAX_SEEN_THROUGH
-        fix = tr.update(p)
-        assert fix.how == "searched"
-        assert _scene_error(align @ fix.T_world_cam, seq.camera_pose(1), seq.frames[1].gt) < 0.003
-    else:
-        assert around > MAX_SEEN_THROUGH
-        with pytest.raises(CameraNotLocatedError):
-            tr.update(p)
+    assert (around <= MAX_SEEN_THROUGH) == located
+    _located_or_refused(tr, p, align, seq, 1, "searched", located)
 
 
 def test_the_search_tries_turned_starts_when_its_solutions_are_doubtful(lib, monkeypatch):
