@@ -447,15 +447,20 @@ class CameraTracker:
         floor = NEAR_MIN_INLIERS if near else MIN_INLIERS
         views: list[CameraView] = []  # the frame's free-space view, built once when needed
 
+        checked: dict[tuple[bytes, bool], float] = {}  # each motion's check, made once
+
         def clear(f: _Fit, nearest: bool = False) -> float:
             """The fraction of the map in view that ``f`` makes the camera see through;
-            ``nearest``: judged by each point's nearest ray alone (the global search's
-            candidates, which no prediction backs: :meth:`_search`)."""
-            if not views:
-                views.append(free_space_view(_thinned(p)))
-            return seen_through(
-                views[0], f.G @ T_plane, self._map, self._map_normals, around=not nearest
-            )[0]
+            ``nearest``: judged by each point's nearest ray alone (the stricter form, for the
+            global search's candidates, which no prediction backs: :meth:`_search`)."""
+            key = (f.G.tobytes(), nearest)
+            if key not in checked:
+                if not views:
+                    views.append(free_space_view(_thinned(p)))
+                checked[key] = seen_through(
+                    views[0], f.G @ T_plane, self._map, self._map_normals, around=not nearest
+                )[0]
+            return checked[key]
 
         through = None
         if fit.tracks(n, floor) and (fit.inliers >= SEARCH_INLIERS or near):
