@@ -27,6 +27,7 @@ __all__ = ["KERNEL_MODULES", "kernel_array", "kernel_cache_dir", "njit", "pairwi
 #: other modules (the cells, the pairwise sum), so their cache is keyed by all of them.
 KERNEL_MODULES = (
     "cells.py",
+    "components.py",
     "forces.py",
     "jit.py",
     "perception/estimator.py",

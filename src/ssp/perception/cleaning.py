@@ -25,10 +25,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from ssp.components import connected_components
 from ssp.kdtree import KDTree
 from ssp.perception.segmentation import MAX_PAIRS, euclidean_clusters
 
@@ -110,7 +109,7 @@ def pieces(
     j = pos[nn[idx]]  # the neighbours' positions among the kept points (-1: not kept)
     link = (j >= 0) & (dist[idx] <= tolerance)
     rows = np.broadcast_to(np.arange(m)[:, None], j.shape)[link]
-    n_pieces, label = _components(m, rows, j[link])
+    n_pieces, label = connected_components(m, rows, j[link])
     if n_pieces == 1:
         return label
     sub = points[idx]
@@ -122,16 +121,8 @@ def pieces(
     balls = tree.query_ball_point(sub[outside], tolerance)
     cols = np.concatenate([np.asarray(b, dtype=np.int64) for b in balls])
     rows = np.repeat(outside, counts)
-    _, merged = _components(n_pieces, label[rows], label[cols])
+    _, merged = connected_components(n_pieces, label[rows], label[cols])
     return merged[label]
-
-
-def _components(n: int, rows: np.ndarray, cols: np.ndarray) -> tuple[int, np.ndarray]:
-    """``(count, labels (n,))``: connected components of the undirected graph on ``n`` nodes
-    with edges ``rows[i] -- cols[i]``."""
-    graph = coo_matrix((np.ones(len(rows), dtype=np.int8), (rows, cols)), shape=(n, n))
-    count, labels = connected_components(graph.tocsr(), directed=False)
-    return int(count), labels.astype(np.int64)
 
 
 def robust_extent(points: np.ndarray, q: float = 0.02) -> float:

@@ -17,10 +17,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from ssp.components import connected_components
 from ssp.errors import PerceptionError
 
 __all__ = ["MAX_PAIRS", "Segmentation", "euclidean_clusters", "segment_cloud"]
@@ -159,8 +158,7 @@ def _radius_components(q: np.ndarray, tolerance: float) -> np.ndarray:
         )
     pairs = tree.query_pairs(tolerance, output_type="ndarray")
     n = len(nodes)
-    graph = coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), (n, n))
-    _, comp = connected_components(graph.tocsr(), directed=False)
+    _, comp = connected_components(n, pairs[:, 0], pairs[:, 1])
     return comp if of_point is None else comp[of_point]
 
 
