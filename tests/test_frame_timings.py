@@ -127,6 +127,61 @@ def test_summary_parts_add_up_to_the_run(timed_run):
     assert all("write_s" in r for r in summary["per_frame"])
 
 
+def test_stage_timer_shares_the_wall_time_of_work_in_threads(monkeypatch):
+    clock = _Clock([0.0, 1.0, 9.0])
+    monkeypatch.setattr("ssp.timing.time.perf_counter", clock)
+    timer = StageTimer()
+    with timer("estimation"):  # 1 .. 9
+        # two threads worked 3 s of normals and 9 s of hypotheses in 6 s of wall time
+        timer.share(6.0, {"normals": 3.0, "hypotheses": 9.0})
+    assert timer.own == pytest.approx({"normals": 1.5, "hypotheses": 4.5, "estimation": 2.0})
+    assert stage_sum(timer.own) == pytest.approx(8.0)
+
+
+def test_segments_estimated_in_threads_give_one_threads_results(lib, monkeypatch):
+    """The estimator's segments in threads (the default on more than one core): the same
+    hypotheses as one segment after another, and the front end's stages add up to its wall
+    time."""
+    import ssp.perception.pipeline as pipeline
+    from ssp.config import SSPConfig
+    from ssp.perception.pipeline import Perception
+    from ssp.sim.generate import generate_sequence
+
+    seq = generate_sequence("structure", 3, lib, stages=1, frames_per_stage=1, stride=2,
+                            n_objects=4)  # fmt: skip
+    f = seq.frames[0]
+
+    threaded: list[int] = []
+
+    def spy(fn, jobs, *, name="ssp", threads=None):
+        if name == "ssp-segment":
+            threaded.append(len(jobs))
+        return thread_map(fn, jobs, name=name, threads=threads)
+
+    thread_map = pipeline.thread_map
+    monkeypatch.setattr(pipeline, "thread_map", spy)
+
+    def perceive(threads: int):
+        monkeypatch.setattr(pipeline, "KERNEL_THREADS", threads)
+        monkeypatch.setattr("ssp.threads.KERNEL_THREADS", threads)
+        return Perception(lib, SSPConfig()).from_depth(
+            f.depth, seq.camera, mask=f.instance, T_world_cam=seq.T_world_cam
+        )
+
+    one = perceive(1)
+    assert not threaded
+    two = perceive(2)
+    assert threaded == [len(two.segments)] and len(two.segments) > 1
+    assert [(h.class_name, h.score, h.segment) for h in two.frame.hypotheses] == [
+        (h.class_name, h.score, h.segment) for h in one.frame.hypotheses
+    ]
+    for a, b in zip(two.frame.hypotheses, one.frame.hypotheses, strict=True):
+        np.testing.assert_array_equal(a.T_world_obj, b.T_world_obj)
+    t = two.timings
+    assert t["hypotheses"] > 0.0 and t["normals"] > 0.0
+    assert _close(stage_sum(t), t["total"]), t
+
+
 def test_forked_estimator_lanes_stay_apart(lib, tmp_path):
     """With two estimator processes the front end's stages still add up to its wall time;
     the forked lane's CPU seconds are reported apart (``lanes``)."""

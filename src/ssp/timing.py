@@ -58,6 +58,22 @@ class StageTimer:
         self.seconds[stage] = self.seconds.get(stage, 0.0) + float(seconds)
         self.own[stage] = self.own.get(stage, 0.0) + float(seconds)
 
+    def share(self, wall: float, worked: Mapping[str, float]) -> None:
+        """Time ``wall`` seconds spent inside the open stage on work done in threads, as the
+        stages of ``worked`` (stage -> seconds the threads spent in it, summed over them):
+        each gets the share of ``wall`` its work had, nested in the open stage, so the
+        exclusive times still add up to the wall time (threads overlap: their own sums
+        would not)."""
+        total = float(sum(worked.values()))
+        if total <= 0.0:
+            return
+        for stage, spent in worked.items():
+            dt = float(wall) * float(spent) / total
+            self.seconds[stage] = self.seconds.get(stage, 0.0) + dt
+            self.own[stage] = self.own.get(stage, 0.0) + dt
+        if self._stack:
+            self._stack[-1][2] += float(wall)
+
     def elapsed(self) -> float:
         """Wall seconds since the timer was made."""
         return time.perf_counter() - self.started

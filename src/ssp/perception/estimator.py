@@ -466,11 +466,14 @@ class HypothesisEstimator:
             self._tables[name] = ModelPairs.build(self.library[name], self.cfg)
         return self._tables[name]
 
-    def prepare(self, classes: Iterable[str]) -> None:
+    def prepare(self, classes: Iterable[str], *, kernels: bool = True) -> None:
         """Build everything :meth:`estimate` caches for ``classes`` now (pair tables, their
-        sample grids and the compiled kernels), so that processes forked afterwards share it
-        instead of each building its own (:mod:`ssp.lanes`)."""
-        compile_kernels()
+        sample grids and, with ``kernels``, the compiled kernels), so that processes forked
+        afterwards share it instead of each building its own (:mod:`ssp.lanes`), and threads
+        never build it at once (numba compiles or loads a kernel under its own lock: threads
+        need no ``kernels``)."""
+        if kernels:
+            compile_kernels()
         for name in dict.fromkeys(classes):
             table = self.table(name)
             table.grid()

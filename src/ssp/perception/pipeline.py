@@ -20,7 +20,8 @@ Segments and candidate classes:
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping, Sequence
+import time
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -40,7 +41,7 @@ from ssp.perception.reuse import SegmentMemory, SegmentShape, confident
 from ssp.perception.segmentation import Segmentation, segment_cloud
 from ssp.perception.table import table_frame
 from ssp.scene import Frame, Hypothesis
-from ssp.threads import thread_map
+from ssp.threads import KERNEL_THREADS, thread_map
 from ssp.timing import StageTimer
 
 __all__ = ["Perception", "PerceptionResult", "SegmentRequest", "check_camera_axes"]
@@ -421,27 +422,34 @@ class Perception:
             if cls is not None and cls not in self.library:
                 raise UnknownObjectError(f"segment {label}: class {cls!r} not in the library")
 
-        def one(label: int, _base=None) -> SegmentResult:
+        def one(label: int, _base=None, clock: StageTimer = timer) -> SegmentResult:
             """Normals and hypotheses of one segment (a forked lane times them on its own
-            copy of ``timer``: what it worked is ``lanes``)."""
-            with timer("normals"):
+            copy of ``timer``: what it worked is ``lanes``; a thread on its own ``clock``)."""
+            with clock("normals"):
                 request = self.segment_request(pts, segmentation, label, cam, instance)
-            with timer("hypotheses"):
+            with clock("hypotheses"):
                 return request.run(self.estimator)
 
         kept, shapes = self._recall(pts, segmentation, T_world_cam, instance, timer)
         todo = [label for label in seg_labels if label not in kept]
         lane_timer = StageTimer()
+        forked = self.cfg.processes > 1 and len(todo) > 1
+        threaded = not forked and len(todo) > 1 and KERNEL_THREADS > 1
         with timer("estimation"):
-            if self.cfg.processes > 1 and len(todo) > 1:
-                # what estimate() caches is built here, before the fork, so every lane has it
+            if forked or threaded:
+                # what estimate() caches is built here, before the fork or the threads, so
+                # every lane has it and no two threads build it at once
                 named = [segmentation.classes.get(label) for label in todo]
                 self.estimator.prepare(
                     [c for c in named if c is not None]
-                    + (list(self.classes) if None in named else [])
+                    + (list(self.classes) if None in named else []),
+                    kernels=forked,
                 )
-            with ForkLanes(one, self.cfg.processes, lane_timer) as lanes:
-                estimated = lanes.run(None, todo) if todo else []
+            if threaded:
+                estimated = self._in_threads(one, todo, timer)
+            else:
+                with ForkLanes(one, self.cfg.processes, lane_timer) as lanes:
+                    estimated = lanes.run(None, todo) if todo else []
         results = dict(kept)
         results.update(zip(todo, estimated, strict=True))
         if self.cfg.reuse_unchanged and instance:
@@ -466,6 +474,27 @@ class Perception:
         if LANES_STAGE in lane_timer.seconds:  # forked: the lanes' CPU seconds, apart
             timer.add(LANES_STAGE, lane_timer.seconds[LANES_STAGE])
         return hypotheses
+
+    @staticmethod
+    def _in_threads(
+        one: Callable[..., SegmentResult], todo: list[int], timer: StageTimer
+    ) -> list[SegmentResult]:
+        """``one`` of each label of ``todo`` in :data:`~ssp.threads.KERNEL_THREADS` threads
+        (:func:`ssp.threads.thread_map`; the estimator's kernels and tree queries release
+        the GIL): the results of one segment after another, each seeded by its label. Each
+        thread times its segments on its own clock, and ``timer`` gets the wall time of them
+        all split by the work each stage had (:meth:`StageTimer.share`)."""
+        clocks = [StageTimer() for _ in todo]
+        t0 = time.perf_counter()
+        out = thread_map(
+            lambda k: one(todo[k], None, clocks[k]), range(len(todo)), name="ssp-segment"
+        )
+        worked: dict[str, float] = {}
+        for clock in clocks:
+            for stage, spent in clock.own.items():
+                worked[stage] = worked.get(stage, 0.0) + spent
+        timer.share(time.perf_counter() - t0, worked)
+        return out
 
     def _recall(
         self, pts: np.ndarray, segmentation: Segmentation, T_world_cam: np.ndarray | None,
