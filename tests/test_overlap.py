@@ -98,6 +98,36 @@ def test_hullset_contains_box_and_tol(cube):
     assert hs.contains(np.zeros((0, 3))).shape == (0,)
 
 
+def _contains_by_planes(hs: HullSet, p: np.ndarray, tol: float) -> np.ndarray:
+    """The definition: inside a part when within the model's and the part's bounding spheres
+    grown by ``max(tol, 0)`` and ``n . p + b <= tol`` for every plane of it (numpy, part by
+    part)."""
+    grow = max(tol, 0.0)
+    inside = np.zeros(len(p), dtype=bool)
+    model_sphere = ((p - hs.centre) ** 2).sum(axis=1) <= (hs.radius + grow) ** 2
+    for eq, c, r in zip(hs.planes, hs.part_centres, hs.part_radii, strict=True):
+        near = ((p - c) ** 2).sum(axis=1) <= (r + grow) ** 2
+        inside |= near & (eq[:, :3] @ p.T + eq[:, 3:4] <= tol).all(axis=0)
+    return inside & model_sphere
+
+
+@pytest.mark.parametrize("name", ["drill", "clamp", "wrench", "node", "block"])
+def test_compiled_contains_is_every_plane_of_a_part(name, lib):
+    """The compiled test (spheres first, then each part's planes) against the definition, on
+    built-in models of many convex parts, points around them, margins either way."""
+    hs = HullSet.of(lib[name])
+    assert hs.n_parts >= 1
+    rng = np.random.default_rng(7)
+    around = hs.centre + rng.uniform(-1.1, 1.1, (4000, 3)) * hs.radius
+    parts = hs.part_centres[rng.integers(0, hs.n_parts, 4000)]
+    near = parts + rng.normal(0.0, 1.0, (4000, 3)) * hs.part_radii.min()  # thin parts too
+    p = np.concatenate([around, near])
+    for tol in (0.0, 0.003, -0.002):
+        want = _contains_by_planes(hs, p, tol)
+        assert 0 < want.sum() < len(p)
+        np.testing.assert_array_equal(hs.contains(p, tol), want)
+
+
 def test_l_shape_notch_not_contained():
     hs = HullSet.of(l_shape_model())
     assert hs.n_parts == 2

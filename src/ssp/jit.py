@@ -30,6 +30,7 @@ KERNEL_MODULES = (
     "components.py",
     "forces.py",
     "jit.py",
+    "overlap.py",
     "perception/estimator.py",
     "registration.py",
     "sample_grid.py",

@@ -30,14 +30,20 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
-from ssp.geometry import squared_distances
+from ssp.jit import kernel_array, njit
 
 if TYPE_CHECKING:
     import trimesh
 
     from ssp.library.model import ObjectModel
 
-__all__ = ["HullSet", "overlap_fraction_table", "overlap_fractions", "same_volume"]
+__all__ = [
+    "HullSet",
+    "load_kernels",
+    "overlap_fraction_table",
+    "overlap_fractions",
+    "same_volume",
+]
 
 #: Decimals used to merge coplanar hull facets (Qhull triangulates each planar face).
 _PLANE_DECIMALS = 9
@@ -94,6 +100,11 @@ class HullSet:
         self.centre, self.radius = _bounding_sphere(
             np.concatenate(all_vertices) if all_vertices else np.zeros((0, 3))
         )
+        # the planes of every part in one array, part k's rows start[k]:start[k + 1] (kernel)
+        self._planes = np.ascontiguousarray(
+            np.concatenate(planes) if planes else np.zeros((0, 4)), dtype=np.float64
+        )
+        self._start = np.concatenate([[0], np.cumsum([len(eq) for eq in planes])]).astype(np.int64)
 
     @classmethod
     def of(cls, model: ObjectModel) -> HullSet:
@@ -118,32 +129,58 @@ class HullSet:
 
         Args:
             points_local: (M, 3) points in the model frame, m.
-            tol: margin, m: a point is inside a part when every ``n . p + b <= tol``.
+            tol: margin, m: a point is inside a part when every ``n . p + b <= tol`` and it
+                lies within the part's bounding sphere grown by ``max(tol, 0)`` (a grown part's
+                sharp corners reach beyond it).
 
         Returns:
             (M,) bool.
         """
-        p = np.asarray(points_local, dtype=np.float64).reshape(-1, 3)
-        inside = np.zeros(len(p), dtype=bool)
+        p = kernel_array(np.asarray(points_local, dtype=np.float64).reshape(-1, 3))
         if len(p) == 0 or not self.planes:
-            return inside
-        # broad phase: the whole model's bounding sphere
-        near = np.flatnonzero(
-            squared_distances(p, self.centre) <= (self.radius + max(tol, 0.0)) ** 2
-        )
-        if len(near) == 0:
-            return inside
-        q = p[near]
-        hit = np.zeros(len(q), dtype=bool)
-        for eq, c, r in zip(self.planes, self.part_centres, self.part_radii, strict=True):
-            # per part: points not yet inside and within its bounding sphere
-            cand = np.flatnonzero(~hit & (squared_distances(q, c) <= (r + max(tol, 0.0)) ** 2))
-            if len(cand) == 0:
+            return np.zeros(len(p), dtype=bool)
+        return _contains(
+            p, self.centre, float(self.radius), self._planes, self._start,
+            self.part_centres, self.part_radii, float(tol),
+        )  # fmt: skip
+
+
+def load_kernels() -> None:
+    """Compile :meth:`HullSet.contains`' kernel, or load it from numba's cache
+    (:class:`ssp.parser.SceneParser` does it when built, not in its first frame)."""
+    z = np.zeros
+    _contains(z((1, 3)), z(3), 1.0, z((1, 4)), z(2, dtype=np.int64), z((1, 3)), z(1), 0.0)
+
+
+@njit
+def _contains(p, centre, radius, planes, start, part_centres, part_radii, tol):
+    """:meth:`HullSet.contains`, compiled: per point (model frame), inside the model's bounding
+    sphere grown by ``max(tol, 0)``, inside a part's grown sphere, and then on the inner side
+    (``n . p + b <= tol``) of every plane of that part (``planes[start[k]:start[k + 1]]``);
+    the first part that holds it ends its search."""
+    m = p.shape[0]
+    out = np.zeros(m, dtype=np.bool_)
+    grow = max(tol, 0.0)
+    reach = (radius + grow) ** 2
+    for i in range(m):
+        x, y, z = p[i, 0], p[i, 1], p[i, 2]
+        d0, d1, d2 = x - centre[0], y - centre[1], z - centre[2]
+        if not d0 * d0 + d1 * d1 + d2 * d2 <= reach:
+            continue
+        for k in range(part_radii.shape[0]):
+            e0, e1, e2 = x - part_centres[k, 0], y - part_centres[k, 1], z - part_centres[k, 2]
+            r = part_radii[k] + grow
+            if not e0 * e0 + e1 * e1 + e2 * e2 <= r * r:
                 continue
-            s = eq[:, :3] @ q[cand].T + eq[:, 3:4]  # (F, m) signed plane distances
-            hit[cand[(s <= tol).all(axis=0)]] = True
-        inside[near] = hit
-        return inside
+            inside = True
+            for f in range(start[k], start[k + 1]):
+                if not planes[f, 0] * x + planes[f, 1] * y + planes[f, 2] * z + planes[f, 3] <= tol:
+                    inside = False
+                    break
+            if inside:
+                out[i] = True
+                break
+    return out
 
 
 _sphere_cache: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
@@ -215,8 +252,8 @@ def overlap_fractions(
         (n,) float64 in [0, 1]; 0 for objects without interior points.
 
     The cost is one matmul per tested pair and direction to move ``i``'s points into ``j``'s
-    frame, then one ``(F, m)`` product per convex part of ``j`` on the points within that part's
-    bounding sphere.
+    frame, then, compiled, the planes of ``j``'s convex parts whose bounding spheres hold each
+    point (:meth:`HullSet.contains`).
     """
     n = len(models)
     T = _check_poses(poses, n)

@@ -70,6 +70,7 @@ from ssp.library.model import ObjectInstance
 from ssp.motion import seen_from_state, seen_state
 from ssp.orientation import decide_orientations, orientations_from_state, orientations_state
 from ssp.outcome import fuse_at_rest, report_moved, scene_estimate, transition_modes
+from ssp.overlap import load_kernels as load_overlap_kernels
 from ssp.physics import World
 from ssp.polish import polish_scene
 from ssp.registration import load_kernels as load_icp_kernels
@@ -129,9 +130,10 @@ class SceneParser:
         self._last_stamp: float | None = None
         self._world: World | None = None
         self._world_key: tuple[tuple[str, str], ...] | None = None
-        # the compiled data forces and the polish's ICP, loaded here rather than in a frame
+        # the data forces', the polish's ICP's and the volume test's kernels, not in a frame
         load_force_kernels()
         load_icp_kernels()
+        load_overlap_kernels()
 
     def __repr__(self) -> str:
         return f"SceneParser({len(self._known)} objects, {self._frame_index} frames)"

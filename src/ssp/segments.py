@@ -52,6 +52,7 @@ __all__ = [
     "point_spacing",
     "segment_frame",
     "segment_verdicts",
+    "surface_kdtree",
 ]
 
 log = logging.getLogger(__name__)
@@ -331,12 +332,18 @@ def _near_surface(
     local = np.ascontiguousarray((points[near] - t) @ R)  # R^T (p - t)
     if not len(local):
         return local, np.zeros(0), np.zeros(0, dtype=np.int64)
+    dist, idx = surface_kdtree(model).query(local, k=1, distance_upper_bound=radius)
+    return local, dist, idx.astype(np.int64)
+
+
+def surface_kdtree(model: ObjectModel) -> KDTree:
+    """``model``'s surface samples (model frame) in pykdtree's tree, made once per process
+    (:data:`_SURFACE_KDTREES`)."""
     tree = _SURFACE_KDTREES.get(model)
     if tree is None:
         tree = KDTree(np.ascontiguousarray(model.surface_points, dtype=float))
         _SURFACE_KDTREES[model] = tree
-    dist, idx = tree.query(local, k=1, distance_upper_bound=radius)
-    return local, dist, idx.astype(np.int64)
+    return tree
 
 
 def explained_fraction(

@@ -48,6 +48,7 @@ from ssp.forces import load_kernels as load_force_kernels
 from ssp.jit import kernel_array, njit
 from ssp.kdtree import KDTree
 from ssp.library.model import ObjectModel
+from ssp.overlap import load_kernels as load_overlap_kernels
 from ssp.perception.cleaning import robust_extent
 from ssp.registration import even_rows, facing_mask, grid_icp, load_kernels
 from ssp.sample_grid import SampleGrid
@@ -735,8 +736,9 @@ class HypothesisEstimator:
 
 
 def compile_kernels() -> None:
-    """Compile the estimator's kernels, the exact ICP's (:mod:`ssp.registration`) and the data
-    forces' (:mod:`ssp.forces`) for the argument types they are passed, or load them from
+    """Compile the estimator's kernels, the exact ICP's (:mod:`ssp.registration`), the data
+    forces' (:mod:`ssp.forces`) and the volume test's (:mod:`ssp.overlap`) for the argument
+    types they are passed, or load them from
     numba's cache (``make install`` runs this once: a first compile takes some 30 s)."""
     rng = np.random.default_rng(0)
     p = rng.normal(0.0, 0.02, (64, 3))
@@ -751,6 +753,7 @@ def compile_kernels() -> None:
     grid_icp(grid, np.eye(4), p, np.ones(3), max_distance=0.012, iterations=2, n_points=50)
     load_kernels()  # the exact ICP: the parser's polish and the icp baseline
     load_force_kernels()  # the parser's data forces
+    load_overlap_kernels()  # the parser's volume test
 
 
 def _within(tree: KDTree, q: np.ndarray, radius: float) -> np.ndarray:
