@@ -17,7 +17,7 @@ import numpy as np
 
 from ssp.jit import kernel_array, njit
 
-__all__ = ["OUTSIDE", "PointCells", "cell_sort", "nearest_in_cells"]
+__all__ = ["OUTSIDE", "PointCells", "cell_sort", "load_kernels", "nearest_in_cells"]
 
 
 class PointCells:
@@ -53,6 +53,12 @@ class PointCells:
             kernel_array(queries), self.points, lo, inv_h, dims, h * h, float(distance) ** 2,
             start, order,
         )  # fmt: skip
+
+
+def load_kernels() -> None:
+    """Compile :meth:`PointCells.nearest`'s kernels, or load them from numba's cache
+    (:func:`ssp.perception.estimator.compile_kernels`: ``make install`` runs it)."""
+    PointCells(np.eye(3), 0.1).nearest(np.eye(3), 0.05)
 
 
 @njit

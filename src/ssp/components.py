@@ -16,7 +16,7 @@ import numpy as np
 
 from ssp.jit import njit
 
-__all__ = ["connected_components"]
+__all__ = ["connected_components", "load_kernels"]
 
 
 def connected_components(n: int, rows: np.ndarray, cols: np.ndarray) -> tuple[int, np.ndarray]:
@@ -35,6 +35,12 @@ def connected_components(n: int, rows: np.ndarray, cols: np.ndarray) -> tuple[in
         raise ValueError(f"an edge names a node outside 0 .. {n - 1}")
     count, labels = _components(n, r, c)
     return int(count), labels
+
+
+def load_kernels() -> None:
+    """Compile the union-find, or load it from numba's cache
+    (:func:`ssp.perception.estimator.compile_kernels`: ``make install`` runs it)."""
+    connected_components(2, np.zeros(1, dtype=np.int64), np.ones(1, dtype=np.int64))
 
 
 @njit

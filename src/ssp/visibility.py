@@ -185,6 +185,13 @@ def _self_hidden(
 SELF_MAX_CELLS = 1 << 16
 
 
+def load_kernels() -> None:
+    """Compile the self-occlusion test's kernel, or load it from numba's cache
+    (:func:`ssp.perception.estimator.compile_kernels`: ``make install`` runs it)."""
+    p = np.array([[0.0, 0.0, 1.0], [0.001, 0.0, 0.9], [0.0, 0.001, 1.1]])
+    _self_hidden(p, p, -p, 0.01, 0.005)
+
+
 @njit
 def _self_hidden_kernel(rays, depth, cover, p_world, nrm, tol, k, max_cells):
     """:func:`_self_hidden`, compiled: sample ``i`` (ray ``rays[i, :2]``, normalised image

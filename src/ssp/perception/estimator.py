@@ -42,6 +42,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ssp.cells import load_kernels as load_cell_kernels
+from ssp.components import load_kernels as load_component_kernels
 from ssp.config import PerceptionConfig
 from ssp.errors import PerceptionError, UnknownObjectError
 from ssp.forces import load_kernels as load_force_kernels
@@ -53,6 +55,7 @@ from ssp.perception.cleaning import robust_extent
 from ssp.registration import even_rows, facing_mask, grid_icp, load_kernels
 from ssp.sample_grid import SampleGrid
 from ssp.scene import Hypothesis
+from ssp.visibility import load_kernels as load_visibility_kernels
 
 __all__ = ["HypothesisEstimator", "ModelPairs", "SegmentResult", "compile_kernels", "voxel_thin"]
 
@@ -737,9 +740,12 @@ class HypothesisEstimator:
 
 def compile_kernels() -> None:
     """Compile the estimator's kernels, the exact ICP's (:mod:`ssp.registration`), the data
-    forces' (:mod:`ssp.forces`) and the volume test's (:mod:`ssp.overlap`) for the argument
-    types they are passed, or load them from
-    numba's cache (``make install`` runs this once: a first compile takes some 30 s)."""
+    forces' (:mod:`ssp.forces`), the volume test's (:mod:`ssp.overlap`), the self-occlusion
+    test's (:mod:`ssp.visibility`), the cells' nearest points (:mod:`ssp.cells`: the label
+    votes) and the connected components' (:mod:`ssp.components`: the cleaning) for the
+    argument types they are passed, or load them from numba's cache (``make install`` runs
+    this once: a first compile takes some 30 s; a kernel left out compiled in the first frame
+    of the first run after an install, 0.5-1.8 s each)."""
     rng = np.random.default_rng(0)
     p = rng.normal(0.0, 0.02, (64, 3))
     n = p / np.linalg.norm(p, axis=1, keepdims=True)
@@ -754,6 +760,9 @@ def compile_kernels() -> None:
     load_kernels()  # the exact ICP: the parser's polish and the icp baseline
     load_force_kernels()  # the parser's data forces
     load_overlap_kernels()  # the parser's volume test
+    load_visibility_kernels()  # the self-occlusion test of the correction and the evidence
+    load_cell_kernels()  # the label votes' nearest points
+    load_component_kernels()  # the cleaning's and the clusters' connected components
 
 
 def _within(tree: KDTree, q: np.ndarray, radius: float) -> np.ndarray:
