@@ -521,7 +521,7 @@ def test_a_frame_compiles_no_kernel_that_compile_kernels_leaves_out(lib):
     :func:`compile_kernels` too, which ``make install`` runs: left out, each compiled in the
     first frame of a user's first run (3.1 s against 0.3 s on the tools of ``ssp bench
     frame``)."""
-    from ssp import cells, components, overlap, visibility
+    from ssp import cells, components, overlap, sample_grid, visibility
     from ssp.parser import SceneParser
     from ssp.perception import estimator
     from ssp.sim.generate import generate_sequence
@@ -529,7 +529,7 @@ def test_a_frame_compiles_no_kernel_that_compile_kernels_leaves_out(lib):
     estimator.compile_kernels()
     kernels = [  # those called from Python (the others compile inside them)
         cells._nearest_each, cells.cell_sort, components._components, overlap._contains,
-        visibility._self_hidden_kernel,
+        visibility._self_hidden_kernel, sample_grid._voxel_lists, sample_grid._nearest_within,
     ]  # fmt: skip
     before = [len(k.signatures) for k in kernels]
     assert all(before)

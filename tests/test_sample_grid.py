@@ -60,6 +60,31 @@ def test_within_is_exact(samples, radius):
     assert truth.any() and not truth.all()
 
 
+@pytest.mark.parametrize("voxel", [0.002, 0.003, 0.005])
+def test_nearest_within_is_a_kd_trees_query(samples, voxel):
+    """The nearest sample closer than each radius and its distance: a KD-tree query with that
+    upper bound, bit for bit, for queries on and off the surface, outside the grid, and on
+    voxel faces."""
+    from ssp.kdtree import KDTree
+
+    grid = SampleGrid(samples[0], reach=0.0075, voxel=voxel)
+    rng = np.random.default_rng(3)
+    on = samples[0][rng.integers(0, len(samples[0]), 5000)] + rng.normal(0, 0.002, (5000, 3))
+    faces = grid.lo + voxel * rng.integers(0, grid.shape, (2000, 3))  # voxel corners
+    q = np.vstack([on, rng.uniform(-0.05, 0.05, (5000, 3)), rng.uniform(-2, 2, (300, 3)), faces])
+    tree = KDTree(samples[0])
+    for radius in (0.0075, 0.0067, 0.003):
+        d_ref, i_ref = tree.query(q, k=1, distance_upper_bound=radius)
+        d, i = grid.nearest_within(q, radius)
+        hit = np.isfinite(d_ref)
+        assert hit.any() and not hit.all()
+        np.testing.assert_array_equal(d, d_ref)
+        np.testing.assert_array_equal(i[hit], i_ref[hit])
+        assert (i[~hit] == grid.miss).all()
+    with pytest.raises(ValueError, match="reach"):
+        grid.nearest_within(q, 0.008)
+
+
 def test_nearest_is_within_a_voxel_diagonal_of_the_nearest(samples):
     grid = SampleGrid(samples[0], reach=0.012, voxel=0.002)
     rng = np.random.default_rng(2)

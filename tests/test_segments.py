@@ -130,9 +130,10 @@ def test_a_voter_far_from_every_point_votes_for_nothing(lib):
 
 
 def test_the_surface_queries_find_what_the_models_own_tree_finds():
-    # explained_fraction and surface_residual query a pykdtree of the surface samples (kept
-    # per process: it does not pickle); it must give the model's cKDTree's samples and
-    # distances, or their results would change with the tree
+    # explained_fraction, surface_residual and the shared volumes query a sample grid of the
+    # surface samples (ssp.segments.surface_grid, kept per process: it does not pickle); it
+    # must give the model's cKDTree's samples and distances, or their results would change
+    # with it; at the frame's radii and beyond the first grid's reach (a grid of its own)
     from ssp.library import ObjectLibrary
     from ssp.segments import _near_surface
 
@@ -143,13 +144,14 @@ def test_the_surface_queries_find_what_the_models_own_tree_finds():
         pts = transform_points(T, model.surface_points) + rng.normal(
             0, 0.003, (len(model.surface_points), 3)
         )
-        local, dist, idx = _near_surface(pts, model, T, 0.0074)
-        d_ref, i_ref = model.surface_tree.query(local, k=1, distance_upper_bound=0.0074)
-        hit = np.isfinite(d_ref)
-        assert hit.any() and not hit.all(), model.name
-        np.testing.assert_array_equal(np.isfinite(dist), hit)
-        np.testing.assert_array_equal(dist[hit], d_ref[hit])
-        np.testing.assert_array_equal(idx[hit], i_ref[hit])
+        for radius in (0.0074, 0.00675, 0.002, 0.012):
+            local, dist, idx = _near_surface(pts, model, T, radius)
+            d_ref, i_ref = model.surface_tree.query(local, k=1, distance_upper_bound=radius)
+            hit = np.isfinite(d_ref)
+            assert hit.any() and (radius > 0.0074 or not hit.all()), model.name
+            np.testing.assert_array_equal(np.isfinite(dist), hit)
+            np.testing.assert_array_equal(dist[hit], d_ref[hit])
+            np.testing.assert_array_equal(idx[hit], i_ref[hit])
 
 
 def test_the_labels_present_are_np_uniques_nonnegative_ones():

@@ -14,6 +14,11 @@ nearest-neighbour queries per step, always against the same model samples in the
 * :meth:`SampleGrid.within` is exact: the centre's distance bounds the query's to within that
   half-diagonal; a query in that uncertain band is inside when one of its voxel's stored
   samples is within the radius, and only the rest go to the KD-tree.
+* :meth:`SampleGrid.nearest_within` is exact too: the nearest sample of any point of a voxel
+  lies within the centre's distance plus a voxel diagonal of the centre, so each voxel lists
+  those samples (built at the first call), and a query compares its voxel's few (some 15 at a
+  3 mm voxel) instead of descending a KD-tree: the nearest sample closer than a radius and
+  that distance, as a KD-tree query with that (strict) upper bound returns them.
 """
 
 from __future__ import annotations
@@ -93,6 +98,7 @@ class SampleGrid:
         self.index = index.astype(itype)
         self.distance = distance.astype(np.float32)
         self._scale = np.array(shape[1:], dtype=np.uint32)
+        self._lists: tuple[np.ndarray, np.ndarray] | None = None  # nearest_within's
         self.normals = None
         self.bins = np.zeros(0, dtype=np.int8)
         self.bin_index = np.zeros((0, 0), dtype=itype)
@@ -171,6 +177,104 @@ class SampleGrid:
             dq, _ = self.tree.query(local, k=1, distance_upper_bound=radius)
             inside[unsure] = np.isfinite(dq)
         return inside
+
+    def nearest_within(self, q: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+        """Exact ``(distance (N,), index (N,) int64)`` of the sample nearest each query ``q
+        (N, 3)`` closer than ``radius`` (m, strictly; at most ``reach``): ``(inf,`` :attr:`miss`
+        ``)`` where none is; the first of equals. The same as ``tree.query(q, k=1,
+        distance_upper_bound=radius)``, from the lists of the samples each voxel's points can
+        have nearest (module docstring), made at the first call."""
+        if radius > self.reach:
+            raise ValueError(f"radius {radius} m is beyond the grid's reach {self.reach} m")
+        if self._lists is None:
+            slack = 2.0 * self.half_diagonal + _ROUNDING
+            self._lists = _voxel_lists(self.points, self.lo, self.voxel, self.shape,
+                                       self.distance.astype(np.float64), slack)  # fmt: skip
+        start, members = self._lists
+        return _nearest_within(
+            kernel_array(np.asarray(q, dtype=float).reshape(-1, 3)), self.points, self.lo,
+            1.0 / self.voxel, self.shape, start, members, float(radius) ** 2,
+        )  # fmt: skip
+
+
+@njit
+def _voxel_lists(points, lo, voxel, shape, centre_distance, slack):
+    """``(start, members)``: the samples within ``centre_distance + slack`` (m) of each
+    voxel's centre, voxel ``v``'s being ``members[start[v]:start[v + 1]]`` in the samples'
+    order (none for a voxel whose centre is farther than the grid's bound from every sample,
+    ``centre_distance`` inf). Two passes over each sample's cube of voxels: count, then fill."""
+    n0, n1, n2 = shape[0], shape[1], shape[2]
+    nv = n0 * n1 * n2
+    bound = 0.0
+    for v in range(nv):
+        if np.isfinite(centre_distance[v]) and centre_distance[v] + slack > bound:
+            bound = centre_distance[v] + slack
+    start = np.zeros(nv + 1, dtype=np.int64)
+    members = np.empty(0, dtype=np.int32)
+    fill = np.empty(0, dtype=np.int64)
+    for fill_pass in range(2):
+        if fill_pass == 1:
+            for v in range(nv):
+                start[v + 1] += start[v]
+            members = np.empty(start[nv], dtype=np.int32)
+            fill = start[:-1].copy()
+        for s in range(points.shape[0]):
+            x, y, z = points[s, 0], points[s, 1], points[s, 2]
+            lo0 = max(int(np.floor((x - bound - lo[0]) / voxel - 0.5)), 0)
+            lo1 = max(int(np.floor((y - bound - lo[1]) / voxel - 0.5)), 0)
+            lo2 = max(int(np.floor((z - bound - lo[2]) / voxel - 0.5)), 0)
+            hi0 = min(int(np.ceil((x + bound - lo[0]) / voxel - 0.5)), n0 - 1)
+            hi1 = min(int(np.ceil((y + bound - lo[1]) / voxel - 0.5)), n1 - 1)
+            hi2 = min(int(np.ceil((z + bound - lo[2]) / voxel - 0.5)), n2 - 1)
+            for i in range(lo0, hi0 + 1):
+                dx = lo[0] + (i + 0.5) * voxel - x
+                for j in range(lo1, hi1 + 1):
+                    dy = lo[1] + (j + 0.5) * voxel - y
+                    base = (i * n1 + j) * n2
+                    for k in range(lo2, hi2 + 1):
+                        v = base + k
+                        r = centre_distance[v] + slack
+                        if not np.isfinite(r):
+                            continue
+                        dz = lo[2] + (k + 0.5) * voxel - z
+                        if dx * dx + dy * dy + dz * dz <= r * r:
+                            if fill_pass == 0:
+                                start[v + 1] += 1
+                            else:
+                                members[fill[v]] = s
+                                fill[v] += 1
+    return start, members
+
+
+@njit
+def _nearest_within(q, points, lo, inv_voxel, shape, start, members, max2):
+    """:meth:`SampleGrid.nearest_within` of each query: its voxel's listed samples compared
+    (out-of-grid queries are misses)."""
+    n = q.shape[0]
+    dist = np.full(n, np.inf)
+    index = np.full(n, points.shape[0], dtype=np.int64)
+    for k in range(n):
+        w0, w1, w2 = (q[k, 0] - lo[0]) * inv_voxel, (q[k, 1] - lo[1]) * inv_voxel, \
+            (q[k, 2] - lo[2]) * inv_voxel  # fmt: skip
+        if w0 < 0.0 or w1 < 0.0 or w2 < 0.0:
+            continue
+        i0, i1, i2 = int(w0), int(w1), int(w2)
+        if i0 >= shape[0] or i1 >= shape[1] or i2 >= shape[2]:
+            continue
+        v = (i0 * shape[1] + i1) * shape[2] + i2
+        best = max2
+        j = -1
+        for u in range(start[v], start[v + 1]):
+            s = members[u]
+            e0, e1, e2 = q[k, 0] - points[s, 0], q[k, 1] - points[s, 1], q[k, 2] - points[s, 2]
+            d = e0 * e0 + e1 * e1 + e2 * e2
+            if d < best:
+                best = d
+                j = s
+        if j >= 0:
+            dist[k] = np.sqrt(best)
+            index[k] = j
+    return dist, index
 
 
 @njit

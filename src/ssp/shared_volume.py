@@ -50,7 +50,7 @@ from ssp.geometry import in_box, squared_distances
 from ssp.library.model import ObjectModel
 from ssp.overlap import overlap_fractions
 from ssp.scene import Hypothesis
-from ssp.segments import surface_kdtree
+from ssp.segments import surface_grid
 from ssp.verification import evidence
 from ssp.visibility import CameraView
 
@@ -129,7 +129,7 @@ def near_surface(
     if not len(near):
         return out
     local = (points[near] - T[:3, 3]) @ T[:3, :3]  # R^T (p - t)
-    dist, _ = surface_kdtree(model).query(local, k=1, distance_upper_bound=radius)
+    dist, _ = surface_grid(model, radius).nearest_within(local, radius)
     out[near] = np.isfinite(dist)
     return out
 

@@ -756,6 +756,7 @@ def compile_kernels() -> None:
                  _Occupancy(p, 0.004))  # fmt: skip
     grid = SampleGrid(p, _GRID_REACH, _GRID_VOXEL, normals=n)
     grid.within(p, 0.005, np.eye(4))
+    grid.nearest_within(p, 0.005)  # the parser's surface lookups (ssp.segments.surface_grid)
     grid_icp(grid, np.eye(4), p, np.ones(3), max_distance=0.012, iterations=2, n_points=50)
     load_kernels()  # the exact ICP: the parser's polish and the icp baseline
     load_force_kernels()  # the parser's data forces
