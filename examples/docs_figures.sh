@@ -87,5 +87,6 @@ run parser-compare compare.json $SSP bench parser --links ../shared/data/costar-
 run frame-compare results.json $SSP bench frame --real-dev ../shared/data/real-dev --compare c436e9b --rounds 2
 run frame-processes results.json $SSP bench frame --processes 2
 run frame-threads results.json $SSP bench frame --real-dev ../shared/data/real-dev --compare ef47c46 --rounds 1
+run frame-kernels results.json $SSP bench frame --real-dev ../shared/data/real-dev --compare 3b8973d --rounds 1
 
 $SSP bench docs-figures --collect "$W" --write --check --strict

@@ -68,6 +68,8 @@ REAL_DEV = "../shared/data/real-dev"
 FRAME_REV = "c436e9b"
 #: The code before the ICPs in threads and the compiled self-occlusion test (frame-threads).
 THREADS_REV = "ef47c46"
+#: The code before the segments in threads and the compiled lookups (frame-kernels).
+KERNELS_REV = "3b8973d"
 
 
 @dataclass(frozen=True)
@@ -160,6 +162,8 @@ def _sources() -> dict[str, Source]:
         Source("frame-processes", "ssp bench frame --processes 2"),
         Source("frame-threads",
                f"ssp bench frame --real-dev {REAL_DEV} --compare {THREADS_REV} --rounds 1"),
+        Source("frame-kernels",
+               f"ssp bench frame --real-dev {REAL_DEV} --compare {KERNELS_REV} --rounds 1"),
     ]  # fmt: skip
     return {s.name: s for s in out}
 
@@ -538,6 +542,8 @@ def _figures() -> dict[str, Figure]:
         Figure("frame-targets", ("frame-compare",), _frame_table("frame-compare", 1)),
         Figure("frame-processes", ("frame-processes",), _frame_table("frame-processes", 0)),
         Figure("frame-threads", ("frame-threads",), _frame_table("frame-threads", 0)),
+        Figure("frame-kernels", ("frame-kernels",), _frame_table("frame-kernels", 0)),
+        Figure("frame-kernels-targets", ("frame-kernels",), _frame_table("frame-kernels", 1)),
         Figure("tower-rgb", ("tower-rgb",), _tower_report_table(("tower-rgb",))),
     ]  # fmt: skip
     for name, src in (("mug-estimated", "t1-isolated-mug"),
