@@ -220,12 +220,7 @@ def _voxel_lists(points, lo, voxel, shape, centre_distance, slack):
             fill = start[:-1].copy()
         for s in range(points.shape[0]):
             x, y, z = points[s, 0], points[s, 1], points[s, 2]
-            lo0 = max(int(np.floor((x - bound - lo[0]) / voxel - 0.5)), 0)
-            lo1 = max(int(np.floor((y - bound - lo[1]) / voxel - 0.5)), 0)
-            lo2 = max(int(np.floor((z - bound - lo[2]) / voxel - 0.5)), 0)
-            hi0 = min(int(np.ceil((x + bound - lo[0]) / voxel - 0.5)), n0 - 1)
-            hi1 = min(int(np.ceil((y + bound - lo[1]) / voxel - 0.5)), n1 - 1)
-            hi2 = min(int(np.ceil((z + bound - lo[2]) / voxel - 0.5)), n2 - 1)
+            lo0, lo1, lo2, hi0, hi1, hi2 = _cube(x, y, z, bound, lo, voxel, shape)
             for i in range(lo0, hi0 + 1):
                 dx = lo[0] + (i + 0.5) * voxel - x
                 for j in range(lo1, hi1 + 1):
@@ -325,6 +320,20 @@ def _within_kernel(q, R, t, distance, lo, inv_voxel, shape, sure, maybe, points,
 
 
 @njit
+def _cube(x, y, z, bound, lo, voxel, shape):
+    """The voxel ranges ``(lo0, lo1, lo2, hi0, hi1, hi2)`` (inclusive, clipped to the grid of
+    corner ``lo``, side ``voxel``, ``shape``) of the voxels whose centres may lie within
+    ``bound`` of the point ``(x, y, z)``."""
+    lo0 = max(int(np.floor((x - bound - lo[0]) / voxel - 0.5)), 0)
+    lo1 = max(int(np.floor((y - bound - lo[1]) / voxel - 0.5)), 0)
+    lo2 = max(int(np.floor((z - bound - lo[2]) / voxel - 0.5)), 0)
+    hi0 = min(int(np.ceil((x + bound - lo[0]) / voxel - 0.5)), shape[0] - 1)
+    hi1 = min(int(np.ceil((y + bound - lo[1]) / voxel - 0.5)), shape[1] - 1)
+    hi2 = min(int(np.ceil((z + bound - lo[2]) / voxel - 0.5)), shape[2] - 1)
+    return lo0, lo1, lo2, hi0, hi1, hi2
+
+
+@njit
 def _fill(points, lo, voxel, shape, bound):
     """Per voxel of the grid (corner ``lo``, side ``voxel``, ``shape``), flat: the index of
     the sample nearest to its centre (the first of equals) and that distance, for centres
@@ -337,12 +346,7 @@ def _fill(points, lo, voxel, shape, bound):
     b2 = bound * bound
     for s in range(S):
         x, y, z = points[s, 0], points[s, 1], points[s, 2]
-        lo0 = max(int(np.floor((x - bound - lo[0]) / voxel - 0.5)), 0)
-        lo1 = max(int(np.floor((y - bound - lo[1]) / voxel - 0.5)), 0)
-        lo2 = max(int(np.floor((z - bound - lo[2]) / voxel - 0.5)), 0)
-        hi0 = min(int(np.ceil((x + bound - lo[0]) / voxel - 0.5)), n0 - 1)
-        hi1 = min(int(np.ceil((y + bound - lo[1]) / voxel - 0.5)), n1 - 1)
-        hi2 = min(int(np.ceil((z + bound - lo[2]) / voxel - 0.5)), n2 - 1)
+        lo0, lo1, lo2, hi0, hi1, hi2 = _cube(x, y, z, bound, lo, voxel, shape)
         for i in range(lo0, hi0 + 1):
             dx = lo[0] + (i + 0.5) * voxel - x
             for j in range(lo1, hi1 + 1):
