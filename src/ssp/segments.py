@@ -26,6 +26,7 @@ All points are world frame, metres.
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Collection, Mapping, Sequence
 from functools import cache
 from typing import TYPE_CHECKING
@@ -325,6 +326,9 @@ _SURFACE_GRIDS: WeakKeyDictionary[ObjectModel, dict[float, SampleGrid]] = WeakKe
 SURFACE_GRID_REACH = 0.0075
 #: Its voxel (m): some 15 samples listed per voxel, a grid built in 5-55 ms per model.
 SURFACE_GRID_VOXEL = 0.003
+#: A lookup farther than :data:`SURFACE_GRID_REACH` gets a grid whose reach is its radius
+#: rounded up to a multiple of this (m), so that a few grids serve any radii.
+SURFACE_GRID_STEP = 0.0025
 
 
 def _near_surface(
@@ -346,8 +350,11 @@ def _near_surface(
 def surface_grid(model: ObjectModel, radius: float) -> SampleGrid:
     """``model``'s surface samples (model frame) in a :class:`~ssp.sample_grid.SampleGrid`
     that reaches ``radius`` (m), made once per process and reach (:data:`_SURFACE_GRIDS`):
-    :data:`SURFACE_GRID_REACH`, or ``radius`` when farther."""
-    reach = max(float(radius), SURFACE_GRID_REACH)
+    :data:`SURFACE_GRID_REACH`, or ``radius`` rounded up to :data:`SURFACE_GRID_STEP` when
+    farther."""
+    reach = SURFACE_GRID_REACH
+    if radius > reach:
+        reach = max(SURFACE_GRID_STEP * math.ceil(float(radius) / SURFACE_GRID_STEP), radius)
     grids = _SURFACE_GRIDS.setdefault(model, {})
     if reach not in grids:
         samples = np.ascontiguousarray(model.surface_points, dtype=float)
