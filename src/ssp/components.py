@@ -3,8 +3,9 @@
 The cleaning of each instance segment (:mod:`ssp.perception.cleaning`) and the Euclidean
 clusters of a cloud without masks (:mod:`ssp.perception.segmentation`) join points into
 pieces through their neighbour pairs. SciPy's ``connected_components`` needs the pairs as a
-sparse matrix first (a COO to CSR conversion, an index sort and a CSC copy): about 1.6 ms of
-a segment's 5.4 ms cleaning on the tools' 640 x 480 frames. :func:`connected_components` is
+sparse matrix first (a COO to CSR conversion, an index sort and a CSC copy), a third of a
+segment's cleaning on the tools' 640 x 480 frames (docs/benchmarks.md, "Whole-frame
+latency"). :func:`connected_components` is
 a union-find over the edges themselves (path halving, the smaller node the root), with the
 same labels as SciPy's: each component numbered by the order of its lowest node
 (tests/test_components.py compares them on random graphs).

@@ -30,7 +30,7 @@ import numpy as np
 from ssp.jit import kernel_array, njit
 from ssp.kdtree import KDTree
 
-__all__ = ["N_BINS", "SampleGrid", "normal_bins", "posed_cell"]
+__all__ = ["N_BINS", "SampleGrid", "normal_bins", "posed_cell", "voxel_of"]
 
 #: The grid holds at most about this many voxels (the voxel grows for large models).
 MAX_VOXELS = 1_500_000
@@ -249,14 +249,9 @@ def _nearest_within(q, points, lo, inv_voxel, shape, start, members, max2):
     dist = np.full(n, np.inf)
     index = np.full(n, points.shape[0], dtype=np.int64)
     for k in range(n):
-        w0, w1, w2 = (q[k, 0] - lo[0]) * inv_voxel, (q[k, 1] - lo[1]) * inv_voxel, \
-            (q[k, 2] - lo[2]) * inv_voxel  # fmt: skip
-        if w0 < 0.0 or w1 < 0.0 or w2 < 0.0:
+        v = voxel_of(q[k, 0], q[k, 1], q[k, 2], lo, inv_voxel, shape)
+        if v < 0:
             continue
-        i0, i1, i2 = int(w0), int(w1), int(w2)
-        if i0 >= shape[0] or i1 >= shape[1] or i2 >= shape[2]:
-            continue
-        v = (i0 * shape[1] + i1) * shape[2] + i2
         best = max2
         j = -1
         for u in range(start[v], start[v + 1]):
@@ -281,13 +276,20 @@ def posed_cell(R, t, x, y, z, lo, inv_voxel, shape):
     q0 = R[0, 0] * d0 + R[1, 0] * d1 + R[2, 0] * d2
     q1 = R[0, 1] * d0 + R[1, 1] * d1 + R[2, 1] * d2
     q2 = R[0, 2] * d0 + R[1, 2] * d1 + R[2, 2] * d2
+    return voxel_of(q0, q1, q2, lo, inv_voxel, shape), q0, q1, q2
+
+
+@njit
+def voxel_of(q0, q1, q2, lo, inv_voxel, shape):
+    """The flat index of the voxel holding the point ``(q0, q1, q2)`` (the grid's frame;
+    corner ``lo``, ``1 / voxel`` = ``inv_voxel``, ``shape``), -1 outside the grid."""
     w0, w1, w2 = (q0 - lo[0]) * inv_voxel, (q1 - lo[1]) * inv_voxel, (q2 - lo[2]) * inv_voxel
     if w0 < 0.0 or w1 < 0.0 or w2 < 0.0:
-        return -1, q0, q1, q2
+        return -1
     i0, i1, i2 = int(w0), int(w1), int(w2)
     if i0 >= shape[0] or i1 >= shape[1] or i2 >= shape[2]:
-        return -1, q0, q1, q2
-    return (i0 * shape[1] + i1) * shape[2] + i2, q0, q1, q2
+        return -1
+    return (i0 * shape[1] + i1) * shape[2] + i2
 
 
 @njit

@@ -318,13 +318,14 @@ def _crop(
 #: process (a grid does not pickle, so it stays off the model): the lookups of
 #: :func:`_near_surface` and the shared volumes, the same nearest samples and distances as
 #: :attr:`ObjectModel.surface_tree`'s (tests/test_segments.py) in less than half pykdtree's
-#: time (some 40 lookups a frame of the tools, 0.6 -> 0.25 ms each).
+#: time (docs/benchmarks.md, "Whole-frame latency": static fusion and the transition modes).
 _SURFACE_GRIDS: WeakKeyDictionary[ObjectModel, dict[float, SampleGrid]] = WeakKeyDictionary()
 
 #: The reach of a model's first surface grid (m): the radii of the frame's lookups (the
 #: inlier radius and the surface spacing, 7.4 mm by default; the residual cap, 6.75 mm) fit.
 SURFACE_GRID_REACH = 0.0075
-#: Its voxel (m): some 15 samples listed per voxel, a grid built in 5-55 ms per model.
+#: Its voxel (m): some 15 samples listed per voxel (a finer one lists fewer and takes longer
+#: to build).
 SURFACE_GRID_VOXEL = 0.003
 #: A lookup farther than :data:`SURFACE_GRID_REACH` gets a grid whose reach is its radius
 #: rounded up to a multiple of this (m), so that a few grids serve any radii.
