@@ -146,7 +146,7 @@ def transition_modes(ctx: FrameContext) -> None:
             assert prev is not None, "a perturbed object has a previous pose"
             corrected, kept_fit = _corrected(ctx, oid, prev, T)
             mode = TransitionMode.PERTURBED if corrected is None else TransitionMode.STATIC
-            kept = _kept_where_it_was(ctx, oid, kept_fit)
+            kept = _kept_where_it_was(ctx, oid, prev, kept_fit)
             if kept is not None:
                 T, corrected = prev, kept
         still = 0
@@ -245,22 +245,44 @@ def _corrected(
     return None, None
 
 
-def _kept_where_it_was(ctx: FrameContext, oid: str, fit_there: float | None) -> str | None:
-    """Why known object ``oid``, static in the world (the data where it was is as it was:
-    :func:`_corrected`, whose evidence there explains ``fit_there`` of its visible surface; None:
-    not found static that way), keeps its previous pose over the frame's estimate, in words;
-    None: the estimate stands. It keeps it when it was at rest the frame before (``still >=``
-    :data:`KEEP_STILL_FRAMES`) and the estimate explains at least :data:`KEEP_FIT_MARGIN` less
-    of its visible surface than the previous pose does now."""
+def _kept_where_it_was(
+    ctx: FrameContext, oid: str, prev: np.ndarray, fit_there: float | None
+) -> str | None:
+    """Why known object ``oid``, static in the world (the data at its previous pose ``prev``
+    (4x4, m) is as it was: :func:`_corrected`, whose evidence there explains ``fit_there`` of
+    its visible surface; None: not found static that way), keeps its previous pose over the
+    frame's estimate, in words; None: the estimate stands. It keeps it when it was at rest the
+    frame before (``still >=`` :data:`KEEP_STILL_FRAMES`), the estimate explains at least
+    :data:`KEEP_FIT_MARGIN` less of its visible surface than the previous pose does now, and
+    the previous pose is clear of the others as they are now (:func:`_clear_at`)."""
     known, ev = ctx.known.get(oid), ctx.evidence.get(oid)
     if fit_there is None or known is None or ev is None or known.still < KEEP_STILL_FRAMES:
         return None
     if ev.fit >= fit_there - KEEP_FIT_MARGIN:
         return None
+    if not _clear_at(ctx, oid, prev):
+        return None
     return (
         f"static in the world: kept where it was (the new estimate explains "
         f"{100 * ev.fit:.0f} % of its visible surface, where it was {100 * fit_there:.0f} %)"
     )
+
+
+def _clear_at(ctx: FrameContext, oid: str, T: np.ndarray) -> bool:
+    """Whether object ``oid`` at pose ``T`` (4x4, m) lies no deeper in another object or the
+    table than at its estimate, by more than :data:`FUSION_DEPTH_SLACK` (the frame's world,
+    the others at their estimates; left as it was). A previous pose kept where a neighbour's
+    estimate has since moved into it put a tin 25 mm into a mug (Table I's mug without masks,
+    report seed 1007)."""
+    world = ctx.sim.world
+    k = world.index(oid)
+    before = _deepest(world)[k]
+    state = world.save_state()
+    try:
+        world.set_pose(oid, T)
+        return bool(_deepest(world)[k] <= before + FUSION_DEPTH_SLACK)
+    finally:
+        world.restore_state(state)
 
 
 def _seen(ctx: FrameContext, oid: str, T: np.ndarray) -> dict[str, Any]:
