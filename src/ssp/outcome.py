@@ -220,9 +220,11 @@ def _with_correction(ctx: FrameContext, oid: str, reason: str, corrected: str | 
 def _corrected(
     ctx: FrameContext, oid: str, prev: np.ndarray, T: np.ndarray
 ) -> tuple[str | None, float | None]:
-    """Why known object ``oid``, whose estimate changed from ``prev`` to ``T`` (4x4, m) beyond
-    the static thresholds, did not move in the world (:func:`ssp.motion.moved_in_world`:
-    the data at ``prev`` is as it was), in words; None: it moved, or the data cannot say."""
+    """``(why, fit)``: why known object ``oid``, whose estimate changed from ``prev`` to ``T``
+    (4x4, m) beyond the static thresholds, did not move in the world, in words (None: it
+    moved, or the data cannot say), and, when the data at ``prev`` is as it was
+    (:func:`ssp.motion.moved_in_world`), the fraction of its visible surface ``prev`` explains
+    in this frame (None otherwise)."""
     known = ctx.known.get(oid)
     if known is None or known.seen_fit is None:
         return None, None
