@@ -271,20 +271,35 @@ def _kept_where_it_was(
 
 
 def _clear_at(ctx: FrameContext, oid: str, T: np.ndarray) -> bool:
-    """Whether object ``oid`` at pose ``T`` (4x4, m) lies no deeper in another object or the
-    table than at its estimate, by more than :data:`FUSION_DEPTH_SLACK` (the frame's world,
-    the others at their estimates; left as it was). A previous pose kept where a neighbour's
-    estimate has since moved into it put a tin 25 mm into a mug (Table I's mug without masks,
-    report seed 1007)."""
+    """Whether object ``oid`` at pose ``T`` (4x4, m) lies no deeper in the table or another
+    object that stays (not in ``ctx.gone``) than at its estimate, by more than
+    :data:`FUSION_DEPTH_SLACK` (the frame's world, the others at their estimates; left as it
+    was). A previous pose kept where a neighbour's estimate has since moved into it put a tin
+    25 mm into a mug (Table I's mug without masks, report seed 1007). Objects the frame
+    removes are still in the world here; counting them refused most keeps on the tools
+    without masks, previous poses 16-49 mm deep in a duplicate the frame drops."""
     world = ctx.sim.world
     k = world.index(oid)
-    before = _deepest(world)[k]
+    skip = {world.index(g) for g in ctx.gone if g in world.ids}
+    before = _deepest_of(world, k, skip)
     state = world.save_state()
     try:
         world.set_pose(oid, T)
-        return bool(_deepest(world)[k] <= before + FUSION_DEPTH_SLACK)
+        return bool(_deepest_of(world, k, skip) <= before + FUSION_DEPTH_SLACK)
     finally:
         world.restore_state(state)
+
+
+def _deepest_of(world, k: int, skip: set[int]) -> float:
+    """Object ``k``'s deepest contact in ``world`` now (m; 0 without one) with the table or an
+    object whose index is not in ``skip``."""
+    c = world.contacts()
+    deepest = 0.0
+    for me, other in ((c.obj_a, c.obj_b), (c.obj_b, c.obj_a)):
+        for o, d in zip(other[me == k], c.depth[me == k], strict=True):
+            if int(o) not in skip:
+                deepest = max(deepest, float(d))
+    return deepest
 
 
 def _seen(ctx: FrameContext, oid: str, T: np.ndarray) -> dict[str, Any]:
