@@ -141,16 +141,16 @@ def transition_modes(ctx: FrameContext) -> None:
         ephemeral = v is not None and v.state == TriageState.EPHEMERAL
         retained = oid in ctx.retained or (ephemeral and bool(score.graph.children(i)))
         mode = classify(prev, T, model.symmetry, cfg.temporal, retained, model.center_of_mass)
-        corrected = None
+        corrected, still, kept_fit = None, 0, None
         if mode == TransitionMode.PERTURBED and oid not in ctx.old_of:
             assert prev is not None, "a perturbed object has a previous pose"
-            corrected, kept_fit = _corrected(ctx, oid, prev, T)
+            corrected, fit_there = _corrected(ctx, oid, prev, T)
             mode = TransitionMode.PERTURBED if corrected is None else TransitionMode.STATIC
-            kept = _kept_where_it_was(ctx, oid, prev, kept_fit)
-            if kept is not None:
+            kept = _kept_where_it_was(ctx, oid, prev, fit_there)
+            if kept is not None:  # at rest where it was, as the data there say
                 T, corrected = prev, kept
-        still = 0
-        if mode == TransitionMode.STATIC and oid in ctx.fused:
+                still, kept_fit = ctx.known[oid].still + 1, fit_there
+        if mode == TransitionMode.STATIC and oid in ctx.fused and kept_fit is None:
             T, still = ctx.fused[oid], ctx.known[oid].still + 1
         terms = score.object_terms(i)
         ev = ctx.evidence.get(oid)
@@ -183,7 +183,7 @@ def transition_modes(ctx: FrameContext) -> None:
             alternatives=_alternatives(ctx, out_id, orientation),
             ranking=_ranking(ctx, oid, out_id, orientation),
             still=still,
-            **_seen(ctx, oid, T),
+            **_seen(ctx, oid, T, kept_fit),
         )  # fmt: skip
 
 
@@ -302,14 +302,18 @@ def _deepest_of(world, k: int, skip: set[int]) -> float:
     return deepest
 
 
-def _seen(ctx: FrameContext, oid: str, T: np.ndarray) -> dict[str, Any]:
-    """:attr:`Known.seen_fit` (from the object's evidence at its final pose) and
-    ``seen_residual`` (at its output pose ``T``); none when too little of it is visible."""
+def _seen(
+    ctx: FrameContext, oid: str, T: np.ndarray, kept_fit: float | None = None
+) -> dict[str, Any]:
+    """:attr:`Known.seen_fit` (from the object's evidence at its final pose, or ``kept_fit``,
+    the fraction its previous pose explains, when it keeps that pose:
+    :func:`_kept_where_it_was`) and ``seen_residual`` (at its output pose ``T``); none when
+    too little of it is visible."""
     ev = ctx.evidence.get(oid)
     if ev is None or ev.visible < ctx.config.verification.min_visible_samples:
         return {}
     seen: dict[str, Any] = {
-        "seen_fit": float(ev.fit),
+        "seen_fit": float(ev.fit) if kept_fit is None else kept_fit,
         "seen_residual": object_residual(ctx, oid, T),
     }
     tree = ctx.segment_trees.tree(oid)
