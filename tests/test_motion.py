@@ -15,10 +15,12 @@ from ssp.config import SSPConfig
 from ssp.errors import SSPError
 from ssp.geometry import make_pose, rotation_angle
 from ssp.motion import (
+    FUSION_CORRECTION,
     explains_before,
     fuse_static,
     moved_in_world,
     points_residual,
+    prefers_estimate,
     seen_from_state,
     seen_points,
     seen_state,
@@ -62,6 +64,28 @@ def test_a_changed_estimate_is_motion_only_when_the_data_left_where_it_was():
     assert moved_in_world(0.9, 0.001, *_ev(0.9, residual=0.001 + rise + 1e-5), cfg)
     assert not moved_in_world(0.9, 0.001, *_ev(0.9, residual=0.001 + rise - 1e-5), cfg)
     assert not moved_in_world(0.9, NAN, *_ev(0.9, residual=0.005), cfg)  # not known then
+
+
+def test_a_changed_estimate_is_motion_only_when_this_frames_data_prefer_it():
+    # the data at the previous pose changed against the frame that set it (a new view), yet
+    # this frame's data fit the estimate no better there: no motion; the estimate explains
+    # more of the visible surface, its segment lies closer to it, or the old place is seen
+    # empty: the data prefer it
+    cfg = SSPConfig()
+    gain, closer = cfg.temporal.moved_fit_gain, FUSION_CORRECTION
+    old, r_old = _ev(0.8, residual=0.002)
+    assert not prefers_estimate(old, r_old, _ev(0.8)[0], 0.002, cfg)
+    assert not prefers_estimate(old, r_old, _ev(0.8 + gain - 0.01)[0], r_old - closer + 1e-5, cfg)
+    assert prefers_estimate(old, r_old, _ev(0.8 + gain + 0.01)[0], 0.002, cfg)
+    assert prefers_estimate(old, r_old, _ev(0.8)[0], r_old - closer - 1e-5, cfg)
+    empty = _ev(0.8, seen_through=cfg.temporal.seen_through_fraction)[0]
+    assert prefers_estimate(empty, r_old, _ev(0.8)[0], 0.002, cfg)
+    # too little seen at either pose, or no evidence at the estimate: the data cannot say
+    few = cfg.verification.min_visible_samples - 1
+    assert prefers_estimate(_ev(0.8, visible=few)[0], r_old, _ev(0.8)[0], 0.002, cfg)
+    assert prefers_estimate(old, r_old, _ev(0.8, visible=few)[0], 0.002, cfg)
+    assert prefers_estimate(old, r_old, None, 0.002, cfg)
+    assert not prefers_estimate(old, NAN, _ev(0.8)[0], 0.002, cfg)  # residual not known
 
 
 def test_a_static_objects_output_is_the_running_mean_of_its_estimates():

@@ -334,6 +334,17 @@ class TemporalConfig(_Section):
             "the estimate was corrected and the object is static (ssp.motion.moved_in_world)."
         ),
     )
+    moved_fit_gain: float = Field(
+        0.1,
+        ge=0,
+        le=1,
+        description=(
+            "A changed estimate of an object whose data at its previous pose changed is motion "
+            "only when this frame's data prefer it: it explains this much more of the object's "
+            "visible surface than the previous pose does, or the segment lies closer to it "
+            "(ssp.motion.prefers_estimate)."
+        ),
+    )
     moved_residual_rise: float = Field(
         0.0005,
         ge=0,

@@ -23,7 +23,14 @@ import numpy as np
 from ssp.correction import correction_note, correction_of
 from ssp.estimate import ObjectEstimate, SceneEstimate, SupportEdge
 from ssp.frame_context import Known
-from ssp.motion import at_rest, explains_before, moved_in_world, object_residual, seen_points
+from ssp.motion import (
+    at_rest,
+    explains_before,
+    moved_in_world,
+    object_residual,
+    prefers_estimate,
+    seen_points,
+)
 from ssp.orientation import Orientation, Ranking
 from ssp.probability import pose_change
 from ssp.retention import TriageState
@@ -223,8 +230,9 @@ def _corrected(
     """``(why, fit)``: why known object ``oid``, whose estimate changed from ``prev`` to ``T``
     (4x4, m) beyond the static thresholds, did not move in the world, in words (None: it
     moved, or the data cannot say), and, when the data at ``prev`` is as it was
-    (:func:`ssp.motion.moved_in_world`), the fraction of its visible surface ``prev`` explains
-    in this frame (None otherwise)."""
+    (:func:`ssp.motion.moved_in_world`) or this frame's data do not prefer ``T`` to it
+    (:func:`ssp.motion.prefers_estimate`), the fraction of its visible surface ``prev``
+    explains in this frame (None otherwise)."""
     known = ctx.known.get(oid)
     if known is None or known.seen_fit is None:
         return None, None
@@ -241,6 +249,13 @@ def _corrected(
         return change + (
             f"the data where it was is as it was (explains {100 * now.fit:.0f} % of its "
             f"visible surface there, {100 * known.seen_fit:.0f} % in the frame before)"
+        ), float(now.fit)
+    est = ctx.evidence.get(oid)
+    if not prefers_estimate(now, residual, est, object_residual(ctx, oid, T), ctx.config):
+        assert est is not None
+        return change + (
+            f"this frame's data do not prefer the new estimate (it explains {100 * est.fit:.0f} "
+            f"% of its visible surface, where it was {100 * now.fit:.0f} %)"
         ), float(now.fit)
     if explains_before(known.seen_points, model, prev, T, ctx.config):
         return change + "the new estimate explains the points seen of it before as well", None
