@@ -5,7 +5,8 @@ in the world, not a change of the estimate).
 * :func:`moved_in_world` asks the data at the object's previous pose: left, or as it was (the
   estimate was corrected); :func:`explains_before`: a new estimate that explains the points
   seen of the object before as well as the old pose did is a correction too (a moving
-  camera's new view can change the data at a pose that was off);
+  camera's new view can change the data at a pose that was off); :func:`prefers_estimate`:
+  nor is it motion when this frame's data do not prefer the new estimate to the old pose;
 * :func:`at_rest` / :func:`fuse_static`: the running mean of a static object's estimates;
 * :func:`object_residual`, :func:`points_residual`: the point-to-plane measures they use;
   :func:`seen_state` / :func:`seen_from_state`: what a scene state keeps of them.
