@@ -118,7 +118,8 @@ def prefers_estimate(
     keyframes' report seeds four objects at rest (their previous poses 0-2.3 mm and 0-1.4 deg
     from the truth) were reported moved, their segment 0.5-1.1 mm farther from the previous
     pose than in the frame before (another side seen) or explaining 0.64 less of it, while the
-    new estimate, 1.5-3.6 mm and 5.6-9.9 deg off, explained this frame's data no better. An
+    new estimate, 1.5-3.6 mm and 5.6-9.9 deg off, explained this frame's data no better
+    (``examples/trace_reported_moves.py``, docs/benchmarks.md). An
     object that moved has left its previous pose in this frame's data; the estimate that
     follows it explains them better."""
     t, v = config.temporal, config.verification
